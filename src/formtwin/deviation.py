@@ -1,0 +1,151 @@
+"""Deviation model ``z = g(z~, theta_d)`` between modelled and real force curve, and its inverse.
+
+``theta_d = [a_1..a_k, b_1..b_k]`` holds the force scaling ``a`` and the speed scaling ``b``
+at ``k`` evenly spaced knots on the curve window (paper: k = 4 on [-80, 20] ms, values in
+[-0.2, 0.2]); both are piecewise linear in time between the knots and constant beyond them.
+The real curve is
+
+    z(t) = (1 + a(t)) z~(tau(t)),    tau(t) = int_0^t (1 + b(s)) ds,
+
+so a faster punch (b > 0) runs through model time quicker; tau is anchored at t = 0, where
+the punch is lowest, and is strictly increasing because b > -1. ``tau`` is a piecewise
+quadratic and is integrated and inverted exactly, segment by segment. A curve is read
+between its samples by linear interpolation and, outside its window, by its edge value
+(the force is flat there: before contact and after release).
+
+Everything is vectorised: one curve against ``N`` parameter sets gives ``(N, n_t)`` at once.
+
+>>> import numpy as np
+>>> t = np.linspace(-0.08, 0.02, 101)
+>>> g = DeviationModel(t, np.linspace(-0.08, 0.02, 4))
+>>> z = np.exp(-((t + 0.01) / 0.02) ** 2)
+>>> theta_d = np.array([0.1, 0.1, 0.1, 0.1, 0.0, 0.0, 0.0, 0.0])
+>>> bool(np.allclose(g.apply(z, theta_d), 1.1 * z))
+True
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.spec import ProcessSpec
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class DeviationModel:
+    """``g`` on a uniform time grid ``time`` (n_t,) s with knots ``knots`` (k,) s."""
+
+    time: FloatArray
+    knots: FloatArray
+
+    @classmethod
+    def from_spec(cls, spec: ProcessSpec) -> DeviationModel:
+        return cls(spec.time, spec.deviation.knots)
+
+    @property
+    def n_params(self) -> int:
+        """Length of ``theta_d``: force then speed scaling, ``2 k``."""
+        return 2 * int(self.knots.size)
+
+    def _split(self, theta_d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        theta_d = np.atleast_2d(np.asarray(theta_d, dtype=np.float64))
+        k = self.knots.size
+        if theta_d.shape[-1] != 2 * k:
+            raise ValueError(f"theta_d has {theta_d.shape[-1]} columns, expected {2 * k}")
+        if np.any(theta_d[:, k:] <= -1.0):
+            raise ValueError("theta_d speed scaling must be above -1 (time must run forward)")
+        return theta_d[:, :k], theta_d[:, k:]
+
+    def _pwl(self, t: FloatArray, values: FloatArray) -> FloatArray:
+        """Piecewise-linear ``values`` (N, k) at times ``t`` (n,) -> (N, n), flat outside."""
+        idx = np.clip(np.searchsorted(self.knots, t, side="right") - 1, 0, self.knots.size - 2)
+        h = self.knots[idx + 1] - self.knots[idx]
+        w = np.clip((t - self.knots[idx]) / h, 0.0, 1.0)
+        out: FloatArray = values[:, idx] * (1.0 - w) + values[:, idx + 1] * w
+        return out
+
+    def force_scaling(self, theta_d: FloatArray) -> FloatArray:
+        """``a(t)`` on the grid, ``(N, n_t)``."""
+        a, _ = self._split(theta_d)
+        return self._pwl(self.time, a)
+
+    def _segments(self, b: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Segments of ``tau`` (left tail, k-1 interior, right tail): base time (k+1,) and,
+        per row, tau at the base, slope ``1 + b`` and curvature ``db/dt``, each (N, k+1)."""
+        kn, n = self.knots, b.shape[0]
+        h = np.diff(kn)
+        cum = np.concatenate([np.zeros((n, 1)),
+                              np.cumsum(0.5 * (b[:, :-1] + b[:, 1:]) * h, axis=1)], axis=1)
+        base = np.concatenate([kn[:1], kn])
+        b_int = np.concatenate([cum[:, :1], cum], axis=1)  # int_{k_0}^{base} b ds
+        slope = 1.0 + np.concatenate([b[:, :1], b], axis=1)
+        curv = np.concatenate([np.zeros((n, 1)), np.diff(b, axis=1) / h, np.zeros((n, 1))],
+                              axis=1)
+        # tau(t) = t + B(t) - B(0); evaluate t + B at t = 0 to anchor it
+        seg0 = int(np.searchsorted(kn, 0.0, side="right"))
+        u0 = 0.0 - base[seg0]
+        f0 = b_int[:, seg0] + (slope[:, seg0] - 1.0) * u0 + 0.5 * curv[:, seg0] * u0**2
+        return base, base + b_int - f0[:, None], slope, curv
+
+    def model_time(self, theta_d: FloatArray) -> FloatArray:
+        """``tau(t)`` on the grid, ``(N, n_t)`` s."""
+        _, b = self._split(theta_d)
+        base, tau_base, slope, curv = self._segments(b)
+        seg = np.searchsorted(self.knots, self.time, side="right")  # 0 = left tail
+        u = self.time - base[seg]
+        out: FloatArray = tau_base[:, seg] + slope[:, seg] * u + 0.5 * curv[:, seg] * u**2
+        return out
+
+    def real_time(self, theta_d: FloatArray) -> FloatArray:
+        """``t(tau)``, the inverse of ``tau``, at the grid's model times, ``(N, n_t)`` s."""
+        _, b = self._split(theta_d)
+        base, tau_base, slope, curv = self._segments(b)
+        tau_knots = tau_base[:, 1:]  # tau at each knot, increasing
+        seg = (tau_knots[:, None, :] <= self.time[None, :, None]).sum(axis=2)
+        rows = np.arange(b.shape[0])[:, None]
+        c = self.time[None, :] - tau_base[rows, seg]
+        s1, s2 = slope[rows, seg], curv[rows, seg]
+        disc = np.maximum(s1**2 + 2.0 * s2 * c, 0.0)
+        out: FloatArray = base[seg] + 2.0 * c / (s1 + np.sqrt(disc))
+        return out
+
+    def _interp_rows(self, curves: FloatArray, tq: FloatArray) -> FloatArray:
+        """Row-wise linear interpolation of curves (n_t,) or (N, n_t) at times tq (N, n_t)."""
+        t0, dt, n = self.time[0], self.time[1] - self.time[0], self.time.size
+        pos = np.clip((tq - t0) / dt, 0.0, n - 1.0)
+        i = np.minimum(pos.astype(np.intp), n - 2)
+        w = pos - i
+        curves = np.broadcast_to(curves, tq.shape)
+        lo = np.take_along_axis(curves, i, axis=1)
+        hi = np.take_along_axis(curves, i + 1, axis=1)
+        out: FloatArray = lo + w * (hi - lo)
+        return out
+
+    def apply(self, z_model: FloatArray, theta_d: FloatArray) -> FloatArray:
+        """``g(z~, theta_d)``: modelled curve(s) (n_t,) or (N, n_t) -> real curves (N, n_t)."""
+        a = self.force_scaling(theta_d)
+        return (1.0 + a) * self._interp_rows(np.asarray(z_model, dtype=np.float64),
+                                             self.model_time(theta_d))
+
+    def invert(self, z: FloatArray, theta_d: FloatArray) -> FloatArray:
+        """``g^-1(z, theta_d)``: real curve(s) (n_t,) or (N, n_t) -> model-time curves (N, n_t)."""
+        a, _ = self._split(theta_d)
+        t_real = self.real_time(theta_d)
+        out: FloatArray = self._interp_rows(np.asarray(z, dtype=np.float64), t_real) / (
+            1.0 + self._pwl_rows(t_real, a))
+        return out
+
+    def _pwl_rows(self, t: FloatArray, values: FloatArray) -> FloatArray:
+        """Piecewise-linear ``values`` (N, k) at per-row times ``t`` (N, n) -> (N, n)."""
+        kn = self.knots
+        idx = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, kn.size - 2)
+        w = np.clip((t - kn[idx]) / (kn[idx + 1] - kn[idx]), 0.0, 1.0)
+        lo = np.take_along_axis(values, idx, axis=1)
+        hi = np.take_along_axis(values, idx + 1, axis=1)
+        out: FloatArray = lo + w * (hi - lo)
+        return out

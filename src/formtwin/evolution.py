@@ -1,0 +1,114 @@
+"""State evolution (paper eq. 4-5) and parameter jitter (eq. 10).
+
+Each state variable follows an AR(1) process
+
+    x_i = (1 - rho) mu + rho x_{i-1} + v,    v ~ N(0, (1 - rho^2) sigma^2),
+
+whose stationary distribution is N(mu, sigma^2). Constant parameters get a small random
+walk, ``theta_i = theta_{i-1} + u`` with ``u ~ N(0, (alpha (max - min))^2)``, so that the
+particle filter cannot get stuck on a wrong value.
+
+Bounds
+------
+The metamodel is valid only inside the design box ``[min, max]``. Values that leave it are
+**reflected** back at the bound (``x -> 2 max - x``, repeatedly if needed). Reflection keeps
+the random walk unbiased and its step size intact, whereas clipping would pile particles up
+exactly on the bound. It is applied to the filter's particles and to generated truth alike.
+
+>>> import numpy as np
+>>> reflect(np.array([1.2, -0.3, 0.5]), np.zeros(3), np.ones(3))
+array([0.8, 0.3, 0.5])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+DEFAULT_ALPHA = 0.01
+
+
+def reflect(values: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """Fold ``values`` (..., d) into the box ``[lo, hi]`` (d,) by mirror reflection."""
+    width = hi - lo
+    u = np.mod(values - lo, 2.0 * width)
+    return lo + np.where(u > width, 2.0 * width - u, u)
+
+
+def evolve(
+    x: FloatArray,
+    mu: FloatArray,
+    sigma: FloatArray,
+    rho: FloatArray,
+    rng: np.random.Generator,
+    lo: FloatArray | None = None,
+    hi: FloatArray | None = None,
+) -> FloatArray:
+    """One AR(1) step (eq. 4-5) for a batch of states.
+
+    Parameters
+    ----------
+    x : (N, d) states of product i-1.
+    mu, sigma, rho : (d,) or (N, d) statistics ``theta_s``.
+    rng : source of the noise ``v``.
+    lo, hi : (d,) optional box; states leaving it are reflected back.
+
+    Returns
+    -------
+    (N, d) states of product i.
+    """
+    noise = rng.standard_normal(x.shape) * (np.sqrt(1.0 - rho**2) * sigma)
+    out: FloatArray = (1.0 - rho) * mu + rho * x + noise
+    if lo is not None and hi is not None:
+        out = reflect(out, lo, hi)
+    return out
+
+
+def stationary(
+    n: int,
+    mu: FloatArray,
+    sigma: FloatArray,
+    rng: np.random.Generator,
+    lo: FloatArray | None = None,
+    hi: FloatArray | None = None,
+) -> FloatArray:
+    """``n`` draws ``(n, d)`` from the stationary distribution N(mu, sigma^2), reflected."""
+    out: FloatArray = mu + sigma * rng.standard_normal((n, np.size(mu)))
+    if lo is not None and hi is not None:
+        out = reflect(out, lo, hi)
+    return out
+
+
+def simulate(
+    n: int,
+    mu: FloatArray,
+    sigma: FloatArray,
+    rho: FloatArray,
+    rng: np.random.Generator,
+    lo: FloatArray | None = None,
+    hi: FloatArray | None = None,
+) -> FloatArray:
+    """A state sequence ``(n, d)`` of ``n`` products, started from the stationary law."""
+    d = np.size(mu)
+    out = np.empty((n, d))
+    out[0] = stationary(1, mu, sigma, rng, lo, hi)[0]
+    noise = rng.standard_normal((n, d)) * (np.sqrt(1.0 - rho**2) * sigma)
+    for i in range(1, n):  # sequential by nature: product i depends on product i-1
+        step = (1.0 - rho) * mu + rho * out[i - 1] + noise[i]
+        out[i] = step if lo is None or hi is None else reflect(step, lo, hi)
+    return out
+
+
+def jitter(
+    theta: FloatArray,
+    lo: FloatArray,
+    hi: FloatArray,
+    rng: np.random.Generator,
+    alpha: float = DEFAULT_ALPHA,
+) -> FloatArray:
+    """Random-walk step (eq. 10) of parameters ``(N, d)``, std ``alpha (hi - lo)``, reflected."""
+    if alpha < 0:
+        raise ValueError(f"alpha = {alpha}, expected alpha >= 0")
+    return reflect(theta + rng.standard_normal(theta.shape) * (alpha * (hi - lo)), lo, hi)
