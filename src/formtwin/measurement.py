@@ -1,0 +1,298 @@
+"""Measurement model: likelihood of a force curve given particles (paper eq. 6, 12).
+
+The paper models the (deviation-corrected) measured curve as
+
+    g^-1(z, theta_d) ~ N( z~(x, theta), fraction^2 K_MC ),    fraction = 1/2,   (eq. 12)
+
+where ``K_MC`` is the covariance of ``10^4`` model curves with the state drawn per variable
+from ``N(mu, sigma^2)`` (``rho = 0``) and the machine parameters uniform in their bounds.
+
+Rank deficiency and the choice made here
+----------------------------------------
+Metamodel curves are combinations of a few POD modes, so ``K_MC`` has rank ``r <= n_modes``
+(far below ``n_t = 101``) and ``N(., K_MC)`` has no density off that span. Curves from the
+physics model, from the real press or passed through ``g^-1`` do leave the span. We use the
+probabilistic-PCA form of the covariance (Tipping & Bishop 1999)::
+
+    Sigma = U diag(lam) U^T + s2 (I - U U^T)
+
+* ``U`` (n_t, r), ``lam`` (r,): principal directions and variances of ``fraction^2 K_MC``,
+  keeping the directions with ``lam >= rel_tol * lam_max``;
+* ``s2``: the isotropic *residual* variance of the discarded directions, the PPCA estimate
+  (mean of the discarded eigenvalues of ``fraction^2 K_MC``) floored by a sensor-noise
+  variance ``sensor_noise^2`` and by ``rel_floor * lam_max``, so that ``cond(Sigma) <=
+  1 / rel_floor`` whatever the data.
+
+Then, for a difference ``d = obs - model`` (n_t,), with ``c = U^T d``::
+
+    -2 log p = sum(c^2 / lam) + (|d|^2 - |c|^2) / s2 + sum(log lam) + (n_t - r) log s2
+               + n_t log(2 pi)
+
+which costs ``O(n_t r)`` per particle and needs no matrix inverse on the hot path. A
+particle-independent part of the residual (metamodel curves all lie in the span) shifts all
+log-weights equally and cancels in the normalisation.
+
+Robust option: ``nu`` (degrees of freedom) replaces the Gaussian by a multivariate
+Student-t with the same scale matrix, whose log-density falls only logarithmically with
+the Mahalanobis distance, so one outlier curve cannot wipe out the particle cloud.
+
+>>> import numpy as np
+>>> from formtwin.spec import load_spec
+>>> spec = load_spec()
+>>> mm = MeasurementModel.from_monte_carlo(AnalyticModel(spec), spec, n=2000,
+...                                        rng=np.random.default_rng(0))
+>>> curves = AnalyticModel(spec).predict_curves(np.tile(spec.inputs.lo, (3, 1)))
+>>> mm.loglik(curves, curves[0]).shape
+(3,)
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import gammaln
+
+from formtwin.spec import ProcessSpec
+
+FloatArray = NDArray[np.float64]
+
+log = logging.getLogger(__name__)
+
+_FORMAT = "formtwin.measurement/1"
+
+
+@runtime_checkable
+class ProcessModel(Protocol):
+    """What the tracker needs of a process model (a metamodel or a fast stand-in).
+
+    ``X`` holds model inputs, state then parameters (``spec.inputs``), internal units.
+    """
+
+    @property
+    def spec(self) -> ProcessSpec: ...
+
+    def predict_curves(self, X: FloatArray) -> FloatArray:
+        """Stage-1 force curves (N, n_t), N, for inputs ``X`` (N, 10)."""
+        ...
+
+    def predict_angles(self, X: FloatArray) -> FloatArray:
+        """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10)."""
+        ...
+
+
+@dataclass(frozen=True)
+class AnalyticModel:
+    """The closed-form stand-in :class:`~formtwin.physics.analytic.AnalyticBending` as a
+    :class:`ProcessModel` (for tests, benchmarks and development; not the metamodel)."""
+
+    spec: ProcessSpec
+    _last: list[tuple[FloatArray, FloatArray, FloatArray]] = field(
+        default_factory=list, init=False, repr=False, compare=False)
+
+    def _run(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        # curves and angles come from one run; remember the last batch so that asking for
+        # the angles of the particles whose curves were just computed costs nothing
+        from formtwin.physics.analytic import AnalyticBending
+
+        X = np.asarray(X, dtype=np.float64)
+        if self._last and self._last[0][0].shape == X.shape and \
+                np.array_equal(self._last[0][0], X):
+            return self._last[0][1], self._last[0][2]
+        curves, angles = AnalyticBending(self.spec).run_batch(X)
+        self._last[:] = [(X.copy(), curves, angles)]
+        return curves, angles
+
+    def predict_curves(self, X: FloatArray) -> FloatArray:
+        return self._run(X)[0]
+
+    def predict_angles(self, X: FloatArray) -> FloatArray:
+        return self._run(X)[1]
+
+
+def monte_carlo_inputs(spec: ProcessSpec, n: int, rng: np.random.Generator,
+                       mu: FloatArray | None = None) -> FloatArray:
+    """Inputs (n, 10) for ``K_MC``: x ~ N(mu, sigma^2) per variable (rho = 0), reflected into
+    the design box, theta ~ U(bounds). ``mu`` (7,) defaults to ``spec.state.mu_mid``."""
+    from formtwin.evolution import stationary
+
+    st, pa = spec.state, spec.params
+    m = st.mu_mid if mu is None else np.asarray(mu, dtype=np.float64)
+    if m.shape != (len(st),):
+        raise ValueError(f"mu has shape {m.shape}, expected ({len(st)},)")
+    x = stationary(n, m, st.sigma, rng, st.lo, st.hi)
+    theta = pa.lo + (pa.hi - pa.lo) * rng.random((n, len(pa)))
+    return np.hstack([x, theta])
+
+
+@dataclass(frozen=True, eq=False)
+class MeasurementModel:
+    """Gaussian (or Student-t) likelihood of a curve with PPCA covariance (see module doc).
+
+    Attributes
+    ----------
+    basis : (n_t, r) orthonormal principal directions of ``fraction^2 K_MC``.
+    lam : (r,) their variances, N^2.
+    s2 : residual variance off the span, N^2.
+    nu : Student-t degrees of freedom, or ``inf`` for the Gaussian of eq. 12.
+    mean : (n_t,) mean Monte-Carlo curve, N (kept for diagnostics; not used by loglik).
+    """
+
+    basis: FloatArray
+    lam: FloatArray
+    s2: float
+    nu: float = math.inf
+    mean: FloatArray | None = None
+    _white: FloatArray = field(init=False, repr=False)
+    _lognorm: float = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        b, lam = np.asarray(self.basis, np.float64), np.asarray(self.lam, np.float64)
+        if b.ndim != 2 or lam.shape != (b.shape[1],):
+            raise ValueError(f"basis {b.shape} and lam {lam.shape} do not match")
+        if not (np.all(lam > 0) and self.s2 > 0 and np.isfinite(self.s2)):
+            raise ValueError("variances lam and s2 must be positive and finite")
+        if not self.nu > 0:
+            raise ValueError(f"nu = {self.nu}, expected > 0 (inf for Gaussian)")
+        # whitened basis: c_w = d @ W gives c / sqrt(lam)
+        object.__setattr__(self, "basis", b)
+        object.__setattr__(self, "lam", lam)
+        object.__setattr__(self, "_white", b / np.sqrt(lam))
+        n_t, r = b.shape
+        logdet = float(np.sum(np.log(lam)) + (n_t - r) * math.log(self.s2))
+        object.__setattr__(self, "_lognorm", -0.5 * (logdet + n_t * math.log(2 * math.pi)))
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_curves(cls, curves: FloatArray, fraction: float = 0.5, rel_tol: float = 1e-8,
+                    rel_floor: float = 1e-6, sensor_noise: float = 0.0,
+                    nu: float = math.inf) -> MeasurementModel:
+        """Build from a Monte-Carlo set of curves ``(n, n_t)`` (their covariance is K_MC).
+
+        Parameters
+        ----------
+        fraction : the std of ``w`` as a fraction of the Monte-Carlo std (paper: 1/2).
+        rel_tol : directions with variance below ``rel_tol * lam_max`` are residual.
+        rel_floor : ``s2 >= rel_floor * lam_max`` (bounds the condition number).
+        sensor_noise : std of the sensor, N; ``s2 >= sensor_noise^2``.
+        nu : Student-t degrees of freedom; ``inf`` (default) is the paper's Gaussian.
+        """
+        z = np.asarray(curves, dtype=np.float64)
+        if z.ndim != 2 or z.shape[0] < 2:
+            raise ValueError(f"curves have shape {z.shape}, expected (n >= 2, n_t)")
+        if not np.all(np.isfinite(z)):
+            bad = int(np.sum(~np.all(np.isfinite(z), axis=1)))
+            log.warning("dropping %d Monte-Carlo curves with NaN/inf", bad)
+            z = z[np.all(np.isfinite(z), axis=1)]
+        if not 0 < fraction:
+            raise ValueError(f"fraction = {fraction}, expected > 0")
+        mean = z.mean(axis=0)
+        # eigenvalues of the sample covariance via SVD of the centred data
+        _, sv, vt = np.linalg.svd(z - mean, full_matrices=False)
+        eig = fraction**2 * sv**2 / (z.shape[0] - 1)
+        n_t = z.shape[1]
+        eig_all = np.zeros(n_t)
+        eig_all[: eig.size] = eig
+        lam_max = float(eig_all[0])
+        if lam_max <= 0:
+            raise ValueError("the Monte-Carlo curves do not vary: K_MC is zero")
+        r = int(np.sum(eig_all >= rel_tol * lam_max))
+        ppca = float(eig_all[r:].mean()) if r < n_t else 0.0
+        s2 = max(ppca, sensor_noise**2, rel_floor * lam_max)
+        log.info("measurement model: rank %d of %d, lam_max %.3g, s2 %.3g (ppca %.3g)",
+                 r, n_t, lam_max, s2, ppca)
+        return cls(basis=vt[:r].T.copy(), lam=eig_all[:r].copy(), s2=s2, nu=nu, mean=mean)
+
+    @classmethod
+    def from_monte_carlo(cls, model: ProcessModel, spec: ProcessSpec | None = None,
+                         mu: FloatArray | None = None, n: int = 10_000,
+                         fraction: float = 0.5, rng: np.random.Generator | None = None,
+                         **kwargs: float) -> MeasurementModel:
+        """``K_MC`` from ``n`` model curves (paper "Simulation runs"), then :meth:`from_curves`.
+
+        Parameters
+        ----------
+        model : the process model (metamodel) whose curves define ``K_MC``.
+        spec : process spec; defaults to ``model.spec``.
+        mu : (7,) assumed state means; default ``spec.state.mu_mid`` (series 4, 6).
+        n : number of Monte-Carlo curves (paper: 10^4).
+        fraction : std of ``w`` relative to the Monte-Carlo std (paper: 1/2).
+        rng : random source; default ``numpy.random.default_rng(0)``.
+        **kwargs : ``rel_tol``, ``rel_floor``, ``sensor_noise``, ``nu`` of :meth:`from_curves`.
+        """
+        spec = model.spec if spec is None else spec
+        rng = np.random.default_rng(0) if rng is None else rng
+        X = monte_carlo_inputs(spec, n, rng, mu)
+        return cls.from_curves(model.predict_curves(X), fraction=fraction, **kwargs)
+
+    # ------------------------------------------------------------------ evaluation
+    @property
+    def n_t(self) -> int:
+        return int(self.basis.shape[0])
+
+    @property
+    def rank(self) -> int:
+        """Number of principal directions ``r``."""
+        return int(self.basis.shape[1])
+
+    def mahalanobis2(self, curves_model: FloatArray, curves_obs: FloatArray) -> FloatArray:
+        """Squared Mahalanobis distance ``d^T Sigma^-1 d`` (N,) of ``obs - model``."""
+        obs = np.asarray(curves_obs, dtype=np.float64)
+        mod = np.asarray(curves_model, dtype=np.float64)
+        for what, a in (("observed", obs), ("model", mod)):
+            if a.shape[-1] != self.n_t or a.ndim > 2:
+                raise ValueError(f"{what} curves have shape {a.shape}, expected "
+                                 f"(N, {self.n_t}) or ({self.n_t},)")
+        d = np.atleast_2d(obs - mod)
+        cw = d @ self._white
+        c = cw * np.sqrt(self.lam)
+        resid2 = np.einsum("ij,ij->i", d, d) - np.einsum("ij,ij->i", c, c)
+        out: FloatArray = np.einsum("ij,ij->i", cw, cw) + np.maximum(resid2, 0.0) / self.s2
+        return out
+
+    def loglik(self, curves_model: FloatArray, curves_obs: FloatArray) -> FloatArray:
+        """Log-likelihood (N,) of observed curves given model curves.
+
+        Parameters
+        ----------
+        curves_model : (N, n_t) model curves ``z~(x, theta)`` of the particles, N.
+        curves_obs : (N, n_t) or (n_t,) observed curves (already through ``g^-1``), N.
+
+        Returns
+        -------
+        (N,) log densities; NaN in a row gives ``-inf`` for that row.
+        """
+        m2 = self.mahalanobis2(curves_model, curves_obs)
+        if math.isinf(self.nu):
+            out: FloatArray = self._lognorm - 0.5 * m2
+        else:
+            nu, p = self.nu, self.n_t
+            const = (float(gammaln(0.5 * (nu + p)) - gammaln(0.5 * nu))
+                     - 0.5 * p * math.log(0.5 * nu))
+            out = self._lognorm + const - 0.5 * (nu + p) * np.log1p(m2 / nu)
+        return np.where(np.isnan(out), -np.inf, out)
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> Path:
+        """Write an ``.npz`` (no pickle) and return its path."""
+        p = Path(path)
+        mean = np.full(self.n_t, np.nan) if self.mean is None else self.mean
+        np.savez(p, format=np.array(_FORMAT), basis=self.basis, lam=self.lam,
+                 s2=np.array(self.s2), nu=np.array(self.nu), mean=mean)
+        return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
+
+    @classmethod
+    def load(cls, path: str | Path) -> MeasurementModel:
+        """Read a file written by :meth:`save`."""
+        with np.load(Path(path), allow_pickle=False) as f:
+            fmt = str(f["format"]) if "format" in f else ""
+            if fmt != _FORMAT:
+                raise ValueError(f"{path}: not a measurement-model file (format {fmt!r})")
+            mean = f["mean"]
+            return cls(basis=f["basis"], lam=f["lam"], s2=float(f["s2"]), nu=float(f["nu"]),
+                       mean=None if np.all(np.isnan(mean)) else mean)

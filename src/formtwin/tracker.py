@@ -1,0 +1,425 @@
+"""The online estimator: one particle-filter step per product, checkpoint and restore.
+
+The filter's state is the augmented vector ``[x (7), theta (3), theta_d (8)]`` named by
+``spec.augmented``. :class:`BendingSSM` is the state-space model the generic filter sees:
+
+* initial law: ``x ~ N(mu, sigma^2)`` per variable (its stationary law under eq. 4-5,
+  reflected into the design box), ``theta`` and ``theta_d`` uniform in their bounds;
+* transition: ``x`` by the AR(1) evolution (eq. 4-5), ``theta`` and ``theta_d`` by the
+  jitter of eq. 10 (``alpha`` times the range), all reflected into their bounds;
+* likelihood (eq. 12): ``g^-1(z, theta_d)`` against the model curve ``z~(x, theta)`` under
+  the :class:`~formtwin.measurement.MeasurementModel`.
+
+With ``estimate_deviation=False`` (paper series 1, 2, 4, 5) ``theta_d`` is fixed at 0
+(``g`` is the identity), never jittered, and reported with mean 0 and std 0 (an exact,
+NaN-free statement of the filter's assumption).
+
+Estimates (eq. 13-14) and the predicted angles (posterior predictive mean and std of the
+angle model over the weighted particles) are taken *before* resampling.
+
+Bad input: :meth:`Tracker.step` validates the curve first (1-D, numeric, length ``n_t``,
+finite) and raises ``ValueError`` naming the problem; the tracker's state, RNG included, is
+untouched. Weight collapse is handled by the filter (see :mod:`formtwin.filters.sir`): the
+step keeps the predictive particles, and the estimate says ``collapsed=True``.
+
+Checkpoints are ``.npz`` files (no pickle) holding particles, log-weights, the RNG state as
+JSON, the config as JSON and the step count; a restored tracker continues bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.deviation import DeviationModel
+from formtwin.evolution import evolve, jitter, stationary
+from formtwin.filters import SIR, Step, make_filter
+from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.spec import ProcessSpec
+
+FloatArray = NDArray[np.float64]
+
+log = logging.getLogger(__name__)
+
+_CHECKPOINT_FORMAT = "formtwin.tracker/1"
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings of a :class:`Tracker` (immutable; change with ``dataclasses.replace``).
+
+    Attributes
+    ----------
+    n_particles : N (paper: 500).
+    alpha : jitter of theta and theta_d as a fraction of their range (eq. 10).
+    estimate_deviation : estimate theta_d (series 3, 6) or fix it at 0 (series 1, 2, 4, 5).
+    mu, sigma, rho : (7,) assumed state statistics, internal units; ``None`` -> the spec's
+        ``mu_mid`` (series 4, 6), ``sigma`` and ``rho``.
+    resampling : resampling scheme name (or callable, not checkpointable).
+    seed : seed of the tracker's ``numpy.random.default_rng``.
+    filter : particle-filter name (:data:`formtwin.filters.FILTERS`).
+    ess_threshold : resample when ESS < ess_threshold N (1.0: every step, Algorithm 1).
+    """
+
+    n_particles: int = 500
+    alpha: float = 0.01
+    estimate_deviation: bool = True
+    mu: tuple[float, ...] | None = None
+    sigma: tuple[float, ...] | None = None
+    rho: tuple[float, ...] | None = None
+    resampling: Any = "systematic"
+    seed: int = 0
+    filter: str = "sir"
+    ess_threshold: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("mu", "sigma", "rho"):
+            v = getattr(self, name)
+            if v is not None:  # store as a tuple of floats so the config stays hashable/JSON
+                object.__setattr__(self, name, tuple(float(a) for a in np.ravel(v)))
+        if self.n_particles < 1:
+            raise ValueError(f"n_particles = {self.n_particles}, expected >= 1")
+        if self.alpha < 0:
+            raise ValueError(f"alpha = {self.alpha}, expected >= 0")
+
+    def to_json(self) -> str:
+        if not isinstance(self.resampling, str):
+            raise ValueError("a config with a callable resampling scheme cannot be saved")
+        return json.dumps(dataclasses.asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> TrackerConfig:
+        return cls(**json.loads(text))
+
+
+def _jsonable(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The estimate after one product (eq. 13-14), internal units.
+
+    Attributes
+    ----------
+    index : 0-based number of the product in the tracker's stream.
+    names : (18,) names of the augmented state (``spec.augmented.names``).
+    mean, std : (18,) weighted posterior mean and std.
+    angles_mean, angles_std : (2,) posterior predictive mean and std of the angles, degrees.
+    ess : effective sample size before resampling.
+    collapsed : no particle explained the curve (estimate = predictive).
+    loglik : log marginal-likelihood increment of the curve (``-inf`` if collapsed).
+    """
+
+    index: int
+    names: tuple[str, ...]
+    mean: FloatArray
+    std: FloatArray
+    angles_mean: FloatArray
+    angles_std: FloatArray
+    ess: float
+    collapsed: bool
+    loglik: float
+
+    def __getitem__(self, name: str) -> float:
+        """Posterior mean of the variable ``name``."""
+        return float(self.mean[self.names.index(name)])
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (non-finite numbers become ``None``)."""
+        return {
+            "index": int(self.index),
+            "mean": {n: _jsonable(v) for n, v in zip(self.names, self.mean, strict=True)},
+            "std": {n: _jsonable(v) for n, v in zip(self.names, self.std, strict=True)},
+            "angles_mean": [_jsonable(v) for v in self.angles_mean],
+            "angles_std": [_jsonable(v) for v in self.angles_std],
+            "ess": _jsonable(self.ess),
+            "collapsed": bool(self.collapsed),
+            "loglik": _jsonable(self.loglik),
+        }
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """Stacked estimates of ``n`` products: arrays with a leading axis ``n``."""
+
+    names: tuple[str, ...]
+    index: NDArray[np.int64]
+    mean: FloatArray
+    std: FloatArray
+    angles_mean: FloatArray
+    angles_std: FloatArray
+    ess: FloatArray
+    collapsed: NDArray[np.bool_]
+    loglik: FloatArray
+
+    def __len__(self) -> int:
+        return int(self.index.size)
+
+    def __getitem__(self, name: str) -> FloatArray:
+        """Posterior means (n,) of the variable ``name``."""
+        out: FloatArray = self.mean[:, self.names.index(name)]
+        return out
+
+    @classmethod
+    def stack(cls, items: Sequence[Estimate], names: tuple[str, ...]) -> Estimates:
+        """Stack single estimates (possibly none) into arrays."""
+        d = len(names)
+
+        def arr(attr: str, width: int) -> FloatArray:
+            if not items:
+                return np.empty((0, width))
+            return np.array([getattr(e, attr) for e in items], dtype=np.float64)
+
+        return cls(names=names, index=np.array([e.index for e in items], dtype=np.int64),
+                   mean=arr("mean", d), std=arr("std", d), angles_mean=arr("angles_mean", 2),
+                   angles_std=arr("angles_std", 2),
+                   ess=np.array([e.ess for e in items], dtype=np.float64),
+                   collapsed=np.array([e.collapsed for e in items], dtype=bool),
+                   loglik=np.array([e.loglik for e in items], dtype=np.float64))
+
+    def columns(self) -> dict[str, NDArray[Any]]:
+        """Flat table columns: index, mean_<name>, std_<name>, angles, ess, ... (each (n,))."""
+        cols: dict[str, NDArray[Any]] = {"index": self.index}
+        for j, n in enumerate(self.names):
+            cols[f"mean_{n}"] = self.mean[:, j]
+        for j, n in enumerate(self.names):
+            cols[f"std_{n}"] = self.std[:, j]
+        for j in range(2):
+            cols[f"angle{j + 1}_mean"] = self.angles_mean[:, j]
+            cols[f"angle{j + 1}_std"] = self.angles_std[:, j]
+        cols.update(ess=self.ess, collapsed=self.collapsed, loglik=self.loglik)
+        return cols
+
+
+@dataclass(frozen=True)
+class BendingSSM:
+    """The augmented state-space model ``[x, theta, theta_d]`` for the generic filters."""
+
+    model: ProcessModel
+    measurement: MeasurementModel
+    config: TrackerConfig
+    spec: ProcessSpec = field(init=False)
+    deviation: DeviationModel = field(init=False)
+    _mu: FloatArray = field(init=False, repr=False)
+    _sigma: FloatArray = field(init=False, repr=False)
+    _rho: FloatArray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        spec = self.model.spec
+        object.__setattr__(self, "spec", spec)
+        object.__setattr__(self, "deviation", DeviationModel.from_spec(spec))
+        st, c = spec.state, self.config
+        for name, v in (("mu", c.mu), ("sigma", c.sigma), ("rho", c.rho)):
+            if v is not None and len(v) != len(st):
+                raise ValueError(f"config.{name} has {len(v)} values, expected {len(st)} "
+                                 f"({', '.join(st.names)})")
+        object.__setattr__(self, "_mu", st.mu_mid if c.mu is None else np.array(c.mu))
+        object.__setattr__(self, "_sigma", st.sigma if c.sigma is None else np.array(c.sigma))
+        object.__setattr__(self, "_rho", st.rho if c.rho is None else np.array(c.rho))
+        if self.measurement.n_t != spec.n_t:
+            raise ValueError(f"measurement model has {self.measurement.n_t} samples, "
+                             f"the spec's curves {spec.n_t}")
+
+    @property
+    def n_x(self) -> int:
+        return len(self.spec.state)
+
+    @property
+    def n_in(self) -> int:
+        return self.spec.n_inputs
+
+    def sample_initial(self, n: int, rng: np.random.Generator) -> FloatArray:
+        aug = self.spec.augmented
+        out = aug.lo + (aug.hi - aug.lo) * rng.random((n, len(aug)))
+        st = self.spec.state
+        out[:, : self.n_x] = stationary(n, self._mu, self._sigma, rng, st.lo, st.hi)
+        if not self.config.estimate_deviation:
+            out[:, self.n_in:] = 0.0
+        return out
+
+    def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
+        st, aug = self.spec.state, self.spec.augmented
+        out = np.empty_like(x)
+        out[:, : self.n_x] = evolve(x[:, : self.n_x], self._mu, self._sigma,
+                                    self._rho, rng, st.lo, st.hi)
+        stop = len(aug) if self.config.estimate_deviation else self.n_in
+        out[:, self.n_x: stop] = jitter(x[:, self.n_x: stop], aug.lo[self.n_x: stop],
+                                        aug.hi[self.n_x: stop], rng, self.config.alpha)
+        out[:, stop:] = x[:, stop:]
+        return out
+
+    def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        curves = self.model.predict_curves(x[:, : self.n_in])
+        obs = self.deviation.invert(y, x[:, self.n_in:]) if self.config.estimate_deviation \
+            else y
+        return self.measurement.loglik(curves, obs)
+
+
+def validate_curve(curve: Any, n_t: int) -> FloatArray:
+    """``curve`` as a float array (n_t,), or ``ValueError`` naming what is wrong."""
+    if isinstance(curve, (str, bytes)):
+        raise ValueError(f"curve is a {type(curve).__name__}, expected {n_t} numbers")
+    try:
+        arr = np.asarray(curve)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"curve cannot be read as an array: {exc}") from exc
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"curve has dtype {arr.dtype}, expected real numbers")
+    if arr.ndim != 1:
+        raise ValueError(f"curve has shape {arr.shape}, expected ({n_t},)")
+    if arr.size != n_t:
+        raise ValueError(f"curve has {arr.size} samples, expected {n_t}")
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        raise ValueError(f"curve has {int(bad.sum())} non-finite values (NaN/inf), first "
+                         f"at sample {int(np.argmax(bad))}")
+    return arr
+
+
+class Tracker:
+    """Online state, parameter and deviation estimation for a stream of products.
+
+    Parameters
+    ----------
+    model : the process model (metamodel) giving curves and angles.
+    measurement : the measurement model (likelihood).
+    config : settings; default :class:`TrackerConfig()`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from formtwin.spec import load_spec
+    >>> from formtwin.measurement import AnalyticModel, MeasurementModel
+    >>> spec = load_spec(); model = AnalyticModel(spec)
+    >>> mm = MeasurementModel.from_monte_carlo(model, n=2000)
+    >>> tr = Tracker(model, mm, TrackerConfig(n_particles=200, estimate_deviation=False))
+    >>> curve = model.predict_curves(np.tile(0.5 * (spec.inputs.lo + spec.inputs.hi), (1, 1)))[0]
+    >>> e = tr.step(curve)
+    >>> e.index, e.mean.shape, tr.n_steps
+    (0, (18,), 1)
+    """
+
+    def __init__(self, model: ProcessModel, measurement: MeasurementModel,
+                 config: TrackerConfig | None = None) -> None:
+        self.config = TrackerConfig() if config is None else config
+        self.model = model
+        self.measurement = measurement
+        self.ssm = BendingSSM(model, measurement, self.config)
+        self.spec = model.spec
+        self.names: tuple[str, ...] = self.spec.augmented.names
+        self.rng = np.random.default_rng(self.config.seed)
+        self.filter: SIR = make_filter(self.config.filter, self.ssm, self.config.n_particles,
+                                       self.rng, self.config.resampling,
+                                       self.config.ess_threshold)
+
+    @property
+    def n_steps(self) -> int:
+        """Number of products assimilated so far."""
+        return self.filter.t
+
+    @property
+    def particles(self) -> FloatArray | None:
+        """Current (resampled) particles (N, 18), or ``None`` before the first step."""
+        return self.filter.x
+
+    def step(self, curve: Any) -> Estimate:
+        """Assimilate the force curve (n_t,) N of the next product; return its estimate."""
+        y = validate_curve(curve, self.spec.n_t)
+        s = self.filter.step(y)
+        return self._estimate(s)
+
+    def _estimate(self, s: Step) -> Estimate:
+        angles = self.model.predict_angles(s.x[:, : self.spec.n_inputs])
+        ok = np.all(np.isfinite(angles), axis=1)
+        w = np.where(ok, s.w, 0.0)
+        if w.sum() > 0:
+            w = w / w.sum()
+            a = np.where(ok[:, None], angles, 0.0)
+            am = w @ a
+            astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0))
+        else:
+            am = astd = np.full(2, np.nan)
+        return Estimate(index=self.filter.t - 1, names=self.names, mean=s.mean(), std=s.std(),
+                        angles_mean=am, angles_std=astd, ess=s.ess, collapsed=s.collapsed,
+                        loglik=s.loglik)
+
+    def run(self, curves: Iterable[Any], progress: bool = False) -> Estimates:
+        """Assimilate curves (n, n_t) one product at a time; return stacked estimates.
+
+        ``progress`` shows a tqdm bar (only on a terminal).
+        """
+        items: list[Estimate] = []
+        it: Iterable[Any] = curves
+        if progress:
+            import sys
+
+            from tqdm import tqdm
+            it = tqdm(curves, desc="tracking", unit="product", disable=not sys.stderr.isatty())
+        for c in it:
+            items.append(self.step(c))
+        return Estimates.stack(items, self.names)
+
+    # ------------------------------------------------------------------ persistence
+    def checkpoint(self, path: str | Path) -> Path:
+        """Save the full state to ``path`` (.npz, atomic replace); return the path."""
+        p = Path(path)
+        f = self.filter
+        x = np.empty((0, len(self.names))) if f.x is None else f.x
+        tmp = p.with_name(p.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, format=np.array(_CHECKPOINT_FORMAT), particles=x, logw=f.logw,
+                     t=np.array(f.t), rng=np.array(json.dumps(self.rng.bit_generator.state)),
+                     config=np.array(self.config.to_json()), names=np.array(self.names),
+                     measurement=np.array(_fingerprint(self.measurement)))
+        os.replace(tmp, p)
+        return p
+
+    @classmethod
+    def restore(cls, path: str | Path, model: ProcessModel,
+                measurement: MeasurementModel) -> Tracker:
+        """A tracker continuing exactly where the one that wrote ``path`` stopped."""
+        with np.load(Path(path), allow_pickle=False) as z:
+            fmt = str(z["format"]) if "format" in z else ""
+            if fmt != _CHECKPOINT_FORMAT:
+                raise ValueError(f"{path}: not a tracker checkpoint (format {fmt!r})")
+            config = TrackerConfig.from_json(str(z["config"]))
+            names = tuple(str(n) for n in z["names"])
+            particles, logw, t = z["particles"], z["logw"], int(z["t"])
+            rng_state = json.loads(str(z["rng"]))
+            mfp = str(z["measurement"])
+        tr = cls(model, measurement, config)
+        if names != tr.names:
+            raise ValueError(f"{path}: state names {names} differ from the model's {tr.names}")
+        if mfp != _fingerprint(measurement):
+            log.warning("%s: restoring with a different measurement model than saved", path)
+        tr.rng.bit_generator.state = rng_state
+        tr.filter.x = particles if t > 0 and particles.size else None
+        tr.filter.logw = logw
+        tr.filter.t = t
+        return tr
+
+
+def _fingerprint(m: MeasurementModel) -> str:
+    """A short hash of the measurement model's numbers (detects a swapped model)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (m.basis, m.lam, np.array([m.s2, m.nu])):
+        h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
+__all__ = ["BendingSSM", "Estimate", "Estimates", "Tracker", "TrackerConfig",
+           "validate_curve"]

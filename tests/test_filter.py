@@ -1,0 +1,172 @@
+"""Generic particle filters: resampling schemes, Kalman agreement, collapse handling."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from formtwin.filters import (
+    FILTERS,
+    RESAMPLERS,
+    SIR,
+    get_filter,
+    get_resampler,
+    make_filter,
+)
+
+
+@pytest.mark.parametrize("name", sorted(RESAMPLERS))
+def test_resamplers_are_unbiased(name: str) -> None:
+    rng = np.random.default_rng(0)
+    w = rng.random(50) ** 3
+    w[[3, 7]] = 0.0
+    w /= w.sum()
+    scheme = get_resampler(name)
+    counts = np.zeros(50)
+    reps = 2000
+    for _ in range(reps):
+        idx = scheme(w, rng, 50)
+        assert idx.shape == (50,) and idx.dtype == np.intp
+        assert idx.min() >= 0 and idx.max() < 50
+        counts += np.bincount(idx, minlength=50)
+    assert counts[3] == counts[7] == 0  # zero weight: never drawn
+    # E[count_k] = N w_k; multinomial variance bounds the others
+    se = np.sqrt(50 * w * (1 - w) / reps)
+    assert np.all(np.abs(counts / reps - 50 * w) < 5 * se + 1e-9)
+
+
+def test_low_variance_schemes_keep_the_integer_part() -> None:
+    w = np.array([0.52, 0.27, 0.21])
+    for name in ("systematic", "residual"):
+        c = np.bincount(get_resampler(name)(w, np.random.default_rng(1), 10), minlength=3)
+        assert np.all(c >= np.floor(10 * w)) and c.sum() == 10
+
+
+def test_unknown_names_list_the_known_ones_and_callables_pass() -> None:
+    with pytest.raises(ValueError, match="known: multinomial, residual, stratified, systematic"):
+        get_resampler("bogus")
+    with pytest.raises(ValueError, match="known: sir"):
+        get_filter("bogus")
+    first = lambda w, rng, m: np.zeros(m, dtype=np.intp)  # noqa: E731
+    assert get_resampler(first) is first
+    assert FILTERS["sir"] is SIR and get_filter(SIR) is SIR
+
+
+class LinearGaussian:
+    """x_t = A x_{t-1} + v, v ~ N(0, Q);  y_t = H x_t + w, w ~ N(0, R);  x_0 ~ N(m0, P0)."""
+
+    def __init__(self) -> None:
+        self.A = np.array([[0.9, 0.2], [0.0, 0.7]])
+        self.Q = np.array([[0.3, 0.05], [0.05, 0.2]])
+        self.H = np.array([[1.0, 0.5]])
+        self.R = np.array([[0.4]])
+        self.m0 = np.array([1.0, -1.0])
+        self.P0 = np.eye(2)
+        self.lq = np.linalg.cholesky(self.Q)
+
+    def sample_initial(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return self.m0 + rng.standard_normal((n, 2)) @ np.linalg.cholesky(self.P0).T
+
+    def sample_transition(self, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return x @ self.A.T + rng.standard_normal(x.shape) @ self.lq.T
+
+    def loglik(self, x: np.ndarray, y: Any) -> np.ndarray:
+        r = float(self.R[0, 0])
+        return -0.5 * ((y - x @ self.H[0]) ** 2 / r + math.log(2 * math.pi * r))
+
+    def kalman(self, ys: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray], list[float]]:
+        """Filtering means, covariances and log predictive likelihoods. The filter's first
+        step propagates x_0, so the first prediction is A m0."""
+        m, p = self.m0, self.P0
+        means, covs, lls = [], [], []
+        for y in ys:
+            m, p = self.A @ m, self.A @ p @ self.A.T + self.Q
+            s = self.H @ p @ self.H.T + self.R
+            k = p @ self.H.T / s
+            innov = y - float((self.H @ m)[0])
+            sv = float(s[0, 0])
+            lls.append(-0.5 * (innov**2 / sv + math.log(2 * math.pi * sv)))
+            m = m + (k * innov).ravel()
+            p = p - k @ self.H @ p
+            means.append(m)
+            covs.append(p)
+        return means, covs, lls
+
+
+def simulate_lg(model: LinearGaussian, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    x = model.sample_initial(1, rng)
+    ys = []
+    for _ in range(n):
+        x = model.sample_transition(x, rng)
+        ys.append(float((x @ model.H[0])[0]) + math.sqrt(model.R[0, 0]) * rng.standard_normal())
+    return np.array(ys)
+
+
+@pytest.mark.parametrize("scheme,threshold", [("systematic", 1.0), ("residual", 0.5)])
+def test_sir_matches_the_kalman_filter(scheme: str, threshold: float) -> None:
+    model = LinearGaussian()
+    ys = simulate_lg(model, 25, seed=5)
+    means, covs, lls = model.kalman(ys)
+    n = 20_000
+    f = SIR(model, n, np.random.default_rng(6), resampling=scheme, ess_threshold=threshold)
+    for t, y in enumerate(ys):
+        s = f.step(y)
+        assert s.ess > 0.05 * n
+        var = np.diag(covs[t])
+        # Monte-Carlo error of a weighted mean ~ sqrt(var / ESS); allow 6 of them (observed
+        # up to 3.3 over these 25 steps; a filter ignoring the weights is off by > 100)
+        tol = 6 * np.sqrt(var / s.ess)
+        np.testing.assert_array_less(np.abs(s.mean() - means[t]), tol)
+        # sample variance: relative error ~ sqrt(2 / ESS)
+        np.testing.assert_allclose(s.std() ** 2, var, rtol=6 * math.sqrt(2 / s.ess))
+        assert abs(s.loglik - lls[t]) < 0.05
+    assert f.t == 25
+
+
+def test_collapse_keeps_the_predictive_and_never_gives_nan() -> None:
+    class Picky(LinearGaussian):
+        def loglik(self, x: np.ndarray, y: Any) -> np.ndarray:
+            if y is None:  # a curve no particle can explain
+                return np.full(x.shape[0], -np.inf)
+            if y == "nan":
+                return np.full(x.shape[0], np.nan)
+            return super().loglik(x, y)
+
+    f = make_filter("sir", Picky(), 500, np.random.default_rng(0))
+    f.step(0.5)
+    for bad in (None, "nan"):
+        s = f.step(bad)
+        assert s.collapsed and s.loglik == -np.inf
+        assert np.all(np.isfinite(s.w)) and s.w.sum() == pytest.approx(1.0)
+        np.testing.assert_allclose(s.w, 1 / 500)  # uniform: the predictive sample
+        assert np.all(np.isfinite(s.mean())) and np.all(np.isfinite(s.std()))
+        assert s.ess == pytest.approx(500)
+    s = f.step(0.3)
+    assert not s.collapsed and np.isfinite(s.loglik)
+
+
+def test_some_nan_logliks_get_zero_weight() -> None:
+    class Half(LinearGaussian):
+        def loglik(self, x: np.ndarray, y: Any) -> np.ndarray:
+            ll = super().loglik(x, y)
+            ll[::2] = np.nan
+            return ll
+
+    s = SIR(Half(), 100, np.random.default_rng(0)).step(0.0)
+    assert np.all(s.w[::2] == 0.0) and s.w.sum() == pytest.approx(1.0) and not s.collapsed
+
+
+def test_far_outlier_does_not_underflow() -> None:
+    # log-likelihoods around -1e6: plain weights would all underflow to 0
+    s = SIR(LinearGaussian(), 1000, np.random.default_rng(0)).step(1e3)
+    assert not s.collapsed and np.all(np.isfinite(s.w)) and s.loglik < -1e5
+
+
+def test_adaptive_resampling_skips_when_ess_is_high() -> None:
+    f = SIR(LinearGaussian(), 1000, np.random.default_rng(0), ess_threshold=0.01)
+    s = f.step(0.0)
+    assert not s.resampled and not np.allclose(f.logw, f.logw[0])

@@ -1,0 +1,170 @@
+"""Tracker on the analytic stand-in: real-number accuracy, checkpoints, bad input, collapse."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formtwin.evolution import simulate
+from formtwin.measurement import AnalyticModel, MeasurementModel
+from formtwin.spec import ProcessSpec, load_spec
+from formtwin.tracker import Estimates, Tracker, TrackerConfig
+
+
+@pytest.fixture(scope="module")
+def spec() -> ProcessSpec:
+    return load_spec()
+
+
+@pytest.fixture(scope="module")
+def model(spec: ProcessSpec) -> AnalyticModel:
+    return AnalyticModel(spec)
+
+
+@pytest.fixture(scope="module")
+def series1(spec: ProcessSpec, model: AnalyticModel) -> dict[str, np.ndarray]:
+    """Paper series 1 on the stand-in: data from the filter's own model, mu known."""
+    st, pa = spec.state, spec.params
+    rng = np.random.default_rng(11)
+    mu = st.mu_min + (st.mu_max - st.mu_min) * rng.random(len(st))
+    theta = pa.lo + (pa.hi - pa.lo) * rng.random(len(pa))
+    n = 150
+    x = simulate(n, mu, st.sigma, st.rho, rng, st.lo, st.hi)
+    X = np.hstack([x, np.tile(theta, (n, 1))])
+    return {"mu": mu, "X": X, "curves": model.predict_curves(X),
+            "angles": model.predict_angles(X)}
+
+
+@pytest.fixture(scope="module")
+def mm(model: AnalyticModel, series1: dict[str, np.ndarray]) -> MeasurementModel:
+    return MeasurementModel.from_monte_carlo(model, mu=series1["mu"], n=3000,
+                                             rng=np.random.default_rng(2))
+
+
+def test_series1_estimates_punch_end_distance_and_press_stiffness(
+        spec: ProcessSpec, model: AnalyticModel, mm: MeasurementModel,
+        series1: dict[str, np.ndarray]) -> None:
+    cfg = TrackerConfig(n_particles=1000, mu=tuple(series1["mu"]), estimate_deviation=False,
+                        seed=3)
+    est = Tracker(model, mm, cfg).run(series1["curves"])
+    assert isinstance(est, Estimates) and len(est) == 150
+    X, half = series1["X"], slice(75, None)
+    idx = spec.augmented.index
+
+    def nrmse(name: str, scale: float) -> float:
+        err = est.mean[half, idx[name]] - X[half, idx[name]]
+        return float(np.sqrt(np.mean(err**2)) / scale)
+
+    st, pa = spec.state, spec.params
+    j = pa.index["press_stiffness"]
+    # paper Fig. 4 normalisation; a random/broken estimator scores ~1 or more
+    assert nrmse("punch_end_distance", st["punch_end_distance"].sigma) < 0.3
+    assert nrmse("press_stiffness", (pa.hi[j] - pa.lo[j]) / np.sqrt(6)) < 0.2
+    assert nrmse("vertical_alignment", 0.02 / np.sqrt(6)) < 0.2
+    ang = np.sqrt(np.mean((est.angles_mean[half, 0] - series1["angles"][half, 0]) ** 2))
+    assert ang / series1["angles"][:, 0].std() < 0.6
+    # the posterior std is a sane error bar: truth mostly inside mean +- 3 std
+    k = idx["punch_end_distance"]
+    inside = np.abs(est.mean[half, k] - X[half, k]) < 3 * est.std[half, k] + 1e-12
+    assert inside.mean() > 0.8
+    assert np.all(est.ess >= 1) and not est.collapsed.any()
+    assert np.all(est.mean[:, 10:] == 0) and np.all(est.std[:, 10:] == 0)
+
+
+def test_checkpoint_restore_continues_bit_for_bit(
+        tmp_path: Path, model: AnalyticModel, mm: MeasurementModel,
+        series1: dict[str, np.ndarray]) -> None:
+    curves = series1["curves"][:12]
+    cfg = TrackerConfig(n_particles=100, seed=5, resampling="stratified")
+    a = Tracker(model, mm, cfg)
+    a.run(curves[:6])
+    path = a.checkpoint(tmp_path / "ck.npz")
+    rest_a = a.run(curves[6:])
+    b = Tracker.restore(path, model, mm)
+    assert b.n_steps == 6 and b.config == cfg
+    rest_b = b.run(curves[6:])
+    for f in ("mean", "std", "angles_mean", "angles_std", "ess", "loglik"):
+        np.testing.assert_array_equal(getattr(rest_a, f), getattr(rest_b, f))
+    np.testing.assert_array_equal(a.particles, b.particles)
+    np.testing.assert_array_equal(rest_b.index, np.arange(6, 12))
+    # a fresh (never stepped) tracker round-trips too
+    c = Tracker(model, mm, cfg)
+    c.checkpoint(tmp_path / "fresh.npz")
+    d = Tracker.restore(tmp_path / "fresh.npz", model, mm)
+    np.testing.assert_array_equal(c.step(curves[0]).mean, d.step(curves[0]).mean)
+    np.savez(tmp_path / "junk.npz", a=np.zeros(2))
+    with pytest.raises(ValueError, match="not a tracker checkpoint"):
+        Tracker.restore(tmp_path / "junk.npz", model, mm)
+
+
+@pytest.mark.parametrize("bad,message", [
+    (np.zeros(50), "50 samples, expected 101"),
+    (np.zeros((1, 101)), r"shape \(1, 101\)"),
+    (np.r_[np.zeros(100), np.nan], "non-finite"),
+    (np.r_[np.zeros(100), np.inf], "non-finite"),
+    (["a"] * 101, "dtype"),
+    ("1,2,3", "str"),
+    (np.zeros(101, dtype=complex), "dtype"),
+    (None, "dtype"),
+    ([[1.0, 2.0], [1.0]], "cannot be read|dtype"),
+])
+def test_malformed_curves_raise_and_leave_the_state(
+        model: AnalyticModel, mm: MeasurementModel, series1: dict[str, np.ndarray],
+        bad: object, message: str) -> None:
+    tr = Tracker(model, mm, TrackerConfig(n_particles=50))
+    tr.step(series1["curves"][0])
+    before = (tr.particles.copy(), tr.filter.logw.copy(), tr.rng.bit_generator.state)
+    with pytest.raises(ValueError, match=message):
+        tr.step(bad)
+    assert tr.n_steps == 1
+    np.testing.assert_array_equal(tr.particles, before[0])
+    np.testing.assert_array_equal(tr.filter.logw, before[1])
+    assert tr.rng.bit_generator.state == before[2]
+
+
+def test_weight_collapse_is_flagged_and_recovered(
+        spec: ProcessSpec, mm: MeasurementModel, series1: dict[str, np.ndarray]) -> None:
+    class Flaky(AnalyticModel):
+        broken = False
+
+        def predict_curves(self, X: np.ndarray) -> np.ndarray:
+            out = super().predict_curves(X)
+            return np.full_like(out, np.nan) if self.broken else out
+
+    model = Flaky(spec)
+    tr = Tracker(model, mm, TrackerConfig(n_particles=100, estimate_deviation=False))
+    tr.run(series1["curves"][:5])
+    model.broken = True
+    e = tr.step(series1["curves"][5])
+    assert e.collapsed and e.loglik == -np.inf
+    assert np.all(np.isfinite(e.mean)) and np.all(np.isfinite(e.std))
+    assert np.all(np.isfinite(e.angles_mean)) and e.ess == pytest.approx(100)
+    json.dumps(e.to_dict(), allow_nan=False)  # JSON-safe: -inf -> null
+    model.broken = False
+    e2 = tr.step(series1["curves"][6])
+    assert not e2.collapsed and np.isfinite(e2.loglik)
+
+
+def test_estimate_values_and_config(model: AnalyticModel, mm: MeasurementModel,
+                                    series1: dict[str, np.ndarray]) -> None:
+    tr = Tracker(model, mm, TrackerConfig(n_particles=64, seed=1))
+    e = tr.step(series1["curves"][0])
+    assert e.index == 0 and len(e.names) == 18 and e.names[-1] == "speed_scaling_4"
+    assert np.any(tr.particles[:, 10:] != 0)  # deviation estimated by default
+    d = e.to_dict()
+    assert set(d["mean"]) == set(e.names)
+    assert e["punch_end_distance"] == d["mean"]["punch_end_distance"]
+    json.dumps(d, allow_nan=False)
+    cols = tr.run(series1["curves"][1:3]).columns()
+    assert cols["index"].tolist() == [1, 2] and "std_press_stiffness" in cols
+    with pytest.raises(ValueError, match="config.mu has 3 values, expected 7"):
+        Tracker(model, mm, TrackerConfig(mu=(1.0, 2.0, 3.0)))
+    with pytest.raises(ValueError, match="unknown resampling scheme"):
+        Tracker(model, mm, TrackerConfig(resampling="nope"))
+    cfg = dataclasses.replace(TrackerConfig(), mu=np.arange(7.0))
+    assert cfg.mu == tuple(float(v) for v in range(7))
+    assert TrackerConfig.from_json(cfg.to_json()) == cfg
