@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 from formtwin import __version__
 
-COMMANDS: tuple[str, ...] = ("spec", "plot", "demo")
+COMMANDS: tuple[str, ...] = ("spec", "plot", "demo", "serve", "replay", "export")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,124 @@
+"""``formtwin serve``: live tracking over MQTT with a durable store and a live page."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+DEFAULT_TOPIC = "plant/line1/press1/stroke"
+
+
+def add_broker_options(p: argparse.ArgumentParser) -> None:
+    """Broker address and security options shared by serve and replay."""
+    p.add_argument("--broker", default="mqtt://127.0.0.1:1883",
+                   help="mqtt://HOST[:PORT] or mqtts://HOST[:PORT] (default: %(default)s)")
+    p.add_argument("--username", help="broker user name")
+    p.add_argument("--password-file", help="file holding the broker password (else the "
+                   "environment variable FORMTWIN_MQTT_PASSWORD is used)")
+    p.add_argument("--tls", action="store_true", help="use TLS (implied by mqtts://)")
+    p.add_argument("--ca-file", help="CA bundle (PEM) to verify the broker")
+    p.add_argument("--cert-file", help="client certificate (PEM) for TLS client auth")
+    p.add_argument("--key-file", help="client key (PEM) for TLS client auth")
+
+
+def broker_config(args: argparse.Namespace) -> Any:
+    """A :class:`~formtwin.service.mqtt.BrokerConfig` from the parsed options."""
+    from formtwin.service.mqtt import BrokerConfig
+
+    password = os.environ.get("FORMTWIN_MQTT_PASSWORD")
+    if args.password_file:
+        password = Path(args.password_file).read_text(encoding="utf-8").strip()
+    if password is not None and not args.username:
+        raise ValueError("a broker password was given but no --username")
+    return BrokerConfig.from_url(args.broker, tls=args.tls, ca_file=args.ca_file,
+                                 cert_file=args.cert_file, key_file=args.key_file,
+                                 username=args.username, password=password)
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("serve", help="track live strokes from MQTT; store, publish, live page",
+                       description="Subscribe to force-curve strokes (QoS 1), run one tracker "
+                       "step per product, commit product + estimate + checkpoint to SQLite, "
+                       "publish the estimate, acknowledge. Safe to kill and restart.")
+    model = p.add_mutually_exclusive_group(required=True)
+    model.add_argument("--metamodel", help="metamodel file (formtwin.metamodel)")
+    model.add_argument("--analytic", action="store_true",
+                       help="use the closed-form analytic stand-in instead of a metamodel")
+    add_broker_options(p)
+    p.add_argument("--topic", default=DEFAULT_TOPIC, help="stroke topic (default: %(default)s)")
+    p.add_argument("--results-topic", help="default: sibling 'estimate' of --topic")
+    p.add_argument("--errors-topic", help="default: sibling 'errors' of --topic")
+    p.add_argument("--client-id", default="formtwin-serve",
+                   help="persistent MQTT session id; keep it across restarts")
+    p.add_argument("--store", default="formtwin-serve.sqlite",
+                   help="SQLite store (default: %(default)s)")
+    p.add_argument("--sync", choices=("normal", "full"), default="normal",
+                   help="SQLite synchronous: normal survives kills, full also power loss")
+    p.add_argument("--particles", type=int, default=500, help="N (default: %(default)s)")
+    p.add_argument("--alpha", type=float, default=0.01, help="parameter jitter (eq. 10)")
+    p.add_argument("--seed", type=int, default=0, help="tracker seed")
+    p.add_argument("--no-deviation", action="store_true",
+                   help="do not estimate the deviation parameters (theta_d = 0)")
+    p.add_argument("--n-mc", type=int, default=10_000,
+                   help="Monte-Carlo curves for the measurement model")
+    p.add_argument("--robust-nu", type=float, default=math.inf, metavar="NU",
+                   help="robust: Student-t likelihood with NU degrees of freedom")
+    p.add_argument("--gate", type=float, default=0.0, metavar="K",
+                   help="robust: gate single outlier curves whose loglik is K robust std "
+                   "below the recent median (0: off)")
+    p.add_argument("--max-bytes", type=int, default=65536, help="largest message, bytes")
+    p.add_argument("--min-force", type=float, default=-50.0, help="lowest force sample, N")
+    p.add_argument("--max-force", type=float, default=1.0e4, help="highest force sample, N")
+    p.add_argument("--http-host", default="127.0.0.1", help="page bind address")
+    p.add_argument("--http-port", type=int, default=8765, help="page port (0: any free)")
+    p.add_argument("--no-page", action="store_true", help="do not serve the live page")
+    p.add_argument("--connect-timeout", type=float, default=10.0,
+                   help="seconds to wait for the broker at start")
+    p.set_defaults(run=_serve)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from formtwin.service.mqtt import MqttService, Topics
+    from formtwin.service.runtime import ServiceSettings, open_processor
+
+    broker = broker_config(args)
+    topics = Topics.from_input(args.topic, args.results_topic, args.errors_topic)
+    settings = ServiceSettings(
+        model="analytic" if args.analytic else str(Path(args.metamodel).resolve()),
+        n_particles=args.particles, alpha=args.alpha,
+        estimate_deviation=not args.no_deviation, seed=args.seed, nu=args.robust_nu,
+        gate_k=args.gate, n_mc=args.n_mc, max_bytes=args.max_bytes,
+        min_force_N=args.min_force, max_force_N=args.max_force)
+    proc = open_processor(args.store, settings, synchronous=args.sync.upper())
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    page = None
+    try:
+        counts = proc.store.counts()
+        print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
+              f"{counts['rejected']} rejected", flush=True)
+        if not args.no_page:
+            from formtwin.service.web import LiveFeed, PageServer
+
+            feed = LiveFeed(proc.tracker_names())
+            feed.seed(proc.store)
+            proc.on_outcome = feed.on_outcome
+            page = PageServer(feed, args.http_host, args.http_port)
+            print(f"live page: {page.start()}", flush=True)
+        service = MqttService(proc, broker, topics, client_id=args.client_id)
+        print(f"serving {topics.strokes} on {broker.host}:{broker.port} -> "
+              f"{topics.results}, errors -> {topics.errors}", flush=True)
+        service.run(stop, timeout=args.connect_timeout)
+        print(f"stopped after {service.handled} messages", flush=True)
+    finally:
+        if page is not None:
+            page.stop()
+        proc.close()
+        proc.store.close()
+    return 0

@@ -1,0 +1,99 @@
+"""Export a service store (products with estimates, or rejections) to Parquet or CSV.
+
+>>> import tempfile, os
+>>> from formtwin.service.store import Store
+>>> d = tempfile.mkdtemp(); Store(os.path.join(d, "s.sqlite")).close()
+>>> export_store(os.path.join(d, "s.sqlite"), os.path.join(d, "e.csv"))[1]
+0
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any
+
+from formtwin.service.store import Store
+
+
+def product_table(store: Store, curves: bool = False) -> dict[str, list[Any]]:
+    """Column name -> values, one row per stored product (in commit order)."""
+    cols: dict[str, list[Any]] = {}
+    rows = list(store.products())
+    names: list[str] = []
+    for r in rows:
+        if r.estimate is not None:
+            names = list(r.estimate.get("mean", {}))
+            break
+    n_t = rows[0].curve.size if rows else 0
+
+    def put(key: str, value: Any) -> None:
+        cols.setdefault(key, []).append(value)
+
+    for r in rows:
+        e = r.estimate or {}
+        put("seq", r.seq)
+        put("part_id", r.part_id)
+        put("cycle", r.cycle)
+        put("timestamp", r.timestamp)
+        put("received_at", r.received_at)
+        put("status", r.status)
+        put("index", e.get("index"))
+        for n in names:
+            put(f"mean_{n}", (e.get("mean") or {}).get(n))
+        for n in names:
+            put(f"std_{n}", (e.get("std") or {}).get(n))
+        am, asd = e.get("angles_mean") or [None, None], e.get("angles_std") or [None, None]
+        ma: list[Any] = [None, None] if r.measured_angles is None else r.measured_angles
+        for k in range(2):
+            put(f"angle{k + 1}_mean", am[k])
+            put(f"angle{k + 1}_std", asd[k])
+            put(f"angle{k + 1}_measured", ma[k])
+        put("ess", e.get("ess"))
+        put("collapsed", e.get("collapsed"))
+        put("loglik", e.get("loglik"))
+        if curves:
+            for j in range(n_t):
+                put(f"f{j}", float(r.curve[j]))
+    return cols
+
+
+def rejection_table(store: Store) -> dict[str, list[Any]]:
+    """Column name -> values, one row per recorded rejection."""
+    rows = store.rejections()
+    keys = ("id", "received_at", "reason", "detail", "part_id")
+    return {k: [r[i] for r in rows] for i, k in enumerate(keys)}
+
+
+def export_store(store_path: str | Path, out: str | Path, curves: bool = False,
+                 rejections: bool = False) -> tuple[Path, int]:
+    """Write the store's products (or rejections) to ``out`` (.parquet or .csv).
+
+    Returns
+    -------
+    (path, number of rows)
+    """
+    sp, op = Path(store_path), Path(out)
+    if not sp.exists():
+        raise ValueError(f"{sp}: no such store")
+    suffix = op.suffix.lower()
+    if suffix not in (".parquet", ".csv"):
+        raise ValueError(f"{op}: unknown export format {suffix!r} (expected .parquet or .csv)")
+    store = Store(sp)
+    try:
+        table = rejection_table(store) if rejections else product_table(store, curves)
+    finally:
+        store.close()
+    n = len(next(iter(table.values()), []))
+    op.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".parquet":
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        pq.write_table(pa.table(table), op)
+    else:
+        with open(op, "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(list(table))
+            w.writerows(zip(*table.values(), strict=True))
+    return op, n

@@ -1,0 +1,246 @@
+"""Versioned JSON messages between the press and formtwin, and their validation.
+
+Stroke (press -> formtwin), schema ``formtwin.stroke/1``::
+
+    {"schema": "formtwin.stroke/1", "part_id": "P-000123", "cycle": 123,
+     "timestamp": "2026-11-21T23:59:59.123Z",
+     "force_N": [101 numbers: stage-1 punch force on the spec's time grid, N],
+     "angles_deg": [a1, a2]}            # optional, measured angles, monitoring only
+
+Estimate (formtwin -> results topic), schema ``formtwin.estimate/1``: the part id, cycle and
+timestamp of the stroke, the tracker step index, the names of the 18 estimated quantities with
+their posterior mean and std, predicted angles with std, ESS, loglik and flags.
+
+Error (formtwin -> errors topic), schema ``formtwin.error/1``: a reason code from
+:data:`REASONS`, a human-readable detail, the part id when known.
+
+>>> lim = Limits(n_t=3)
+>>> s = parse_stroke(b'{"schema": "formtwin.stroke/1", "part_id": "a", "cycle": 1, '
+...                  b'"timestamp": 0, "force_N": [0, 10.5, 2]}', lim)
+>>> s.part_id, s.force_N.tolist()
+('a', [0.0, 10.5, 2.0])
+>>> try:
+...     parse_stroke(b'{"schema": "formtwin.stroke/1", "part_id": "a", "cycle": 1, '
+...                  b'"timestamp": 0, "force_N": [0, NaN, 2]}', lim)
+... except MessageError as e:
+...     print(e.reason)
+non_finite
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+STROKE_SCHEMA = "formtwin.stroke/1"
+ESTIMATE_SCHEMA = "formtwin.estimate/1"
+ERROR_SCHEMA = "formtwin.error/1"
+
+#: every reason a message can be rejected for, with its meaning
+REASONS: dict[str, str] = {
+    "oversized": "message larger than the configured maximum",
+    "malformed_json": "payload is not UTF-8 JSON, or not a JSON object",
+    "unknown_schema": "schema field missing or not a version this service understands",
+    "missing_field": "a required field is absent",
+    "bad_field": "a field has the wrong type or an invalid value",
+    "wrong_length": "force curve does not have the spec's number of samples",
+    "non_finite": "NaN or infinity in the force curve or angles",
+    "negative_force": "force below the allowed negative tolerance",
+    "absurd_force": "force above the configured maximum",
+    "duplicate_part_id": "part id already stored with a different curve",
+    "out_of_order": "cycle count not greater than the last accepted cycle",
+    "tracker_rejected": "the tracker refused the curve",
+    "outlier_gated": "curve gated as a single outlier (robust mode); state not updated",
+}
+
+_PART_ID_MAX = 128
+
+
+class MessageError(ValueError):
+    """A stroke message was rejected; ``reason`` is a key of :data:`REASONS`."""
+
+    def __init__(self, reason: str, detail: str, part_id: str | None = None) -> None:
+        if reason not in REASONS:
+            raise KeyError(f"unknown rejection reason {reason!r}")
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+        self.part_id = part_id
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What a stroke message may contain.
+
+    Parameters
+    ----------
+    n_t : int
+        Number of force samples (the spec's time grid).
+    max_bytes : int
+        Largest accepted payload, bytes.
+    min_force_N : float
+        Most negative force sample accepted (sensor offset tolerance), N.
+    max_force_N : float
+        Largest force sample accepted, N.
+    """
+
+    n_t: int
+    max_bytes: int = 65536
+    min_force_N: float = -50.0
+    max_force_N: float = 1.0e4
+
+
+@dataclass(frozen=True)
+class Stroke:
+    """One validated stroke: ``force_N`` has shape ``(n_t,)``, ``angles_deg`` ``(2,)`` or None."""
+
+    part_id: str
+    cycle: int
+    timestamp: str
+    force_N: FloatArray
+    angles_deg: FloatArray | None
+    digest: str
+
+    def to_message(self) -> dict[str, Any]:
+        """The stroke as a ``formtwin.stroke/1`` JSON object."""
+        msg: dict[str, Any] = {"schema": STROKE_SCHEMA, "part_id": self.part_id,
+                               "cycle": self.cycle, "timestamp": self.timestamp,
+                               "force_N": [float(v) for v in self.force_N]}
+        if self.angles_deg is not None:
+            msg["angles_deg"] = [float(v) for v in self.angles_deg]
+        return msg
+
+
+def stroke_digest(force_N: FloatArray) -> str:
+    """SHA-256 of the curve's float64 bytes: tells a redelivery from a clash of part ids."""
+    return hashlib.sha256(np.ascontiguousarray(force_N, dtype="<f8").tobytes()).hexdigest()
+
+
+def _reject_constant(name: str) -> float:
+    raise MessageError("non_finite", f"JSON literal {name} is not a finite number")
+
+
+def _number_list(doc: dict[str, Any], key: str, part_id: str) -> FloatArray:
+    value = doc[key]
+    if not isinstance(value, list):
+        raise MessageError("bad_field", f"{key} must be a list of numbers, got "
+                           f"{type(value).__name__}", part_id)
+    for i, v in enumerate(value):
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise MessageError("bad_field", f"{key}[{i}] must be a number, got {v!r:.40}",
+                               part_id)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except OverflowError:
+        raise MessageError("non_finite", f"{key} holds an integer too large for float64",
+                           part_id) from None
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise MessageError("non_finite", f"{key}[{bad[0]}] is {arr[bad[0]]}", part_id)
+    return arr
+
+
+def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
+    """Parse and validate one stroke payload.
+
+    Parameters
+    ----------
+    payload : bytes
+        The raw MQTT payload.
+    limits : Limits
+        Sizes and force bounds.
+
+    Returns
+    -------
+    Stroke
+
+    Raises
+    ------
+    MessageError
+        With a reason from :data:`REASONS` naming the field, the value and what was expected.
+    """
+    if len(payload) > limits.max_bytes:
+        raise MessageError("oversized", f"{len(payload)} bytes > limit {limits.max_bytes}")
+    try:
+        doc = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)
+    except MessageError:
+        raise
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise MessageError("malformed_json", f"{type(exc).__name__}: {exc}"[:200]) from None
+    if not isinstance(doc, dict):
+        raise MessageError("malformed_json", f"top level is {type(doc).__name__}, not object")
+    schema = doc.get("schema")
+    if schema != STROKE_SCHEMA:
+        raise MessageError("unknown_schema",
+                           f"schema {schema!r:.60}, expected {STROKE_SCHEMA!r}")
+    raw_id = doc.get("part_id")
+    part_id = raw_id if isinstance(raw_id, str) else None
+    for key in ("part_id", "cycle", "timestamp", "force_N"):
+        if key not in doc:
+            raise MessageError("missing_field", f"field {key!r} is required", part_id)
+    if part_id is None or not 0 < len(part_id) <= _PART_ID_MAX or not part_id.isprintable():
+        raise MessageError("bad_field", f"part_id must be a printable string of 1.."
+                           f"{_PART_ID_MAX} characters, got {raw_id!r:.60}")
+    cycle = doc["cycle"]
+    if isinstance(cycle, bool) or not isinstance(cycle, int) or cycle < 0:
+        raise MessageError("bad_field", f"cycle must be a non-negative integer, got "
+                           f"{cycle!r:.40}", part_id)
+    ts = doc["timestamp"]
+    if isinstance(ts, bool) or not isinstance(ts, str | int | float) or \
+            (isinstance(ts, str) and len(ts) > 64) or \
+            (isinstance(ts, float) and not math.isfinite(ts)):
+        raise MessageError("bad_field", f"timestamp must be an ISO string or a number, got "
+                           f"{ts!r:.40}", part_id)
+    force = _number_list(doc, "force_N", part_id)
+    if force.size != limits.n_t:
+        raise MessageError("wrong_length", f"force_N has {force.size} samples, expected "
+                           f"{limits.n_t}", part_id)
+    lo, hi = int(np.argmin(force)), int(np.argmax(force))
+    if force[lo] < limits.min_force_N:
+        raise MessageError("negative_force", f"force_N[{lo}] = {force[lo]:.6g} N < "
+                           f"{limits.min_force_N:g} N", part_id)
+    if force[hi] > limits.max_force_N:
+        raise MessageError("absurd_force", f"force_N[{hi}] = {force[hi]:.6g} N > "
+                           f"{limits.max_force_N:g} N", part_id)
+    angles = None
+    if doc.get("angles_deg") is not None:
+        angles = _number_list(doc, "angles_deg", part_id)
+        if angles.size != 2:
+            raise MessageError("wrong_length", f"angles_deg has {angles.size} values, "
+                               "expected 2", part_id)
+    return Stroke(part_id=part_id, cycle=cycle, timestamp=str(ts), force_N=force,
+                  angles_deg=angles, digest=stroke_digest(force))
+
+
+def estimate_message(stroke: Stroke, estimate: dict[str, Any], seq: int,
+                     flags: dict[str, bool]) -> dict[str, Any]:
+    """The ``formtwin.estimate/1`` message for an accepted stroke.
+
+    ``estimate`` is the tracker's ``Estimate.to_dict()``; ``seq`` the store's product number.
+    """
+    msg: dict[str, Any] = {"schema": ESTIMATE_SCHEMA, "part_id": stroke.part_id,
+                           "cycle": stroke.cycle, "timestamp": stroke.timestamp, "seq": seq}
+    msg.update({k: v for k, v in estimate.items() if k not in msg})
+    msg["flags"] = dict(flags)
+    if stroke.angles_deg is not None:
+        msg["measured_angles_deg"] = [float(v) for v in stroke.angles_deg]
+    return msg
+
+
+def error_message(err: MessageError, topic: str, received_at: float) -> dict[str, Any]:
+    """The ``formtwin.error/1`` message for a rejection."""
+    return {"schema": ERROR_SCHEMA, "reason": err.reason, "detail": err.detail,
+            "part_id": err.part_id, "topic": topic, "received_at": received_at}
+
+
+def dumps(msg: dict[str, Any]) -> bytes:
+    """Compact JSON bytes; NaN/inf are refused (they are not JSON)."""
+    return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")

@@ -1,0 +1,216 @@
+"""paho-mqtt plumbing: broker address, security options, the serving loop and replay.
+
+Delivery guarantees. The service subscribes with QoS 1 on a persistent session (fixed
+client id, ``clean_session=False``) and acknowledges a message only *after* its outcome is
+committed to the store (paho's ``manual_ack``). A service killed at any instant therefore
+gets every unacknowledged stroke again from the broker when it restarts; the store
+recognises the ones it had already committed (same part id, same curve) and answers them
+with the stored estimate instead of counting them twice. Results and errors are published
+with QoS 1 (at least once): consumers de-duplicate by ``part_id``.
+"""
+
+from __future__ import annotations
+
+import logging
+import ssl
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import urlsplit
+
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+
+from formtwin.service.messages import Stroke, dumps
+from formtwin.service.processor import Outcome, Processor
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BrokerConfig:
+    """Where and how to connect.
+
+    Parameters
+    ----------
+    host, port : broker address.
+    tls : connect with TLS (``mqtts://`` URLs set it).
+    ca_file, cert_file, key_file : CA bundle and client certificate/key (PEM) for TLS.
+    username, password : broker credentials (the CLI reads the password from an
+        environment variable or a file, never from the command line).
+    keepalive : MQTT keepalive, s.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 1883
+    tls: bool = False
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    username: str | None = None
+    password: str | None = None
+    keepalive: int = 30
+
+    @classmethod
+    def from_url(cls, url: str, **kwargs: Any) -> BrokerConfig:
+        """Parse ``mqtt://host:port`` or ``mqtts://host:port``.
+
+        >>> BrokerConfig.from_url("mqtts://broker.local:8883").tls
+        True
+        """
+        parts = urlsplit(url)
+        if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
+            raise ValueError(f"broker URL {url!r}: expected mqtt://HOST[:PORT] or "
+                             "mqtts://HOST[:PORT]")
+        if parts.username or parts.password:
+            raise ValueError("broker URL must not carry credentials; use --username and "
+                             "FORMTWIN_MQTT_PASSWORD / --password-file")
+        tls = parts.scheme == "mqtts" or bool(kwargs.pop("tls", False))
+        port = parts.port or (8883 if tls else 1883)
+        return cls(host=parts.hostname, port=port, tls=tls, **kwargs)
+
+
+def make_client(cfg: BrokerConfig, client_id: str, *, persistent: bool = False,
+                manual_ack: bool = False) -> mqtt.Client:
+    """A paho client (MQTT 3.1.1, callback API v2) configured from ``cfg``."""
+    client = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id,
+                         clean_session=not persistent, protocol=mqtt.MQTTv311,
+                         manual_ack=manual_ack)
+    if cfg.username is not None:
+        client.username_pw_set(cfg.username, cfg.password)
+    if cfg.tls:
+        client.tls_set(ca_certs=cfg.ca_file, certfile=cfg.cert_file, keyfile=cfg.key_file,
+                       cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)
+    client.max_inflight_messages_set(100)
+    client.max_queued_messages_set(0)
+    return client
+
+
+@dataclass(frozen=True)
+class Topics:
+    """Input, results and errors topics; by default siblings of the input topic.
+
+    >>> Topics.from_input("plant/line1/press1/stroke").results
+    'plant/line1/press1/estimate'
+    """
+
+    strokes: str
+    results: str
+    errors: str
+
+    @classmethod
+    def from_input(cls, topic: str, results: str | None = None,
+                   errors: str | None = None) -> Topics:
+        if not topic or any(c in topic for c in "#+\x00"):
+            raise ValueError(f"topic {topic!r}: expected a plain topic without wildcards")
+        base = topic.rsplit("/", 1)[0] + "/" if "/" in topic else ""
+        return cls(topic, results or base + "estimate", errors or base + "errors")
+
+
+class MqttService:
+    """Subscribe to strokes, process them, publish outcomes, acknowledge after commit.
+
+    Parameters
+    ----------
+    processor : Processor
+    broker : BrokerConfig
+    topics : Topics
+    client_id : str
+        Fixed id of the persistent session (keep it across restarts).
+    """
+
+    def __init__(self, processor: Processor, broker: BrokerConfig, topics: Topics,
+                 client_id: str = "formtwin-serve") -> None:
+        self.processor = processor
+        self.topics = topics
+        self.client = make_client(broker, client_id, persistent=True, manual_ack=True)
+        self.client.on_connect = self._on_connect
+        self.client.on_message = self._on_message
+        self.client.on_disconnect = self._on_disconnect
+        self.connected = threading.Event()
+        self.broker = broker
+        self.handled = 0
+
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, rc: Any,
+                    props: Any = None) -> None:
+        if getattr(rc, "is_failure", False):
+            log.error("broker refused the connection: %s", rc)
+            return
+        client.subscribe(self.topics.strokes, qos=1)
+        log.info("connected to %s:%d, subscribed to %s", self.broker.host, self.broker.port,
+                 self.topics.strokes)
+        self.connected.set()
+
+    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, rc: Any,
+                       props: Any = None) -> None:
+        self.connected.clear()
+        log.warning("disconnected from broker (%s); paho reconnects", rc)
+
+    def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
+        out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
+        topic = self.topics.errors if out.is_error else self.topics.results
+        client.publish(topic, dumps(out.message), qos=1)
+        if msg.qos > 0:
+            client.ack(msg.mid, msg.qos)
+        self.handled += 1
+
+    def run(self, stop: threading.Event, timeout: float = 10.0) -> None:
+        """Connect and serve until ``stop`` is set.
+
+        Raises
+        ------
+        ConnectionError
+            If the broker cannot be reached within ``timeout`` seconds.
+        """
+        self.client.connect_async(self.broker.host, self.broker.port, self.broker.keepalive)
+        self.client.loop_start()
+        try:
+            if not self.connected.wait(timeout):
+                raise ConnectionError(f"no connection to the broker at {self.broker.host}:"
+                                      f"{self.broker.port} within {timeout:g} s")
+            stop.wait()
+        finally:
+            self.client.disconnect()
+            self.client.loop_stop()
+
+
+def publish_strokes(strokes: Iterable[Stroke], broker: BrokerConfig, topic: str,
+                    rate: float = 0.0, client_id: str = "",
+                    on_sent: Callable[[Stroke, float], None] | None = None,
+                    max_seconds: float | None = None) -> int:
+    """Publish strokes with QoS 1 (``rate`` per second; 0 = as fast as possible).
+
+    Returns the number published. ``on_sent(stroke, t_publish)`` is called after each
+    publish (the benchmark measures latency from there).
+    """
+    client = make_client(broker, client_id or f"formtwin-replay-{time.time_ns()}")
+    connected = threading.Event()
+    client.on_connect = lambda c, u, f, rc, p=None: connected.set()
+    client.connect(broker.host, broker.port, broker.keepalive)
+    client.loop_start()
+    n = 0
+    try:
+        if not connected.wait(10.0):
+            raise ConnectionError(f"no connection to {broker.host}:{broker.port}")
+        t0 = time.perf_counter()
+        last = None
+        for s in strokes:
+            if rate > 0:
+                delay = t0 + n / rate - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+            if max_seconds is not None and time.perf_counter() - t0 > max_seconds:
+                break
+            t = time.perf_counter()
+            last = client.publish(topic, dumps(s.to_message()), qos=1)
+            if on_sent is not None:
+                on_sent(s, t)
+            n += 1
+        if last is not None:
+            last.wait_for_publish(timeout=60.0)
+    finally:
+        client.disconnect()
+        client.loop_stop()
+    return n

@@ -1,0 +1,296 @@
+"""The broker-free core of the service: one payload in, one outcome out.
+
+For every message :meth:`Processor.handle`
+
+1. validates it (:func:`~formtwin.service.messages.parse_stroke`); a bad message is
+   recorded as a rejection with its reason and the tracker is not touched;
+2. looks its part id up in the store: the same curve again is a *redelivery* (the stored
+   estimate is returned, nothing is counted twice), a different curve is a
+   ``duplicate_part_id`` rejection; a cycle count not above the last one is ``out_of_order``;
+3. steps the tracker, optionally gates a single outlier (see :class:`OutlierGate`), and
+   commits product, estimate and tracker checkpoint in **one** SQLite transaction.
+
+Because the checkpoint is committed with the product, a process killed at any instant
+restarts from a store in which estimates and tracker state agree: a product is either fully
+in (and its redelivery is recognised) or not at all (and it is processed again from the
+same tracker state, giving bit-for-bit the same estimate).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import shutil
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.service.messages import (
+    Limits,
+    MessageError,
+    Stroke,
+    error_message,
+    estimate_message,
+    parse_stroke,
+)
+from formtwin.service.store import Store
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+CHECKPOINT_NAME = "tracker-checkpoint.npz"
+
+
+class EstimateLike(Protocol):
+    """What the processor reads from the tracker's ``Estimate``."""
+
+    @property
+    def loglik(self) -> float: ...
+
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+class TrackerLike(Protocol):
+    """What the processor needs of :class:`formtwin.tracker.Tracker`."""
+
+    def step(self, curve: FloatArray) -> Any: ...
+
+    def checkpoint(self, path: str | Path) -> Any: ...
+
+
+#: rebuilds a tracker from a checkpoint file
+Restorer = Callable[[Path], TrackerLike]
+
+
+@dataclass
+class OutlierGate:
+    """Robust option: skip the update for a single outlier curve.
+
+    After the tracker has stepped, the step's log-likelihood ``loglik`` is compared with the
+    last ``window`` accepted ones: if it lies more than ``k`` robust standard deviations
+    (1.4826 x median absolute deviation) below their median, the step is undone (the tracker
+    is restored from the checkpoint of the previous product), the product is stored with
+    status ``gated`` and an ``outlier_gated`` error is published. Only *single* outliers
+    are gated: the product after a gated one is always accepted, so a genuine process
+    change is followed after one product. Nothing is gated before ``warmup`` accepted
+    products.
+
+    >>> g = OutlierGate(k=5.0, warmup=5)
+    >>> g.history = [-100.0, -101.0, -99.0, -100.5, -100.2, -99.5]
+    >>> g.is_outlier(-100.3), g.is_outlier(-400.0)
+    (False, True)
+    """
+
+    k: float = 8.0
+    window: int = 100
+    warmup: int = 20
+    history: list[float] = field(default_factory=list)
+    last_gated: bool = False
+
+    def threshold(self) -> float:
+        """Lowest loglik accepted now (``-inf`` during warm-up)."""
+        h = np.asarray(self.history[-self.window:], dtype=np.float64)
+        h = h[np.isfinite(h)]
+        if h.size < self.warmup:
+            return -math.inf
+        med = float(np.median(h))
+        mad = 1.4826 * float(np.median(np.abs(h - med)))
+        return med - self.k * max(mad, 1e-9)
+
+    def is_outlier(self, loglik: float) -> bool:
+        """True if ``loglik`` should be gated now (never twice in a row)."""
+        if self.last_gated:
+            return False
+        return not loglik >= self.threshold()
+
+    def record(self, loglik: float, gated: bool) -> None:
+        """Note the outcome of a product."""
+        self.last_gated = gated
+        if not gated:
+            self.history.append(float(loglik))
+            del self.history[:-self.window]
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Result of one message: ``kind`` is accepted, redelivered, gated or rejected;
+    ``message`` goes to the results topic (accepted, redelivered) or the errors topic."""
+
+    kind: str
+    message: dict[str, Any]
+    part_id: str | None = None
+    seq: int | None = None
+
+    @property
+    def is_error(self) -> bool:
+        return self.kind in ("rejected", "gated")
+
+
+class Processor:
+    """Validate, step, gate and commit, one message at a time (thread-safe).
+
+    Parameters
+    ----------
+    store : Store
+        The durable store; its checkpoint (if any) must be the state of ``tracker``.
+    tracker : TrackerLike
+        The tracker, already restored from the store's checkpoint when there is one.
+    restore : callable
+        ``restore(path) -> tracker``, used to undo a gated step.
+    limits : Limits
+        Message validation limits.
+    gate : OutlierGate or None
+        Robust option for single outlier curves; None disables it.
+    on_outcome : callable, optional
+        Called with every :class:`Outcome` (the live page listens here).
+    """
+
+    def __init__(self, store: Store, tracker: TrackerLike, restore: Restorer, limits: Limits,
+                 gate: OutlierGate | None = None,
+                 on_outcome: Callable[[Outcome], None] | None = None) -> None:
+        self.store = store
+        self.tracker = tracker
+        self._restore = restore
+        self.limits = limits
+        self.gate = gate
+        self.on_outcome = on_outcome
+        self._lock = threading.Lock()
+        self._tmp = Path(tempfile.mkdtemp(prefix="formtwin-serve-"))
+        self._ckpt_path = self._tmp / CHECKPOINT_NAME
+        self._last_cycle = store.last_cycle()
+        if gate is not None:
+            gate.history = store.recent_logliks(gate.window)
+            gate.last_gated = store.last_status() == "gated"
+        self._last_ckpt = self._checkpoint_bytes()
+        self.redelivered = 0
+
+    def tracker_names(self) -> tuple[str, ...]:
+        """Names of the estimated quantities (the tracker's, else the spec's)."""
+        names = getattr(self.tracker, "names", None)
+        if names is None:
+            from formtwin.spec import load_spec
+
+            return load_spec().augmented.names
+        return tuple(str(n) for n in names)
+
+    def close(self) -> None:
+        """Remove the scratch folder (the store stays open; close it yourself)."""
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    # ------------------------------------------------------------------ internals
+    def _checkpoint_bytes(self) -> bytes:
+        self.tracker.checkpoint(self._ckpt_path)
+        return self._ckpt_path.read_bytes()
+
+    def _rollback(self) -> None:
+        self._ckpt_path.write_bytes(self._last_ckpt)
+        self.tracker = self._restore(self._ckpt_path)
+
+    def _reject(self, err: MessageError, payload: bytes, topic: str, now: float) -> Outcome:
+        digest = hashlib.sha256(payload).hexdigest()
+        fresh = self.store.add_rejection(payload_digest=digest, reason=err.reason,
+                                         detail=err.detail, part_id=err.part_id,
+                                         received_at=now)
+        log.warning("rejected message on %s (%s): %s%s", topic, err.reason, err.detail,
+                    "" if fresh else " [redelivered, counted once]")
+        return Outcome("rejected", error_message(err, topic, now), err.part_id)
+
+    def _emit(self, out: Outcome) -> Outcome:
+        if self.on_outcome is not None:
+            try:
+                self.on_outcome(out)
+            except Exception:  # the page must never break the tracking
+                log.exception("on_outcome listener failed")
+        return out
+
+    # ------------------------------------------------------------------ the step
+    def handle(self, payload: bytes, topic: str = "", received_at: float | None = None
+               ) -> Outcome:
+        """Process one raw message and return its :class:`Outcome` (never raises for bad
+        input; storage errors propagate after the tracker has been rolled back)."""
+        now = time.time() if received_at is None else received_at
+        with self._lock:
+            return self._emit(self._handle(payload, topic, now))
+
+    def _handle(self, payload: bytes, topic: str, now: float) -> Outcome:
+        try:
+            stroke = parse_stroke(payload, self.limits)
+        except MessageError as err:
+            return self._reject(err, payload, topic, now)
+        row = self.store.product(stroke.part_id)
+        if row is not None:
+            if row.digest == stroke.digest and row.estimate is not None:
+                self.redelivered += 1
+                msg = dict(row.estimate)
+                msg["flags"] = dict(msg.get("flags", {}), redelivered=True)
+                log.info("redelivered part %s: stored estimate returned", stroke.part_id)
+                return Outcome("redelivered", msg, stroke.part_id, row.seq)
+            if row.digest == stroke.digest:  # a redelivered gated product
+                self.redelivered += 1
+                gerr = MessageError("outlier_gated", "redelivered gated product",
+                                    stroke.part_id)
+                return Outcome("gated", error_message(gerr, topic, now), stroke.part_id,
+                               row.seq)
+            return self._reject(MessageError(
+                "duplicate_part_id", f"part {stroke.part_id!r} already stored (seq "
+                f"{row.seq}) with a different curve", stroke.part_id), payload, topic, now)
+        if self._last_cycle is not None and stroke.cycle <= self._last_cycle:
+            return self._reject(MessageError(
+                "out_of_order", f"cycle {stroke.cycle} <= last accepted cycle "
+                f"{self._last_cycle}", stroke.part_id), payload, topic, now)
+        try:
+            est = self.tracker.step(stroke.force_N)
+        except ValueError as exc:
+            return self._reject(MessageError("tracker_rejected", str(exc)[:300],
+                                             stroke.part_id), payload, topic, now)
+        try:
+            return self._commit(stroke, est, topic, now)
+        except BaseException:
+            self._rollback()
+            raise
+
+    def _commit(self, stroke: Stroke, est: Any, topic: str, now: float) -> Outcome:
+        loglik = float(est.loglik)
+        gated = self.gate is not None and self.gate.is_outlier(loglik)
+        angles = None if stroke.angles_deg is None else [float(a) for a in stroke.angles_deg]
+        if gated:
+            assert self.gate is not None
+            thr = self.gate.threshold()
+            self._rollback()
+            seq = self.store.commit_product(
+                part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
+                status="gated", digest=stroke.digest, curve=stroke.force_N,
+                measured_angles=angles, estimate=None, checkpoint=None, received_at=now)
+            self.gate.record(loglik, gated=True)
+            self._last_cycle = stroke.cycle
+            err = MessageError("outlier_gated", f"loglik {loglik:.4g} < gate {thr:.4g}; "
+                               "state not updated", stroke.part_id)
+            log.warning("part %s gated as outlier: %s", stroke.part_id, err.detail)
+            return Outcome("gated", error_message(err, topic, now), stroke.part_id, seq)
+        ckpt = self._checkpoint_bytes()
+        flags = {"collapsed": bool(est.collapsed), "redelivered": False}
+        msg = estimate_message(stroke, est.to_dict(), seq=-1, flags=flags)
+        seq = self.store.next_seq()
+        msg["seq"] = seq
+        got = self.store.commit_product(
+            part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
+            status="accepted", digest=stroke.digest, curve=stroke.force_N,
+            measured_angles=angles, estimate=msg, checkpoint=ckpt, received_at=now)
+        if got != seq:  # single writer: cannot happen unless the store is shared
+            raise RuntimeError(f"store sequence {got} != expected {seq}: is another "
+                               "service writing to the same store?")
+        self._last_ckpt = ckpt
+        self._last_cycle = stroke.cycle
+        if self.gate is not None:
+            self.gate.record(loglik, gated=False)
+        return Outcome("accepted", msg, stroke.part_id, seq)
+

@@ -1,0 +1,176 @@
+"""Assemble a :class:`~formtwin.service.processor.Processor` from a store and settings.
+
+The first start of a store fixes its configuration (model, tracker settings, measurement
+model, gate, limits) in the store's ``meta`` table and saves the measurement model beside
+the store; every restart must use the same configuration (a mismatch is refused, naming the
+field) and loads the same measurement model, so a restarted service continues bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formtwin.measurement import AnalyticModel, MeasurementModel, ProcessModel
+from formtwin.service.messages import Limits
+from formtwin.service.processor import CHECKPOINT_NAME, OutlierGate, Processor, TrackerLike
+from formtwin.service.store import Store
+from formtwin.spec import load_spec
+from formtwin.tracker import Tracker, TrackerConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ServiceSettings:
+    """Everything that determines the stored estimates (fixed at a store's first start).
+
+    Parameters
+    ----------
+    model : str
+        ``"analytic"`` (the closed-form stand-in) or the path of a metamodel file.
+    n_particles, alpha, estimate_deviation, seed : tracker settings
+        See :class:`formtwin.tracker.TrackerConfig`.
+    nu : float
+        Student-t degrees of freedom of the likelihood (``inf``: the paper's Gaussian); a
+        finite ``nu`` is the heavy-tailed robust option.
+    gate_k : float
+        Outlier gate in robust standard deviations of loglik (0 disables the gate).
+    n_mc : int
+        Monte-Carlo curves for the measurement model's ``K_MC``.
+    max_bytes, min_force_N, max_force_N : message limits (:class:`Limits`).
+    """
+
+    model: str = "analytic"
+    n_particles: int = 500
+    alpha: float = 0.01
+    estimate_deviation: bool = True
+    seed: int = 0
+    nu: float = math.inf
+    gate_k: float = 0.0
+    n_mc: int = 10_000
+    max_bytes: int = 65536
+    min_force_N: float = -50.0
+    max_force_N: float = 1.0e4
+
+    def to_json(self) -> str:
+        d = dataclasses.asdict(self)
+        d["nu"] = None if math.isinf(self.nu) else self.nu
+        return json.dumps(d, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> ServiceSettings:
+        d: dict[str, Any] = json.loads(text)
+        d["nu"] = math.inf if d.get("nu") is None else float(d["nu"])
+        return cls(**d)
+
+    def tracker_config(self) -> TrackerConfig:
+        return TrackerConfig(n_particles=self.n_particles, alpha=self.alpha,
+                             estimate_deviation=self.estimate_deviation, seed=self.seed)
+
+    def limits(self, n_t: int) -> Limits:
+        return Limits(n_t=n_t, max_bytes=self.max_bytes, min_force_N=self.min_force_N,
+                      max_force_N=self.max_force_N)
+
+
+def load_model(name: str) -> ProcessModel:
+    """``"analytic"`` -> the stand-in; otherwise a metamodel file."""
+    if name == "analytic":
+        return AnalyticModel(load_spec())
+    import importlib
+
+    # imported by name: the metamodel package is optional for the analytic stand-in
+    metamodel: Any = importlib.import_module("formtwin.metamodel")
+    model: ProcessModel = metamodel.Metamodel.load(name)
+    return model
+
+
+def _file_digest(path: str) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def check_settings(store: Store, settings: ServiceSettings) -> ServiceSettings:
+    """Record ``settings`` in a fresh store, or check them against the stored ones."""
+    stored = store.get_meta("settings")
+    model_digest = "analytic" if settings.model == "analytic" else _file_digest(settings.model)
+    if stored is None:
+        store.set_meta("settings", settings.to_json())
+        store.set_meta("model_digest", model_digest)
+        return settings
+    old = ServiceSettings.from_json(stored)
+    for f in dataclasses.fields(ServiceSettings):
+        a, b = getattr(old, f.name), getattr(settings, f.name)
+        if f.name == "model":
+            continue
+        if a != b:
+            raise ValueError(f"{store.path}: stored setting {f.name} = {a!r}, now {b!r}; "
+                             "a store keeps the settings it was created with (use a new "
+                             "--store for new settings)")
+    if store.get_meta("model_digest") != model_digest:
+        raise ValueError(f"{store.path}: the model {settings.model!r} differs from the one "
+                         f"the store was created with (digest {store.get_meta('model_digest')})")
+    return old
+
+
+def measurement_path(store_path: Path) -> Path:
+    """Where the measurement model of a store is kept."""
+    return store_path.with_name(store_path.name + ".measurement.npz")
+
+
+def open_processor(store_path: str | Path, settings: ServiceSettings,
+                   synchronous: str = "NORMAL") -> Processor:
+    """Open (or create) a store and return a processor with the tracker restored.
+
+    Parameters
+    ----------
+    store_path : str or Path
+        SQLite file of the service.
+    settings : ServiceSettings
+        Must equal the stored settings on a restart.
+    synchronous : str
+        SQLite ``synchronous`` (``NORMAL`` or ``FULL``), see :class:`Store`.
+    """
+    path = Path(store_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    store = Store(path, synchronous=synchronous)
+    try:
+        settings = check_settings(store, settings)
+        model = load_model(settings.model)
+        mpath = measurement_path(path)
+        if not mpath.exists():
+            built = MeasurementModel.from_monte_carlo(
+                model, n=settings.n_mc, rng=np.random.default_rng(settings.seed),
+                nu=settings.nu)
+            tmp = built.save(mpath.with_name(mpath.stem + ".tmp.npz"))
+            tmp.replace(mpath)
+        # always the saved file, so the first run and every restart use identical numbers
+        measurement = MeasurementModel.load(mpath)
+        config = settings.tracker_config()
+
+        def restore(p: Path) -> TrackerLike:
+            return Tracker.restore(p, model, measurement)
+
+        ck = store.checkpoint()
+        tracker: TrackerLike
+        if ck is None:
+            tracker = Tracker(model, measurement, config)
+        else:
+            with tempfile.TemporaryDirectory() as d:
+                p = Path(d) / CHECKPOINT_NAME
+                p.write_bytes(ck[1])
+                tracker = restore(p)
+            log.info("restored tracker from checkpoint of product seq %d", ck[0])
+        gate = OutlierGate(k=settings.gate_k) if settings.gate_k > 0 else None
+        return Processor(store, tracker, restore, settings.limits(model.spec.n_t), gate)
+    except BaseException:
+        store.close()
+        raise

@@ -1,0 +1,277 @@
+"""The service's durable store: SQLite in WAL mode.
+
+One file holds everything a restart needs:
+
+* ``products`` -- every accepted (or gated) product, keyed by its unique part id, with its
+  curve (float64 bytes), its digest, the measured angles and the estimate (JSON);
+* ``rejections`` -- rejected messages, keyed by the SHA-256 of the raw payload so a
+  redelivered bad message is counted once;
+* ``checkpoint`` -- one row: the tracker's checkpoint file as bytes, written in the *same*
+  transaction as the product it follows, so the stored estimates and the tracker state can
+  never disagree after a crash;
+* ``meta`` -- the service configuration the store was created with.
+
+>>> import tempfile, os
+>>> d = tempfile.mkdtemp()
+>>> st = Store(os.path.join(d, "s.sqlite"))
+>>> st.counts()
+{'accepted': 0, 'gated': 0, 'rejected': 0}
+>>> st.close()
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+SCHEMA_VERSION = "1"
+
+_DDL = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS products (
+    seq INTEGER PRIMARY KEY,
+    part_id TEXT NOT NULL UNIQUE,
+    cycle INTEGER NOT NULL,
+    timestamp TEXT NOT NULL,
+    received_at REAL NOT NULL,
+    status TEXT NOT NULL,
+    digest TEXT NOT NULL,
+    curve BLOB NOT NULL,
+    measured_angles TEXT,
+    estimate TEXT
+);
+CREATE TABLE IF NOT EXISTS rejections (
+    id INTEGER PRIMARY KEY,
+    payload_digest TEXT NOT NULL UNIQUE,
+    reason TEXT NOT NULL,
+    detail TEXT NOT NULL,
+    part_id TEXT,
+    received_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS checkpoint (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    seq INTEGER NOT NULL,
+    data BLOB NOT NULL
+);
+"""
+
+
+@dataclass(frozen=True)
+class ProductRow:
+    """A stored product (``status`` is ``"accepted"`` or ``"gated"``)."""
+
+    seq: int
+    part_id: str
+    cycle: int
+    timestamp: str
+    received_at: float
+    status: str
+    digest: str
+    curve: FloatArray
+    measured_angles: list[float] | None
+    estimate: dict[str, Any] | None
+
+
+class Store:
+    """SQLite store of products, rejections and the tracker checkpoint.
+
+    Parameters
+    ----------
+    path : str or Path
+        Database file; created when missing.
+    synchronous : {"NORMAL", "FULL"}
+        SQLite ``synchronous`` in WAL mode. ``NORMAL`` survives a killed process (the
+        committed WAL is in the OS page cache); ``FULL`` also survives power loss, at the
+        price of an fsync per product.
+    """
+
+    def __init__(self, path: str | Path, synchronous: str = "NORMAL") -> None:
+        if synchronous.upper() not in ("NORMAL", "FULL"):
+            raise ValueError(f"synchronous must be NORMAL or FULL, got {synchronous!r}")
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(str(self.path), isolation_level=None,
+                                   check_same_thread=False, timeout=30.0)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
+        self._db.executescript(_DDL)
+        version = self.get_meta("schema_version")
+        if version is None:
+            self.set_meta("schema_version", SCHEMA_VERSION)
+        elif version != SCHEMA_VERSION:
+            raise ValueError(f"{self.path}: store schema_version {version!r}, this formtwin "
+                             f"reads {SCHEMA_VERSION!r}")
+
+    def close(self) -> None:
+        """Close the connection."""
+        with self._lock:
+            self._db.close()
+
+    # -- meta -------------------------------------------------------------------------
+    def get_meta(self, key: str) -> str | None:
+        """The stored value of ``key``, or None."""
+        with self._lock:
+            row = self._db.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return None if row is None else str(row[0])
+
+    def set_meta(self, key: str, value: str) -> None:
+        """Store ``key`` = ``value``."""
+        with self._lock:
+            self._db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                             (key, value))
+
+    # -- writes -----------------------------------------------------------------------
+    def commit_product(self, *, part_id: str, cycle: int, timestamp: str, status: str,
+                       digest: str, curve: FloatArray, measured_angles: list[float] | None,
+                       estimate: dict[str, Any] | None, checkpoint: bytes | None,
+                       received_at: float | None = None) -> int:
+        """Insert a product and replace the checkpoint in one transaction; return its seq.
+
+        Raises
+        ------
+        sqlite3.IntegrityError
+            If ``part_id`` is already stored (nothing is written then).
+        """
+        now = time.time() if received_at is None else received_at
+        blob = np.ascontiguousarray(curve, dtype="<f8").tobytes()
+        with self._lock:
+            cur = self._db.cursor()
+            cur.execute("BEGIN IMMEDIATE")
+            try:
+                cur.execute(
+                    "INSERT INTO products(part_id, cycle, timestamp, received_at, status, "
+                    "digest, curve, measured_angles, estimate) VALUES (?,?,?,?,?,?,?,?,?)",
+                    (part_id, cycle, timestamp, now, status, digest, blob,
+                     None if measured_angles is None else json.dumps(measured_angles),
+                     None if estimate is None else json.dumps(estimate, allow_nan=False)))
+                seq = int(cur.lastrowid or 0)
+                if checkpoint is not None:
+                    cur.execute("INSERT OR REPLACE INTO checkpoint(id, seq, data) "
+                                "VALUES (1, ?, ?)", (seq, checkpoint))
+                cur.execute("COMMIT")
+            except BaseException:
+                cur.execute("ROLLBACK")
+                raise
+        return seq
+
+    def add_rejection(self, *, payload_digest: str, reason: str, detail: str,
+                      part_id: str | None, received_at: float | None = None) -> bool:
+        """Record a rejection; False if this exact payload was already recorded."""
+        now = time.time() if received_at is None else received_at
+        with self._lock:
+            cur = self._db.execute(
+                "INSERT OR IGNORE INTO rejections(payload_digest, reason, detail, part_id, "
+                "received_at) VALUES (?,?,?,?,?)",
+                (payload_digest, reason, detail[:500], part_id, now))
+            return cur.rowcount == 1
+
+    # -- reads ------------------------------------------------------------------------
+    def checkpoint(self) -> tuple[int, bytes] | None:
+        """``(seq, bytes)`` of the last checkpoint, or None on a fresh store."""
+        with self._lock:
+            row = self._db.execute("SELECT seq, data FROM checkpoint WHERE id=1").fetchone()
+        return None if row is None else (int(row[0]), bytes(row[1]))
+
+    def product(self, part_id: str) -> ProductRow | None:
+        """The stored product with this part id, or None."""
+        with self._lock:
+            row = self._db.execute(f"SELECT {_COLS} FROM products WHERE part_id=?",
+                                   (part_id,)).fetchone()
+        return None if row is None else _row(row)
+
+    def next_seq(self) -> int:
+        """The seq the next committed product will get."""
+        with self._lock:
+            row = self._db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM products").fetchone()
+        return int(row[0])
+
+    def last_status(self) -> str | None:
+        """Status of the last stored product, or None."""
+        with self._lock:
+            row = self._db.execute("SELECT status FROM products ORDER BY seq DESC "
+                                   "LIMIT 1").fetchone()
+        return None if row is None else str(row[0])
+
+    def last_cycle(self) -> int | None:
+        """Cycle count of the last stored product (accepted or gated), or None."""
+        with self._lock:
+            row = self._db.execute("SELECT cycle FROM products ORDER BY seq DESC "
+                                   "LIMIT 1").fetchone()
+        return None if row is None else int(row[0])
+
+    def products(self, since_seq: int = 0, limit: int | None = None,
+                 status: str | None = None) -> Iterator[ProductRow]:
+        """Products with ``seq > since_seq`` in commit order (optionally of one status)."""
+        sql = f"SELECT {_COLS} FROM products WHERE seq > ?"
+        args: list[Any] = [since_seq]
+        if status is not None:
+            sql += " AND status = ?"
+            args.append(status)
+        sql += " ORDER BY seq"
+        if limit is not None:
+            sql += " LIMIT ?"
+            args.append(int(limit))
+        with self._lock:
+            rows = self._db.execute(sql, args).fetchall()
+        for r in rows:
+            yield _row(r)
+
+    def recent_logliks(self, n: int) -> list[float]:
+        """``loglik`` of the last ``n`` accepted products, oldest first."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT json_extract(estimate, '$.loglik') FROM products WHERE status="
+                "'accepted' ORDER BY seq DESC LIMIT ?", (int(n),)).fetchall()
+        return [float(r[0]) for r in reversed(rows) if r[0] is not None]
+
+    def rejections(self) -> list[tuple[int, float, str, str, str | None]]:
+        """All rejections as ``(id, received_at, reason, detail, part_id)``, oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT id, received_at, reason, detail, part_id FROM "
+                                    "rejections ORDER BY id").fetchall()
+        return [(int(a), float(b), str(c), str(d), None if e is None else str(e))
+                for a, b, c, d, e in rows]
+
+    def counts(self) -> dict[str, int]:
+        """Numbers of accepted and gated products and of rejected messages."""
+        with self._lock:
+            acc = self._db.execute("SELECT status, COUNT(*) FROM products GROUP BY "
+                                   "status").fetchall()
+            rej = self._db.execute("SELECT COUNT(*) FROM rejections").fetchone()
+        by = {str(s): int(c) for s, c in acc}
+        return {"accepted": by.get("accepted", 0), "gated": by.get("gated", 0),
+                "rejected": int(rej[0])}
+
+    def rejection_counts(self) -> dict[str, int]:
+        """Rejected messages by reason."""
+        with self._lock:
+            rows = self._db.execute("SELECT reason, COUNT(*) FROM rejections GROUP BY "
+                                    "reason ORDER BY reason").fetchall()
+        return {str(r): int(c) for r, c in rows}
+
+
+_COLS = ("seq, part_id, cycle, timestamp, received_at, status, digest, curve, "
+         "measured_angles, estimate")
+
+
+def _row(r: tuple[Any, ...]) -> ProductRow:
+    return ProductRow(
+        seq=int(r[0]), part_id=str(r[1]), cycle=int(r[2]), timestamp=str(r[3]),
+        received_at=float(r[4]), status=str(r[5]), digest=str(r[6]),
+        curve=np.frombuffer(r[7], dtype="<f8").astype(np.float64),
+        measured_angles=None if r[8] is None else list(json.loads(r[8])),
+        estimate=None if r[9] is None else dict(json.loads(r[9])))

@@ -1,0 +1,164 @@
+"""Stroke streams: what ``formtwin replay`` publishes, as a press line would.
+
+A stream is a sequence of :class:`~formtwin.service.messages.Stroke`. It is read from
+
+* ``.npz`` (``allow_pickle=False``): ``curves (n, n_t)`` N, optional ``angles (n, 2)``
+  degrees, ``part_ids (n,)`` strings and ``cycles (n,)`` integers;
+* ``.nc`` (NetCDF, e.g. a study realisation or a DOE dataset): the variable ``curves``
+  (``product``/``run`` x ``time``; a ``source`` dimension is selected with ``source``), and
+  ``angles`` and ``ok`` when present (products with ``ok = False`` are skipped);
+* ``.csv``: one product per row, columns ``part_id, cycle, f0 .. f{n_t-1}`` and optionally
+  ``angle1, angle2``.
+
+:func:`make_stream` writes a synthetic stream from the analytic stand-in (state evolving
+by eq. 4-5, constant machine parameters and deviation, Gaussian sensor noise) for the demo,
+the tests and the benchmark.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Iterator
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.service.messages import Stroke, stroke_digest
+from formtwin.spec import ProcessSpec, load_spec
+
+FloatArray = NDArray[np.float64]
+
+_T0 = datetime(2026, 1, 1, tzinfo=UTC)
+
+
+def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
+                spec: ProcessSpec | None = None, deviation: bool = True,
+                period_s: float = 0.5) -> Path:
+    """Write ``n`` synthetic strokes to an ``.npz`` stream file and return its path.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file (``.npz``).
+    n : int
+        Number of products.
+    seed : int
+        Seed of everything random in the stream.
+    noise_N : float
+        Std of the Gaussian sensor noise added to each sample, N.
+    spec : ProcessSpec, optional
+        Defaults to the bundled demonstrator.
+    deviation : bool
+        Distort the curves with a deviation ``theta_d`` drawn in its bounds.
+    period_s : float
+        Nominal time between strokes (for the timestamps), s.
+    """
+    from formtwin.deviation import DeviationModel
+    from formtwin.evolution import simulate
+    from formtwin.physics.analytic import AnalyticBending
+
+    if n < 1:
+        raise ValueError(f"n = {n}, expected >= 1")
+    spec = load_spec() if spec is None else spec
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 7]))
+    st, pa, dv = spec.state, spec.params, spec.deviation.group
+    mu = rng.uniform(st.mu_min, st.mu_max)
+    theta = rng.uniform(pa.lo, pa.hi)
+    x = simulate(n, mu, st.sigma, st.rho, rng, st.lo, st.hi)
+    X = np.hstack([x, np.tile(theta, (n, 1))])
+    curves, angles = AnalyticBending(spec).run_batch(X)
+    theta_d = rng.uniform(dv.lo, dv.hi) if deviation else np.zeros(len(dv))
+    if deviation:
+        curves = DeviationModel.from_spec(spec).apply(curves, np.tile(theta_d, (n, 1)))
+    curves = curves + noise_N * rng.standard_normal(curves.shape)
+    cycles = np.arange(1, n + 1, dtype=np.int64)
+    stamps = [(_T0 + timedelta(seconds=period_s * float(c))).isoformat().replace("+00:00", "Z")
+              for c in cycles]
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, curves=curves, angles=angles, part_ids=np.array(
+        [f"P{seed:03d}-{c:07d}" for c in cycles]), cycles=cycles,
+        timestamps=np.array(stamps), truth=np.hstack([X, np.tile(theta_d, (n, 1))]),
+        names=np.array(spec.augmented.names))
+    return out if out.suffix == ".npz" else out.with_name(out.name + ".npz")
+
+
+def _strokes(curves: FloatArray, angles: FloatArray | None, part_ids: list[str],
+             cycles: NDArray[np.int64], stamps: list[str]) -> Iterator[Stroke]:
+    for i in range(curves.shape[0]):
+        a = None if angles is None or not np.all(np.isfinite(angles[i])) else angles[i]
+        c = np.asarray(curves[i], dtype=np.float64)
+        yield Stroke(part_id=part_ids[i], cycle=int(cycles[i]), timestamp=stamps[i],
+                     force_N=c, angles_deg=a, digest=stroke_digest(c))
+
+
+def _defaults(n: int, stem: str) -> tuple[list[str], NDArray[np.int64], list[str]]:
+    cycles = np.arange(1, n + 1, dtype=np.int64)
+    ids = [f"{stem}-{c:07d}" for c in cycles]
+    stamps = [(_T0 + timedelta(seconds=0.5 * float(c))).isoformat().replace("+00:00", "Z")
+              for c in cycles]
+    return ids, cycles, stamps
+
+
+def read_stream(path: str | Path, source: str = "gFE") -> list[Stroke]:
+    """Read a stream file (``.npz``, ``.nc`` or ``.csv``, see the module doc).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    source : str
+        For NetCDF files with a ``source`` dimension: which source to replay.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"{p}: no such stream file")
+    suffix = p.suffix.lower()
+    if suffix == ".npz":
+        with np.load(p, allow_pickle=False) as z:
+            if "curves" not in z:
+                raise ValueError(f"{p}: no 'curves' array (keys: {', '.join(z.files)})")
+            curves = np.asarray(z["curves"], dtype=np.float64)
+            n = curves.shape[0]
+            ids, cycles, stamps = _defaults(n, p.stem)
+            angles = np.asarray(z["angles"], np.float64) if "angles" in z else None
+            if "part_ids" in z:
+                ids = [str(s) for s in z["part_ids"]]
+            if "cycles" in z:
+                cycles = np.asarray(z["cycles"], dtype=np.int64)
+            if "timestamps" in z:
+                stamps = [str(s) for s in z["timestamps"]]
+        return list(_strokes(curves, angles, ids, cycles, stamps))
+    if suffix == ".nc":
+        import xarray as xr
+
+        with xr.open_dataset(p, engine="h5netcdf") as ds:
+            if "curves" not in ds:
+                raise ValueError(f"{p}: no 'curves' variable")
+            sel = ds.sel(source=source) if "source" in ds["curves"].dims else ds
+            curves = np.asarray(sel["curves"].values, dtype=np.float64)
+            angles = np.asarray(sel["angles"].values, np.float64) if "angles" in sel else None
+            ok = np.asarray(sel["ok"].values, bool) if "ok" in sel else \
+                np.all(np.isfinite(curves), axis=1)
+        ids, cycles, stamps = _defaults(curves.shape[0], p.stem)
+        keep = np.flatnonzero(ok)
+        return list(_strokes(curves[keep], None if angles is None else angles[keep],
+                             [ids[i] for i in keep], cycles[keep], [stamps[i] for i in keep]))
+    if suffix == ".csv":
+        with open(p, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+        if not rows:
+            return []
+        fcols = sorted((k for k in rows[0] if k and k[0] == "f" and k[1:].isdigit()),
+                       key=lambda k: int(k[1:]))
+        curves = np.array([[float(r[k]) for k in fcols] for r in rows])
+        has_a = "angle1" in rows[0] and "angle2" in rows[0]
+        angles = np.array([[float(r["angle1"]), float(r["angle2"])] for r in rows]) \
+            if has_a else None
+        ids = [r.get("part_id") or f"{p.stem}-{i + 1:07d}" for i, r in enumerate(rows)]
+        cycles = np.array([int(r.get("cycle") or i + 1) for i, r in enumerate(rows)])
+        stamps = [r.get("timestamp") or "" for r in rows]
+        return list(_strokes(curves, angles, ids, cycles, stamps))
+    raise ValueError(f"{p}: unknown stream format {suffix!r} (expected .npz, .nc or .csv)")

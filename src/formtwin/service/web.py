@@ -1,0 +1,204 @@
+"""The live page: FastAPI, Server-Sent Events and uPlot (shipped in ``static/``).
+
+Routes
+
+* ``GET /`` -- the page (``static/index.html`` + ``static/live.js``);
+* ``GET /api/state`` -- variable names, recent points and counters (JSON);
+* ``GET /events`` -- Server-Sent Events, one ``data:`` line per processed message;
+* ``GET /static/...`` -- uPlot (MIT, see ``static/uPlot.LICENSE``) and the page's script.
+
+The page only reads; it binds 127.0.0.1 unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+from collections import deque
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from fastapi.staticfiles import StaticFiles
+
+from formtwin.service.processor import Outcome
+from formtwin.service.store import Store
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).resolve().parent / "static"
+
+
+class LiveFeed:
+    """Thread-safe ring of recent points and counters, fed by processor outcomes.
+
+    Parameters
+    ----------
+    names : tuple of str
+        Names of the estimated quantities.
+    maxlen : int
+        Points kept for a page that (re)loads.
+    """
+
+    def __init__(self, names: tuple[str, ...], maxlen: int = 2000) -> None:
+        self.names = names
+        self._lock = threading.Lock()
+        self._events: deque[tuple[int, dict[str, Any]]] = deque(maxlen=maxlen)
+        self._n = 0
+        self.counts: dict[str, int] = {"accepted": 0, "gated": 0, "rejected": 0,
+                                       "redelivered": 0}
+        self.reasons: dict[str, int] = {}
+
+    def seed(self, store: Store, n: int = 500) -> None:
+        """Load counters and the last ``n`` points from the store (at start-up)."""
+        c = store.counts()
+        rows = list(store.products(since_seq=max(store.next_seq() - 1 - n, 0),
+                                   status="accepted"))
+        with self._lock:
+            self.counts.update(c)
+            self.reasons = store.rejection_counts()
+        for r in rows:
+            if r.estimate is not None:
+                self._push(_point(r.estimate))
+
+    def _push(self, event: dict[str, Any]) -> None:
+        with self._lock:
+            self._n += 1
+            event["counts"] = dict(self.counts)
+            event["reasons"] = dict(self.reasons)
+            self._events.append((self._n, event))
+
+    def on_outcome(self, out: Outcome) -> None:
+        """Processor listener: count the outcome and queue an event."""
+        with self._lock:
+            self.counts[out.kind] = self.counts.get(out.kind, 0) + 1
+            if out.is_error:
+                reason = str(out.message.get("reason", "?"))
+                self.reasons[reason] = self.reasons.get(reason, 0) + 1
+        if out.kind == "accepted":
+            self._push(_point(out.message))
+        elif out.is_error:
+            self._push({"type": "rejected", "reason": out.message.get("reason"),
+                        "detail": out.message.get("detail"), "part_id": out.part_id})
+        else:
+            self._push({"type": "counts"})
+
+    def since(self, n: int) -> tuple[int, list[tuple[int, dict[str, Any]]]]:
+        """The newest event number and the ``(number, event)`` pairs after ``n``."""
+        with self._lock:
+            return self._n, [(k, e) for k, e in self._events if k > n]
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            points = [e for _, e in self._events if e.get("type") == "point"]
+            return {"names": list(self.names), "points": points, "last": self._n,
+                    "counts": dict(self.counts), "reasons": dict(self.reasons)}
+
+
+def _point(msg: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "point", "seq": msg.get("seq"), "part_id": msg.get("part_id"),
+            "index": msg.get("index"), "mean": msg.get("mean"), "std": msg.get("std"),
+            "angles_mean": msg.get("angles_mean"), "angles_std": msg.get("angles_std"),
+            "measured_angles": msg.get("measured_angles_deg"), "ess": msg.get("ess"),
+            "collapsed": msg.get("collapsed")}
+
+
+def create_app(feed: LiveFeed, poll_s: float = 0.1) -> FastAPI:
+    """The FastAPI application of the live page (FastAPI resolves the handlers'
+    annotations from this module's globals, hence the imports at the top)."""
+    app = FastAPI(title="formtwin live", docs_url=None, redoc_url=None, openapi_url=None)
+    app.mount("/static", StaticFiles(directory=str(STATIC)), name="static")
+    app.state.closing = False
+
+    @app.get("/")
+    def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html", media_type="text/html")
+
+    @app.get("/favicon.ico")
+    def favicon() -> Response:
+        return Response(status_code=204)
+
+    @app.get("/api/state")
+    def state() -> JSONResponse:
+        return JSONResponse(feed.snapshot())
+
+    @app.get("/events")
+    async def events(request: Request, last: int = -1) -> StreamingResponse:
+        async def stream() -> AsyncIterator[str]:
+            header = request.headers.get("last-event-id", "")
+            n = int(header) if header.isdigit() else (feed.since(0)[0] if last < 0 else last)
+            idle = 0.0
+            while not app.state.closing:
+                if await request.is_disconnected():
+                    break
+                newest, items = feed.since(n)
+                if items:
+                    n = newest
+                    idle = 0.0
+                    for k, e in items:
+                        yield f"id: {k}\ndata: {json.dumps(e, allow_nan=False)}\n\n"
+                else:
+                    idle += poll_s
+                    if idle >= 15.0:
+                        idle = 0.0
+                        yield ": keepalive\n\n"
+                await asyncio.sleep(poll_s)
+
+        return StreamingResponse(stream(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache"})
+
+    return app
+
+
+class PageServer:
+    """Run the page with uvicorn in a background thread.
+
+    Parameters
+    ----------
+    feed : LiveFeed
+    host : str
+        Bind address; 127.0.0.1 by default (serve elsewhere only when told).
+    port : int
+        TCP port (0 picks a free one; see :attr:`url` after :meth:`start`).
+    """
+
+    def __init__(self, feed: LiveFeed, host: str = "127.0.0.1", port: int = 8765) -> None:
+        import uvicorn
+
+        self.app = create_app(feed)
+        self._server = uvicorn.Server(uvicorn.Config(
+            self.app, host=host, port=port, log_level="warning", access_log=False,
+            timeout_graceful_shutdown=1, lifespan="off"))
+        self._thread = threading.Thread(target=self._server.run, name="formtwin-page",
+                                        daemon=True)
+        self.host = host
+        self.port = port
+
+    def start(self, timeout: float = 10.0) -> str:
+        """Start serving; return the page's URL."""
+        self._thread.start()
+        for _ in range(int(timeout / 0.05)):
+            if self._server.started:
+                break
+            if not self._thread.is_alive():
+                raise OSError(f"the page could not bind {self.host}:{self.port}")
+            threading.Event().wait(0.05)
+        else:
+            raise OSError(f"the page did not start within {timeout:g} s")
+        servers = getattr(self._server, "servers", [])
+        if servers and servers[0].sockets:
+            self.port = int(servers[0].sockets[0].getsockname()[1])
+        return self.url
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}/"
+
+    def stop(self) -> None:
+        self.app.state.closing = True
+        self._server.should_exit = True
+        self._thread.join(timeout=5.0)
