@@ -1,0 +1,149 @@
+"""``formtwin track``: run the tracker over a file of measured curves, write estimates."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
+
+#: variable names tried, in order, in npz and NetCDF curve files
+CURVE_KEYS = ("curves", "curve", "force", "z")
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "track", help="estimate state, parameters and angles from a file of force curves",
+        description="Run the particle-filter tracker over the curves of FILE, one product a "
+                    "row, and write per-product estimates (mean and std of the 18 augmented "
+                    "variables in internal units, predicted angles, ESS).")
+    p.add_argument("--metamodel", required=True,
+                   help="metamodel file, or 'analytic' for the closed-form stand-in")
+    p.add_argument("--curves", required=True, type=Path,
+                   help="curves (n, n_t) in N: .npz (key 'curves'), .csv (one curve a row, "
+                        "optional header) or .nc/.h5 dataset (variable 'curves')")
+    p.add_argument("--out", required=True, type=Path,
+                   help="estimates: .csv, or .parquet (needs pyarrow)")
+    p.add_argument("--measurement", type=Path,
+                   help="measurement-model .npz; default: built by Monte Carlo on the model")
+    p.add_argument("--n-mc", type=int, default=10_000,
+                   help="Monte-Carlo curves for K_MC (default: %(default)s)")
+    p.add_argument("--particles", type=int, default=500, help="N (default: %(default)s)")
+    p.add_argument("--alpha", type=float, default=0.01, help="parameter jitter (eq. 10)")
+    p.add_argument("--no-deviation", action="store_true",
+                   help="do not estimate the deviation parameters theta_d (g = identity)")
+    p.add_argument("--resampling", default="systematic",
+                   help="resampling scheme (systematic, multinomial, stratified, residual)")
+    p.add_argument("--nu", type=float, default=float("inf"),
+                   help="Student-t degrees of freedom of the likelihood (default: Gaussian)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    p.add_argument("--checkpoint", type=Path, help="write the tracker state here at the end")
+    p.set_defaults(run=_track)
+
+
+def load_model(name: str) -> Any:
+    """``"analytic"`` -> the stand-in; otherwise a metamodel file."""
+    if name == "analytic":
+        from formtwin.measurement import AnalyticModel
+        from formtwin.spec import load_spec
+
+        return AnalyticModel(load_spec())
+    metamodel: Any = importlib.import_module("formtwin.metamodel")
+    return metamodel.Metamodel.load(name)
+
+
+def read_curves(path: Path, n_t: int) -> NDArray[np.float64]:
+    """Curves (n, n_t) from an npz, CSV or NetCDF/HDF5 file; ``ValueError`` if absent."""
+    suffix = path.suffix.lower()
+    if not path.exists():
+        raise ValueError(f"--curves {path}: no such file")
+    if suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            keys = [k for k in CURVE_KEYS if k in z] or list(z.keys())[:1]
+            if not keys:
+                raise ValueError(f"{path}: empty npz")
+            arr = np.asarray(z[keys[0]], dtype=np.float64)
+    elif suffix in (".csv", ".txt"):
+        with open(path, encoding="utf-8") as fh:
+            first = fh.readline()
+        try:
+            [float(v) for v in first.split(",")]
+            skip = 0
+        except ValueError:
+            skip = 1  # a header line
+        arr = np.loadtxt(path, delimiter=",", skiprows=skip, ndmin=2)
+    elif suffix in (".nc", ".h5", ".hdf5", ".nc4"):
+        import xarray as xr
+
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            names = [k for k in CURVE_KEYS if k in ds.data_vars] or [
+                str(k) for k, v in ds.data_vars.items() if v.ndim == 2 and v.shape[-1] == n_t]
+            if not names:
+                raise ValueError(f"{path}: no curve variable (tried {', '.join(CURVE_KEYS)})")
+            arr = np.asarray(ds[names[0]].values, dtype=np.float64)
+    else:
+        raise ValueError(f"--curves {path}: unknown file type {suffix!r} "
+                         "(expected .npz, .csv, .nc or .h5)")
+    if arr.ndim == 1:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != n_t:
+        raise ValueError(f"{path}: curves have shape {arr.shape}, expected (n, {n_t})")
+    return arr
+
+
+def write_table(columns: dict[str, NDArray[Any]], path: Path) -> None:
+    """Write equal-length columns as CSV or Parquet (by suffix)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".parquet":
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError as exc:
+            raise ValueError("writing Parquet needs pyarrow; use a .csv output") from exc
+        pq.write_table(pa.table({k: np.asarray(v) for k, v in columns.items()}), path)
+        return
+    names = list(columns)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(names)
+        for row in zip(*(columns[k].tolist() for k in names), strict=True):
+            w.writerow(row)
+
+
+def _track(args: argparse.Namespace) -> int:
+    from formtwin._threads import single_blas_thread
+    from formtwin.measurement import MeasurementModel
+    from formtwin.tracker import Tracker, TrackerConfig
+
+    model = load_model(args.metamodel)
+    spec = model.spec
+    curves = read_curves(args.curves, spec.n_t)
+    ok = np.all(np.isfinite(curves), axis=1)
+    if not ok.all():
+        print(f"skipping {int((~ok).sum())} curves with NaN/inf (failed runs)")
+    if args.measurement:
+        measurement = MeasurementModel.load(args.measurement)
+    else:
+        measurement = MeasurementModel.from_monte_carlo(
+            model, n=args.n_mc, rng=np.random.default_rng(args.seed), nu=args.nu)
+    config = TrackerConfig(n_particles=args.particles, alpha=args.alpha,
+                           estimate_deviation=not args.no_deviation,
+                           resampling=args.resampling, seed=args.seed)
+    tracker = Tracker(model, measurement, config)
+    with single_blas_thread():
+        est = tracker.run(curves[ok], progress=True)
+    cols = est.columns()
+    cols["index"] = np.flatnonzero(ok)  # row number in the input file
+    write_table(cols, args.out)
+    if args.checkpoint:
+        tracker.checkpoint(args.checkpoint)
+    print(f"tracked {len(est)} products ({int(est.collapsed.sum())} collapsed, "
+          f"median ESS {float(np.median(est.ess)) if len(est) else 0:.0f}) -> {args.out}")
+    return 0

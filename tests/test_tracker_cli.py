@@ -1,0 +1,55 @@
+"""``formtwin track`` end to end on the analytic stand-in."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formtwin.cli import main
+from formtwin.measurement import AnalyticModel, MeasurementModel
+from formtwin.spec import load_spec
+
+
+@pytest.fixture(scope="module")
+def curves() -> np.ndarray:
+    spec = load_spec()
+    mid = spec.inputs.lo + 0.5 * (spec.inputs.hi - spec.inputs.lo)
+    noise = np.random.default_rng(0).standard_normal((8, 10))
+    X = mid + 0.01 * (spec.inputs.hi - spec.inputs.lo) * noise
+    return AnalyticModel(spec).predict_curves(X)
+
+
+def test_track_npz_to_csv_with_checkpoint(tmp_path: Path, curves: np.ndarray) -> None:
+    spec = load_spec()
+    mm = MeasurementModel.from_monte_carlo(AnalyticModel(spec), n=1000)
+    mpath = mm.save(tmp_path / "mm.npz")
+    bad = curves.copy()
+    bad[3, 5] = np.nan  # a failed run: skipped, row numbers kept
+    np.savez(tmp_path / "c.npz", curves=bad)
+    out = tmp_path / "est.csv"
+    rc = main(["track", "--metamodel", "analytic", "--curves", str(tmp_path / "c.npz"),
+               "--out", str(out), "--measurement", str(mpath), "--particles", "64",
+               "--no-deviation", "--checkpoint", str(tmp_path / "ck.npz")])
+    assert rc == 0
+    rows = list(csv.DictReader(open(out, encoding="utf-8")))
+    assert [int(r["index"]) for r in rows] == [0, 1, 2, 4, 5, 6, 7]
+    assert float(rows[-1]["mean_press_stiffness"]) > 0 and "angle2_std" in rows[0]
+    assert (tmp_path / "ck.npz").exists()
+
+
+def test_track_csv_input_and_errors(tmp_path: Path, curves: np.ndarray,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "c.csv"
+    np.savetxt(src, curves, delimiter=",", header=",".join(f"t{i}" for i in range(101)),
+               comments="")
+    out = tmp_path / "e.csv"
+    assert main(["track", "--metamodel", "analytic", "--curves", str(src), "--out", str(out),
+                 "--n-mc", "500", "--particles", "32"]) == 0
+    assert len(list(csv.DictReader(open(out, encoding="utf-8")))) == 8
+    np.savetxt(src, curves[:, :50], delimiter=",")
+    assert main(["track", "--metamodel", "analytic", "--curves", str(src), "--out",
+                 str(out)]) == 2
+    assert "expected (n, 101)" in capsys.readouterr().err
