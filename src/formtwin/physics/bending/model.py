@@ -1,0 +1,309 @@
+"""The two-stage flap bending model behind the :class:`~formtwin.simulator.Simulator` seam.
+
+A run: stage 1 load (crank down to bottom dead centre at ``t = 0`` against the press
+spring), stage-1 unload (crank up until the punch is clear: springback), stage 2 load and
+unload with the wiping punch; outputs the stage-1 spring force on the spec's time grid and
+the two bend angles after springback. See :mod:`.geometry` for the tools and
+``docs/physics.md`` for the assumptions.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.physics.bending.geometry import FlapGeometry, ToolSet, make_toolset
+from formtwin.physics.bending.material import Material
+from formtwin.physics.bending.solver import OK, run_history
+from formtwin.simulator import RunResult
+from formtwin.spec import ProcessSpec, load_spec
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+VERSION = "bending-1.0"
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """Mesh and solver settings.
+
+    Attributes
+    ----------
+    n_elements
+        Beam elements along the sheet (root to tip, uniform).
+    n_layers
+        Integration points through the thickness (Gauss-Legendre).
+    n_gauss
+        Gauss points along each element.
+    dt_max1, dt_max2
+        Largest time step (s) in stage 1 and stage 2.
+    dt_min
+        Smallest step before a run is declared failed (s).
+    max_iter, tol_force, tol_disp
+        Newton settings: iterations per step, residual tolerance (N/mm, per mm of width),
+        displacement-correction tolerance (mm).
+    cap_disp
+        Largest displacement correction per Newton iteration (mm).
+    predict
+        Weight of the extrapolation of the last increment in the Newton predictor (0..1).
+    line_search, ls_ratio
+        Largest number of step halvings in the line search, and the ratio of residual
+        norms (new / old) above which the Newton step is halved.
+    """
+
+    n_elements: int = 52
+    n_layers: int = 15
+    n_gauss: int = 2
+    dt_max1: float = 1.0e-3
+    dt_max2: float = 2.0e-3
+    dt_min: float = 1.0e-7
+    max_iter: int = 25
+    tol_force: float = 1.0e-6
+    tol_disp: float = 1.0e-10
+    cap_disp: float = 0.05
+    predict: float = 1.0
+    line_search: int = 3
+    ls_ratio: float = 1.0
+
+    def opts(self, dt_max: float) -> FloatArray:
+        """Solver option array for :func:`~.solver.run_history`."""
+        return np.array([dt_max, self.dt_min, self.max_iter, self.tol_force, self.tol_disp,
+                         self.cap_disp, self.predict, self.line_search, self.ls_ratio])
+
+
+@dataclass
+class Sheet:
+    """Mesh and mutable state of the sheet (per mm of width).
+
+    ``X (n_nodes, 2)`` reference nodes, ``u (3 n_nodes,)`` nodal ``(u_x, u_y, theta)``,
+    layer states ``sig, epb, eps, rate (n_el, n_gauss, n_layers)``.
+    """
+
+    X: FloatArray
+    thickness: float
+    ylay: FloatArray
+    wlay: FloatArray
+    xg: FloatArray
+    wg: FloatArray
+    u: FloatArray = field(init=False)
+    sig: FloatArray = field(init=False)
+    epb: FloatArray = field(init=False)
+    eps: FloatArray = field(init=False)
+    rate: FloatArray = field(init=False)
+
+    def __post_init__(self) -> None:
+        n_el = self.X.shape[0] - 1
+        shape = (n_el, self.xg.size, self.ylay.size)
+        self.u = np.zeros(3 * self.X.shape[0])
+        self.sig, self.epb, self.eps, self.rate = (np.zeros(shape) for _ in range(4))
+
+    @classmethod
+    def straight(cls, x0: float, x1: float, y: float, n_el: int, thickness: float,
+                 n_layers: int, n_gauss: int) -> Sheet:
+        """A straight strip from ``(x0, y)`` to ``(x1, y)``."""
+        X = np.zeros((n_el + 1, 2))
+        X[:, 0] = np.linspace(x0, x1, n_el + 1)
+        X[:, 1] = y
+        yl, wl = np.polynomial.legendre.leggauss(n_layers)
+        xg, wg = np.polynomial.legendre.leggauss(n_gauss)
+        return cls(X, thickness, 0.5 * yl, 0.5 * wl, 0.5 * (xg + 1), 0.5 * wg)
+
+    @property
+    def positions(self) -> FloatArray:
+        """Current node positions ``(n_nodes, 2)``."""
+        return self.X + self.u.reshape(-1, 3)[:, :2]
+
+    def tributary(self) -> FloatArray:
+        """Reference length belonging to each node ``(n_nodes,)``."""
+        le = np.linalg.norm(np.diff(self.X, axis=0), axis=1)
+        return np.r_[0.5 * le, 0.0] + np.r_[0.0, 0.5 * le]
+
+
+@dataclass
+class History:
+    """What :func:`solve` recorded at each target time.
+
+    ``u (n_targets, n_dof)``; ``force (n_targets, 8)`` = measured force, ``F_v``, ``F_lat``
+    (N/mm), punch position and ram position (mm), cumulative steps, iterations and step
+    cuts; ``reactions (n_targets, n_dof)``.
+    """
+
+    t: FloatArray
+    u: FloatArray
+    force: FloatArray
+    reactions: FloatArray
+    status: int
+    counters: NDArray[np.int64]
+
+
+def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: FloatArray,
+          disc: Discretisation, *, dt_max: float, t_start: float | None = None,
+          mu: FloatArray | None = None, penalty: float = 5.0e5, smooth: float = 5.0e-4,
+          press: FloatArray | None = None, fix: NDArray[np.int64] | None = None,
+          fix_ref: FloatArray | None = None, fref: FloatArray | None = None,
+          lam: FloatArray | None = None) -> History:
+    """Advance ``sheet`` (in place) through ``targets`` (s) and record the history.
+
+    ``tools`` may be None (no contact). ``mu (n_tools,)`` friction coefficients, ``press``
+    ``[k (N/mm per mm width; <= 0 prescribed punch), mu_tt, v_eps, crank R, rod, omega]``;
+    ``fix`` prescribed dofs with values ``lam(t) * fix_ref``; loads ``lam(t) * fref``.
+    """
+    n = sheet.u.size
+    if tools is None:
+        tools = ToolSet(np.zeros(1, np.int64), np.zeros((1, 6)), np.zeros(1, np.int64),
+                        np.zeros(0, np.int64), ())
+    n_tools = tools.owner.size
+    n_nodes = sheet.X.shape[0]
+    pen = np.repeat((penalty * sheet.tributary())[:, None], 2, axis=1)
+    press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0]) if press is None else press
+    press = np.r_[press, smooth]
+    fix = np.array([0, 1, 2], dtype=np.int64) if fix is None else fix
+    fix_ref = np.zeros(fix.size) if fix_ref is None else fix_ref
+    fref = np.zeros(n) if fref is None else fref
+    lam = np.zeros(targets.size) if lam is None else lam
+    mu = np.zeros(n_tools) if mu is None else mu
+    t0 = float(targets[0]) if t_start is None else t_start
+    from formtwin.physics.bending.solver import crank
+
+    pa = np.array([crank(t0, press)[0]])
+    ct_t = np.zeros((n_nodes, n_tools))
+    ct_rel = np.zeros((n_nodes, n_tools, 2))
+    ct_act = np.zeros((n_nodes, n_tools), dtype=np.int64)
+    rec_u = np.zeros((targets.size, n))
+    rec_f = np.zeros((targets.size, 8))
+    rec_r = np.zeros((targets.size, n))
+    counters = np.zeros(4, dtype=np.int64)
+    status = run_history(
+        targets, lam, t0, sheet.X, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg,
+        material.array, sheet.u, pa, sheet.sig, sheet.epb, sheet.eps,
+        sheet.rate, tools.ptype, tools.pdata, tools.tstart, tools.owner, mu, pen, ct_t,
+        ct_rel, ct_act, press, fref, fix, fix_ref, disc.opts(dt_max), rec_u, rec_f, rec_r,
+        counters)
+    return History(targets, rec_u, rec_f, rec_r, int(status), counters)
+
+
+def flap_angle(sheet: Sheet, length: float) -> float:
+    """Bend angle (deg, downward positive) of the chord of the last ``length`` mm of flap."""
+    pos = sheet.positions
+    s = sheet.X[:, 0]
+    j = int(np.searchsorted(s, s[-1] - length))
+    d = pos[-1] - pos[j]
+    return math.degrees(math.atan2(-d[1], d[0]))
+
+
+class BendingModel:
+    """Two-stage flap bending: corotational layered beams, rigid tools, crank and press.
+
+    Satisfies :class:`formtwin.simulator.Simulator`; picklable.
+
+    Parameters
+    ----------
+    spec
+        Process spec (inputs in internal units); default: the bundled demonstrator.
+    geometry
+        Tool dimensions and press kinematics (:class:`FlapGeometry`).
+    disc
+        Mesh and solver settings (:class:`Discretisation`).
+    **overrides
+        Fields of :class:`Discretisation` to override, e.g. ``n_elements=40``.
+
+    Examples
+    --------
+    >>> model = BendingModel(n_elements=40)
+    >>> r = model.run(model.centre())
+    >>> r.ok, r.curve.shape, bool(r.curve.max() > 100), bool(80 < r.angles[1] < 95)
+    (True, (101,), True, True)
+    """
+
+    def __init__(self, spec: ProcessSpec | None = None, geometry: FlapGeometry | None = None,
+                 disc: Discretisation | None = None, **overrides: Any) -> None:
+        self.spec = spec if spec is not None else load_spec()
+        self.geometry = geometry if geometry is not None else FlapGeometry()
+        base = disc if disc is not None else Discretisation()
+        self.disc = Discretisation(**{**base.__dict__, **overrides})
+        self.version = VERSION
+        self._ix = self.spec.inputs.index
+
+    def centre(self) -> FloatArray:
+        """Centre of Table 1: ``mu_mid`` for the state, box centre for the parameters."""
+        return np.r_[self.spec.state.mu_mid, 0.5 * (self.spec.params.lo + self.spec.params.hi)]
+
+    def run(self, inputs: FloatArray) -> RunResult:
+        """Run one input point ``(n_inputs,)`` (internal units); never raises on divergence."""
+        n_t = self.spec.time.size
+        try:
+            stage1, stage2, _ = self.simulate(np.asarray(inputs, dtype=np.float64))
+        except (FloatingPointError, ValueError, ZeroDivisionError) as exc:
+            log.warning("bending run failed: %s", exc)
+            return RunResult.failure(n_t, f"error: {exc}")
+        if stage1["status"] != OK or stage2["status"] != OK:
+            which = "stage 1" if stage1["status"] != OK else "stage 2"
+            return RunResult.failure(n_t, f"{which} did not converge (step below dt_min)")
+        curve = np.asarray(stage1["curve"], dtype=np.float64)
+        angles = np.array([stage1["angle"], stage2["angle"]], dtype=np.float64)
+        if not (np.all(np.isfinite(curve)) and np.all(np.isfinite(angles))):
+            return RunResult.failure(n_t, "non-finite output")
+        info = {"steps": float(stage1["steps"] + stage2["steps"]),
+                "iterations": float(stage1["iterations"] + stage2["iterations"]),
+                "cuts": float(stage1["cuts"] + stage2["cuts"]),
+                "seconds": float(stage1["seconds"] + stage2["seconds"]),
+                "release_force": float(stage1["release_force"])}
+        return RunResult(curve, angles, ok=True, info=info)
+
+    def simulate(self, x: FloatArray) -> tuple[dict[str, Any], dict[str, Any], Sheet]:
+        """Run both stages; returns per-stage records (with histories) and the final sheet."""
+        ix, g, d = self._ix, self.geometry, self.disc
+        thick = float(x[ix["thickness"]])
+        material = Material(yield_stress=float(x[ix["yield_stress"]]),
+                            log_rate=float(x[ix["log_rate"]]),
+                            rate_exponent=float(x[ix["rate_exponent"]]))
+        mu_tf = float(x[ix["friction_tool_flap"]])
+        sheet = Sheet.straight(g.x_root, g.x_tip, 0.5 * thick, d.n_elements, thick,
+                               d.n_layers, d.n_gauss)
+        crank_par = [0.5 * g.stroke, g.rod, g.omega]
+        # ---- stage 1
+        tools1 = make_toolset([
+            ("die", 0, g.die1()), ("holder", 0, g.holder(thick)),
+            ("punch", 1, g.punch1(float(x[ix["punch_end_distance"]]),
+                                  float(x[ix["horizontal_alignment"]]),
+                                  float(x[ix["vertical_alignment"]])))])
+        t_rel = g.release_time()
+        grid = np.asarray(self.spec.time, dtype=np.float64)
+        targets1 = np.r_[grid, np.linspace(grid[-1], t_rel, 8)[1:]]
+        press1 = np.array([float(x[ix["press_stiffness"]]) / g.width,
+                           float(x[ix["friction_tool_tool"]]), 1.0, *crank_par])
+        tic = time.perf_counter()
+        h1 = solve(sheet, material, tools1, targets1, d, dt_max=d.dt_max1,
+                   mu=np.full(3, mu_tf), penalty=g.penalty, smooth=g.smooth, press=press1)
+        s1: dict[str, Any] = {"status": h1.status, "history": h1, "tools": tools1,
+                              "curve": h1.force[:grid.size, 0] * g.width,
+                              "angle": flap_angle(sheet, g.angle_length),
+                              "release_force": h1.force[-1, 0] * g.width,
+                              "steps": int(h1.counters[0]), "iterations": int(h1.counters[1]),
+                              "cuts": int(h1.counters[2]),
+                              "seconds": time.perf_counter() - tic}
+        if h1.status != OK:
+            return s1, {"status": -1}, sheet
+        # ---- stage 2
+        g2 = FlapGeometry(**{**g.__dict__, "release_height": 3.0})
+        t2 = g2.release_time()
+        tools2 = make_toolset([("die", 0, g.die2()), ("holder", 0, g.holder(thick)),
+                               ("punch", 1, g.punch2())])
+        targets2 = np.linspace(-t2, t2, 21)
+        press2 = np.array([0.0, 0.0, 1.0, *crank_par])
+        tic = time.perf_counter()
+        h2 = solve(sheet, material, tools2, targets2, d, dt_max=d.dt_max2,
+                   mu=np.full(3, mu_tf), penalty=g.penalty, smooth=g.smooth, press=press2)
+        s2: dict[str, Any] = {"status": h2.status, "history": h2, "tools": tools2,
+                              "angle": flap_angle(sheet, g.angle_length),
+                              "steps": int(h2.counters[0]), "iterations": int(h2.counters[1]),
+                              "cuts": int(h2.counters[2]),
+                              "seconds": time.perf_counter() - tic}
+        return s1, s2, sheet

@@ -1,0 +1,371 @@
+"""Incremental-iterative solver of the bending model (Numba).
+
+Unknowns: the nodal ``(u_x, u_y, theta)`` of the sheet (a chain of beam elements) and,
+when the press is compliant, the punch position ``p`` (the translation of the tools owned
+by the punch). The crank prescribes the ram position ``c(t)``; the press frame is a spring
+``k`` between ram and punch, so the punch equilibrium reads
+
+    G = k (p - c) - F_v - s mu_tt |F_lat| = 0,
+
+with ``F_v, F_lat`` the vertical and lateral forces of the sheet on the punch and
+``s = -tanh(c'(t) / v_eps)`` the direction of the guide friction (+1 moving down). The
+sensor measures the spring force ``k (p - c)``. With ``k <= 0`` the punch follows the
+crank exactly. The bordered system (banded sheet block + one punch row and column) is
+solved by block elimination.
+
+Time stepping: the history is a list of target times; between targets the step is
+halved on failure (down to ``dt_min``) and doubled after a few easy steps (up to
+``dt_max``). The Newton predictor extrapolates the last increment.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from formtwin.physics.bending.kernels import (
+    BW,
+    band_lu,
+    band_solve,
+    beam_element,
+    closest_point,
+    contact_node,
+)
+
+# indices into the ``press`` array
+K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
+# indices into the ``opts`` array
+DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL = range(9)
+# status codes
+OK, FAIL_STEP, FAIL_NAN = 0, 1, 2
+
+
+@njit(cache=True)
+def crank(t, press):  # type: ignore[no-untyped-def]
+    """Ram height above bottom dead centre ``c(t)`` (mm) and its speed (mm/s)."""
+    R, L, w = press[CR_R], press[CR_L], press[CR_W]
+    a = w * t
+    sa, ca = math.sin(a), math.cos(a)
+    root = math.sqrt(L * L - R * R * sa * sa)
+    return R * (1.0 - ca) + L - root, R * w * sa + R * R * w * sa * ca / root
+
+
+@njit(cache=True)
+def assemble(t, u, p, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
+             sig, epb, eps, rate, sig_t, epb_t, eps_t,
+             ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t, ct_act_t,
+             press, fext, Kb, R, col, row, out):
+    """Residual ``R = f_int - f_contact - f_ext`` and band tangent ``Kb``.
+
+    ``col = dR/dp``, ``row = dG/du``; ``out = [G, dG/dp, F_v, F_lat, spring/measured force]``.
+    """
+    n_dof = u.shape[0]
+    n_el = X.shape[0] - 1
+    Kb[:, :] = 0.0
+    col[:] = 0.0
+    row[:] = 0.0
+    for i in range(n_dof):
+        R[i] = -fext[i]
+    fe = np.zeros(6)
+    Ke = np.zeros((6, 6))
+    Bw = np.zeros((3, 6))
+    for e in range(n_el):
+        beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,
+                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw)
+        i0 = 3 * e
+        for a in range(6):
+            R[i0 + a] += fe[a]
+            for b in range(6):
+                Kb[i0 + a, b - a + BW] += Ke[a, b]
+    J = np.zeros((2, 2))
+    n_nodes = X.shape[0]
+    n_tools = towner.shape[0]
+    Jp = np.zeros((n_nodes, 2, 2))
+    fv = 0.0
+    flat = 0.0
+    half = 0.5 * thick
+    for k in range(n_tools):
+        ty = p if towner[k] == 1 else 0.0
+        for nd in range(n_nodes):
+            ct_act_t[nd, k] = 0
+            ct_t_t[nd, k] = 0.0
+            px = X[nd, 0] + u[3 * nd]
+            py = X[nd, 1] + u[3 * nd + 1] - ty
+            dist, sd, nx, ny, rho = closest_point(px, py, tstart[k], tstart[k + 1], ptype, pdata)
+            gap = sd - half
+            if gap >= 0.0 or gap < -thick:
+                continue
+            if ct_act[nd, k] == 1:
+                tt_n = ct_t[nd, k]
+                drx = px - ct_rel[nd, k, 0]
+                dry = py - ct_rel[nd, k, 1]
+            else:
+                tt_n = 0.0
+                drx = 0.0
+                dry = 0.0
+            fx, fy, tt, slip = contact_node(gap, press[G0], nx, ny, rho, pen[nd, 0],
+                                            pen[nd, 1], tmu[k], tt_n, drx, dry, J)
+            ct_act_t[nd, k] = 1
+            ct_t_t[nd, k] = tt
+            i0 = 3 * nd
+            R[i0] -= fx
+            R[i0 + 1] -= fy
+            for a in range(2):
+                for b in range(2):
+                    Kb[i0 + a, b - a + BW] -= J[a, b]
+            if towner[k] == 1:
+                fv -= fy
+                flat -= fx
+                col[i0] += J[0, 1]
+                col[i0 + 1] += J[1, 1]
+                for a in range(2):
+                    for b in range(2):
+                        Jp[nd, a, b] += J[a, b]
+    c, v = crank(t, press)
+    sdir = -math.tanh(v / press[V_EPS])
+    mtt = sdir * press[MU_TT] * (1.0 if flat >= 0.0 else -1.0)
+    dgdp = press[K_SPRING]
+    for nd in range(n_nodes):
+        for b in range(2):
+            row[3 * nd + b] = Jp[nd, 1, b] + mtt * Jp[nd, 0, b]
+        dgdp -= Jp[nd, 1, 1] + mtt * Jp[nd, 0, 1]
+    meas = fv + sdir * press[MU_TT] * abs(flat)
+    out[0] = press[K_SPRING] * (p - c) - meas
+    out[1] = dgdp
+    out[2] = fv
+    out[3] = flat
+    out[4] = press[K_SPRING] * (p - c) if press[K_SPRING] > 0.0 else meas
+
+
+@njit(cache=True)
+def _fix(R, Kb, col, row, free):  # type: ignore[no-untyped-def]
+    """Eliminate prescribed dofs (identity rows/columns); returns the residual 2-norm."""
+    n = R.shape[0]
+    acc = 0.0
+    for i in range(n):
+        if free[i] == 0:
+            R[i] = 0.0
+            col[i] = 0.0
+            row[i] = 0.0
+            for j in range(2 * BW + 1):
+                Kb[i, j] = 0.0
+            for j in range(max(0, i - BW), min(n, i + BW + 1)):
+                Kb[j, i - j + BW] = 0.0
+            Kb[i, BW] = 1.0
+        else:
+            acc += R[i] * R[i]
+    return math.sqrt(acc)
+
+
+@njit(cache=True)
+def newton(t, u, pa, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
+           sig, epb, eps, rate, sig_t, epb_t, eps_t,
+           ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t, ct_act_t,
+           press, fext, free, opts, Kb, R, col, row, out, counters):
+    """Newton iterations with a backtracking line search at time ``t``.
+
+    Starts from the predictor in ``u, pa[0]``; ``free[i] = 0`` marks a prescribed dof
+    (its value is already set in ``u``). Returns the number of iterations, or -1 if not
+    converged within ``opts[MAX_IT]``.
+    """
+    n = u.shape[0]
+    spring = press[K_SPRING] > 0.0
+    x1 = np.zeros(n)
+    x2 = np.zeros(n)
+    u0 = np.zeros(n)
+    assemble(t, u, pa[0], X, thick, ylay, wlay, xg, wg, mat,
+             sig, epb, eps, rate, sig_t, epb_t, eps_t,
+             ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t,
+             ct_act_t, press, fext, Kb, R, col, row, out)
+    norm = _fix(R, Kb, col, row, free)
+    if spring:
+        norm = math.sqrt(norm * norm + out[0] * out[0])
+    for it in range(int(opts[MAX_IT])):
+        rmax = abs(out[0]) if spring else 0.0
+        for i in range(n):
+            rmax = max(rmax, abs(R[i]))
+        if not math.isfinite(rmax):
+            return -1
+        if rmax < opts[TOL_R] and it > 0:
+            return it
+        if not band_lu(Kb):
+            return -1
+        for i in range(n):
+            x1[i] = -R[i]
+        band_solve(Kb, x1)
+        dp = 0.0
+        if spring:
+            for i in range(n):
+                x2[i] = col[i]
+            band_solve(Kb, x2)
+            den = out[1]
+            num = -out[0]
+            for i in range(n):
+                den -= row[i] * x2[i]
+                num -= row[i] * x1[i]
+            dp = num / den
+            for i in range(n):
+                x1[i] -= x2[i] * dp
+        dmax = abs(dp)
+        for i in range(n):
+            if i % 3 != 2 and abs(x1[i]) > dmax:
+                dmax = abs(x1[i])
+        scale = 1.0
+        if dmax > opts[CAP_U]:
+            scale = opts[CAP_U] / dmax
+        for i in range(n):
+            u0[i] = u[i]
+        p0 = pa[0]
+        norm0 = norm
+        alpha = scale
+        n_ls = int(opts[LS_MAX])
+        for ls in range(n_ls + 1):
+            for i in range(n):
+                u[i] = u0[i] + alpha * x1[i]
+            pa[0] = p0 + alpha * dp
+            assemble(t, u, pa[0], X, thick, ylay, wlay, xg, wg, mat,
+                     sig, epb, eps, rate, sig_t, epb_t, eps_t,
+                     ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t,
+                     ct_act_t, press, fext, Kb, R, col, row, out)
+            counters[3] += 1
+            norm = _fix(R, Kb, col, row, free)
+            if spring:
+                norm = math.sqrt(norm * norm + out[0] * out[0])
+            if norm < opts[LS_TOL] * norm0 or ls == n_ls:
+                break
+            alpha *= 0.5
+        if dmax * alpha < opts[TOL_U] and norm < 1e3 * opts[TOL_R]:
+            return it + 1
+    return -1
+
+
+@njit(cache=True)
+def lam_at(t, targets, lam):  # type: ignore[no-untyped-def]
+    """Load factor at ``t``, piecewise linear through ``(targets, lam)``."""
+    return np.interp(t, targets, lam)
+
+
+@njit(cache=True)
+def run_history(targets, lam, t_start, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
+                u, pa, sig, epb, eps, rate,
+                ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act,
+                press, fref, fix_idx, fix_ref, opts,
+                rec_u, rec_f, rec_r, counters):
+    """Advance the state ``(u, pa, sig, epb, eps, rate, ct_*)`` in place through ``targets``.
+
+    Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam(t) * fix_ref``. At each
+    target it records ``u`` in ``rec_u``; ``[measured force, F_v, F_lat, p, c, steps,
+    iterations, cuts]`` in ``rec_f``; the residual with prescribed dofs kept (reactions) in
+    ``rec_r``. ``counters = [steps, iterations, cuts, assemblies]``. Returns a status code
+    (0 = converged).
+    """
+    n = u.shape[0]
+    n_el = X.shape[0] - 1
+    n_tools = towner.shape[0]
+    n_nodes = X.shape[0]
+    sig_t = np.empty_like(sig)
+    epb_t = np.empty_like(epb)
+    eps_t = np.empty_like(eps)
+    ct_t_t = np.zeros((n_nodes, n_tools))
+    ct_act_t = np.zeros((n_nodes, n_tools), dtype=np.int64)
+    Kb = np.zeros((n, 2 * BW + 1))
+    R = np.zeros(n)
+    col = np.zeros(n)
+    row = np.zeros(n)
+    out = np.zeros(5)
+    fext = np.zeros(n)
+    free = np.ones(n, dtype=np.int64)
+    for i in fix_idx:
+        free[i] = 0
+    u_trial = np.empty(n)
+    du_prev = np.zeros(n)
+    dp_prev = 0.0
+    dt_prev = 0.0
+    spring = press[K_SPRING] > 0.0
+    t = t_start
+    dt = opts[DT_MAX]
+    easy = 0
+    for j in range(targets.shape[0]):
+        while t < targets[j] - 1e-12:
+            h = min(dt, targets[j] - t)
+            tn = t + h
+            lf = lam_at(tn, targets, lam)
+            for i in range(n):
+                fext[i] = lf * fref[i]
+                u_trial[i] = u[i]
+                if dt_prev > 0.0:
+                    u_trial[i] += opts[PREDICT] * du_prev[i] * h / dt_prev
+            for m in range(fix_idx.shape[0]):
+                u_trial[fix_idx[m]] = lf * fix_ref[m]
+            c_new, _ = crank(tn, press)
+            pt = np.empty(1)
+            if spring:
+                if dt_prev > 0.0 and opts[PREDICT] > 0.0:
+                    pt[0] = pa[0] + dp_prev * h / dt_prev
+                else:
+                    c_old, _ = crank(t, press)
+                    pt[0] = pa[0] + (c_new - c_old)
+            else:
+                pt[0] = c_new
+            its = newton(tn, u_trial, pt, X, thick, ylay, wlay, xg, wg, mat,
+                         sig, epb, eps, rate, sig_t, epb_t, eps_t,
+                         ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act,
+                         ct_t_t, ct_act_t, press, fext, free, opts, Kb, R, col, row, out,
+                         counters)
+            if its < 0:
+                counters[2] += 1
+                dt = 0.5 * h
+                easy = 0
+                dt_prev = 0.0  # restart without extrapolation
+                if dt < opts[DT_MIN]:
+                    return FAIL_STEP
+                continue
+            counters[0] += 1
+            counters[1] += its
+            # commit
+            for e in range(n_el):
+                for g in range(sig.shape[1]):
+                    for k in range(sig.shape[2]):
+                        de = abs(eps_t[e, g, k] - eps[e, g, k])
+                        rate[e, g, k] = 2.0 / math.sqrt(3.0) * de / h
+                        sig[e, g, k] = sig_t[e, g, k]
+                        epb[e, g, k] = epb_t[e, g, k]
+                        eps[e, g, k] = eps_t[e, g, k]
+            for nd in range(n_nodes):
+                for k in range(n_tools):
+                    ct_act[nd, k] = ct_act_t[nd, k]
+                    ct_t[nd, k] = ct_t_t[nd, k]
+                    if ct_act_t[nd, k] == 1:
+                        ty = pt[0] if towner[k] == 1 else 0.0
+                        ct_rel[nd, k, 0] = X[nd, 0] + u_trial[3 * nd]
+                        ct_rel[nd, k, 1] = X[nd, 1] + u_trial[3 * nd + 1] - ty
+            for i in range(n):
+                du_prev[i] = u_trial[i] - u[i]
+                u[i] = u_trial[i]
+            dp_prev = pt[0] - pa[0]
+            pa[0] = pt[0]
+            dt_prev = h
+            t = tn
+            easy = easy + 1 if its <= 6 else 0
+            if easy >= 3:
+                dt = min(2.0 * dt, opts[DT_MAX])
+                easy = 0
+        # record (re-assemble at the converged state for forces and reactions)
+        assemble(t, u, pa[0], X, thick, ylay, wlay, xg, wg, mat,
+                 sig, epb, eps, rate, sig_t, epb_t, eps_t,
+                 ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t,
+                 ct_act_t, press, fext, Kb, R, col, row, out)
+        for i in range(n):
+            rec_u[j, i] = u[i]
+            rec_r[j, i] = R[i]
+        c_now, _ = crank(t, press)
+        rec_f[j, 0] = out[4]
+        rec_f[j, 1] = out[2]
+        rec_f[j, 2] = out[3]
+        rec_f[j, 3] = pa[0]
+        rec_f[j, 4] = c_now
+        for m in range(3):
+            rec_f[j, 5 + m] = counters[m]
+    return OK
