@@ -114,7 +114,8 @@ def _serve(args: argparse.Namespace) -> int:
         service = MqttService(proc, broker, topics, client_id=args.client_id)
         print(f"serving {topics.strokes} on {broker.host}:{broker.port} -> "
               f"{topics.results}, errors -> {topics.errors}", flush=True)
-        service.run(stop, timeout=args.connect_timeout)
+        service.run(stop, timeout=args.connect_timeout,
+                    on_connected=lambda: print("connected and subscribed", flush=True))
         print(f"stopped after {service.handled} messages", flush=True)
     finally:
         if page is not None:

@@ -2,11 +2,13 @@
 
 Delivery guarantees. The service subscribes with QoS 1 on a persistent session (fixed
 client id, ``clean_session=False``) and acknowledges a message only *after* its outcome is
-committed to the store (paho's ``manual_ack``). A service killed at any instant therefore
-gets every unacknowledged stroke again from the broker when it restarts; the store
-recognises the ones it had already committed (same part id, same curve) and answers them
-with the stored estimate instead of counting them twice. Results and errors are published
-with QoS 1 (at least once): consumers de-duplicate by ``part_id``.
+committed to the store and its answer published (paho's ``manual_ack``). A service killed
+at any instant therefore gets every unacknowledged stroke again from the broker when it
+restarts; the store recognises the ones it had already committed (same part id, same
+curve) and answers them with the stored estimate instead of counting them twice. Results and errors are published
+with QoS 1 (at least once): consumers de-duplicate by ``part_id``. The stroke is
+acknowledged only when the broker has acknowledged the answer (estimate or error), so an
+answer can be doubled by a kill but never lost.
 """
 
 from __future__ import annotations
@@ -67,7 +69,8 @@ class BrokerConfig:
         if parts.username or parts.password:
             raise ValueError("broker URL must not carry credentials; use --username and "
                              "FORMTWIN_MQTT_PASSWORD / --password-file")
-        tls = parts.scheme == "mqtts" or bool(kwargs.pop("tls", False))
+        tls_flag = bool(kwargs.pop("tls", False))
+        tls = parts.scheme == "mqtts" or tls_flag
         port = parts.port or (8883 if tls else 1883)
         return cls(host=parts.hostname, port=port, tls=tls, **kwargs)
 
@@ -128,8 +131,14 @@ class MqttService:
         self.client = make_client(broker, client_id, persistent=True, manual_ack=True)
         self.client.on_connect = self._on_connect
         self.client.on_message = self._on_message
+        self.client.on_subscribe = self._on_subscribe
+        self.client.on_publish = self._on_publish
+        self._lock = threading.Lock()
+        self._pending: dict[int, tuple[int, int]] = {}
         self.client.on_disconnect = self._on_disconnect
         self.connected = threading.Event()
+        self._answered = threading.Event()
+        self.refused: str | None = None
         self.broker = broker
         self.handled = 0
 
@@ -137,11 +146,22 @@ class MqttService:
                     props: Any = None) -> None:
         if getattr(rc, "is_failure", False):
             log.error("broker refused the connection: %s", rc)
+            self.refused = str(rc)
+            self._answered.set()
             return
         client.subscribe(self.topics.strokes, qos=1)
-        log.info("connected to %s:%d, subscribed to %s", self.broker.host, self.broker.port,
+        log.info("connected to %s:%d, subscribing to %s", self.broker.host, self.broker.port,
                  self.topics.strokes)
+
+    def _on_subscribe(self, client: mqtt.Client, userdata: Any, mid: int, rcs: Any,
+                      props: Any = None) -> None:
+        if any(getattr(rc, "is_failure", False) for rc in rcs):
+            log.error("broker refused the subscription to %s: %s", self.topics.strokes, rcs)
+            self.refused = f"subscription refused: {rcs}"
+            self._answered.set()
+            return
         self.connected.set()
+        self._answered.set()
 
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, rc: Any,
                        props: Any = None) -> None:
@@ -151,13 +171,24 @@ class MqttService:
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
         topic = self.topics.errors if out.is_error else self.topics.results
-        client.publish(topic, dumps(out.message), qos=1)
+        info = client.publish(topic, dumps(out.message), qos=1)
         if msg.qos > 0:
-            client.ack(msg.mid, msg.qos)
+            # acknowledge the stroke only once the broker holds our answer: a kill before
+            # that makes the broker redeliver the stroke, and the store answers it again
+            with self._lock:
+                self._pending[info.mid] = (msg.mid, msg.qos)
         self.handled += 1
 
-    def run(self, stop: threading.Event, timeout: float = 10.0) -> None:
-        """Connect and serve until ``stop`` is set.
+    def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, rc: Any = None,
+                    props: Any = None) -> None:
+        with self._lock:
+            stroke = self._pending.pop(mid, None)
+        if stroke is not None:
+            client.ack(*stroke)
+
+    def run(self, stop: threading.Event, timeout: float = 10.0,
+            on_connected: Callable[[], None] | None = None) -> None:
+        """Connect and serve until ``stop`` is set; ``on_connected()`` runs once subscribed.
 
         Raises
         ------
@@ -167,9 +198,15 @@ class MqttService:
         self.client.connect_async(self.broker.host, self.broker.port, self.broker.keepalive)
         self.client.loop_start()
         try:
-            if not self.connected.wait(timeout):
+            self._answered.wait(timeout)
+            if self.refused is not None:
+                raise ConnectionError(f"broker {self.broker.host}:{self.broker.port} refused "
+                                      f"the connection: {self.refused}")
+            if not self.connected.is_set():
                 raise ConnectionError(f"no connection to the broker at {self.broker.host}:"
                                       f"{self.broker.port} within {timeout:g} s")
+            if on_connected is not None:
+                on_connected()
             stop.wait()
         finally:
             self.client.disconnect()
@@ -186,14 +223,24 @@ def publish_strokes(strokes: Iterable[Stroke], broker: BrokerConfig, topic: str,
     publish (the benchmark measures latency from there).
     """
     client = make_client(broker, client_id or f"formtwin-replay-{time.time_ns()}")
-    connected = threading.Event()
-    client.on_connect = lambda c, u, f, rc, p=None: connected.set()
+    answered = threading.Event()
+    refused: list[str] = []
+
+    def on_connect(c: mqtt.Client, u: Any, f: Any, rc: Any, p: Any = None) -> None:
+        if getattr(rc, "is_failure", False):
+            refused.append(str(rc))
+        answered.set()
+
+    client.on_connect = on_connect
     client.connect(broker.host, broker.port, broker.keepalive)
     client.loop_start()
     n = 0
     try:
-        if not connected.wait(10.0):
+        if not answered.wait(10.0):
             raise ConnectionError(f"no connection to {broker.host}:{broker.port}")
+        if refused:
+            raise ConnectionError(f"broker {broker.host}:{broker.port} refused the "
+                                  f"connection: {refused[0]}")
         t0 = time.perf_counter()
         last = None
         for s in strokes:

@@ -1,0 +1,190 @@
+"""Test helpers for the service: a private mosquitto on 127.0.0.1, free ports, a serve
+subprocess. Imported by ``tests/test_service*.py`` (the tests folder is on ``sys.path``)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def find_binary(name: str, extra: tuple[str, ...] = ()) -> str | None:
+    found = shutil.which(name)
+    if found:
+        return found
+    for p in extra:
+        if os.path.exists(p):
+            return p
+    return None
+
+
+def require_binary(name: str, extra: tuple[str, ...] = ()) -> str:
+    """The binary's path; skip only when not root and it is missing (as root, fail: `make
+    test` installs it through `make system-deps`)."""
+    path = find_binary(name, extra)
+    if path is None:
+        if os.geteuid() == 0:
+            pytest.fail(f"{name} is not installed; run `make system-deps` (apt-get install "
+                        f"mosquitto chromium)")
+        pytest.skip(f"{name} not installed and not root: `sudo make system-deps` to run "
+                    "this test")
+    return path
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_port(port: int, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"nothing listening on 127.0.0.1:{port} after {timeout} s")
+
+
+class Mosquitto:
+    """A private mosquitto broker on 127.0.0.1 (temporary config, no persistence)."""
+
+    def __init__(self, workdir: Path, extra_conf: str = "", anonymous: bool = True) -> None:
+        self.binary = require_binary("mosquitto", ("/usr/sbin/mosquitto",))
+        self.port = free_port()
+        self.workdir = workdir
+        self.conf = workdir / "mosquitto.conf"
+        self.conf.write_text(
+            f"listener {self.port} 127.0.0.1\n"
+            f"allow_anonymous {'true' if anonymous else 'false'}\n"
+            "persistence false\n"
+            "max_queued_messages 100000\n"
+            "max_inflight_messages 50\n"
+            "log_dest stderr\n"
+            "log_type error\n"
+            "log_type warning\n" + extra_conf, encoding="utf-8")
+        self.log = open(workdir / "mosquitto.log", "wb")  # noqa: SIM115
+        self.proc = subprocess.Popen([self.binary, "-c", str(self.conf)], stdout=self.log,
+                                     stderr=subprocess.STDOUT)
+        try:
+            wait_port(self.port)
+        except TimeoutError:
+            self.stop()
+            raise
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self.log.close()
+
+
+@pytest.fixture
+def mosquitto(tmp_path: Path) -> Iterator[Mosquitto]:
+    """A running private broker for one test."""
+    broker = Mosquitto(tmp_path)
+    try:
+        yield broker
+    finally:
+        broker.stop()
+
+
+#: run the formtwin CLI in a subprocess with this interpreter
+FORMTWIN = [sys.executable, "-c", "import sys; from formtwin.cli import main; sys.exit(main())"]
+
+
+def serve_cmd(broker: Mosquitto, store: Path, *extra: str) -> list[str]:
+    """Command line of a `formtwin serve` subprocess (analytic stand-in)."""
+    return [*FORMTWIN, "serve", "--analytic", "--broker", broker.url, "--store", str(store),
+            *extra]
+
+
+def wait_serving(proc: subprocess.Popen[bytes], log: Path, timeout: float = 60.0) -> None:
+    """Wait for a serve subprocess to be subscribed; fail with its log if it dies."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if log_has(log, "connected and subscribed"):
+            return
+        if proc.poll() is not None:
+            pytest.fail(f"serve exited with {proc.returncode}:\n{log.read_text()[-3000:]}")
+        time.sleep(0.05)
+    pytest.fail(f"serve not subscribed after {timeout} s:\n{log.read_text()[-3000:]}")
+
+
+def start_serve(cmd: list[str], log_path: Path) -> subprocess.Popen[bytes]:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    fh = open(log_path, "ab")  # noqa: SIM115 - closed by the OS when the child ends
+    return subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, cwd=REPO)
+
+
+class Collector:
+    """Subscribes (QoS 1) to topics and keeps every JSON message received, by topic."""
+
+    def __init__(self, url: str, topics: list[str]) -> None:
+        import json
+        import threading
+
+        import paho.mqtt.client as mqtt
+        from paho.mqtt.enums import CallbackAPIVersion
+
+        self._lock = threading.Lock()
+        self.messages: dict[str, list[dict[str, object]]] = {t: [] for t in topics}
+        port = int(url.rsplit(":", 1)[1])
+        self.client = mqtt.Client(CallbackAPIVersion.VERSION2,
+                                  client_id=f"collector-{time.time_ns()}")
+        ready = threading.Event()
+
+        def on_message(c: object, u: object, msg: mqtt.MQTTMessage) -> None:
+            with self._lock:
+                self.messages.setdefault(msg.topic, []).append(json.loads(msg.payload))
+
+        self.client.on_message = on_message
+        self.client.on_subscribe = lambda *a: ready.set()
+        self.client.connect("127.0.0.1", port)
+        self.client.subscribe([(t, 1) for t in topics])
+        self.client.loop_start()
+        if not ready.wait(10):
+            raise TimeoutError("collector could not subscribe")
+
+    def get(self, topic: str) -> list[dict[str, object]]:
+        with self._lock:
+            return list(self.messages.get(topic, []))
+
+    def stop(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+def wait_for(predicate: object, timeout: float, what: object, poll: float = 0.05) -> None:
+    """Poll ``predicate()`` until true; fail the test after ``timeout`` seconds, saying
+    ``what`` (a string, or a callable giving one at that moment)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():  # type: ignore[operator]
+            return
+        time.sleep(poll)
+    pytest.fail(f"timed out after {timeout} s waiting for "
+                f"{what() if callable(what) else what}")
+
+
+def log_has(path: Path, text: str) -> bool:
+    return path.exists() and text in path.read_text(encoding="utf-8", errors="replace")

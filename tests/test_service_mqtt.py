@@ -1,0 +1,225 @@
+"""`formtwin serve` against a real mosquitto on 127.0.0.1: bad input on the errors topic,
+SIGKILL at random moments without loss or doubles, username/password over TLS."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from service_fixtures import (
+    FORMTWIN,
+    REPO,
+    Collector,
+    Mosquitto,
+    mosquitto,  # noqa: F401 - fixture
+    require_binary,
+    serve_cmd,
+    start_serve,
+    wait_for,
+    wait_serving,
+)
+
+from formtwin.service.messages import dumps
+from formtwin.service.runtime import ServiceSettings, open_processor
+from formtwin.service.streams import make_stream, read_stream
+
+FAST = ["--particles", "64", "--n-mc", "1000", "--seed", "3", "--no-page"]
+SETTINGS = ServiceSettings(n_particles=64, n_mc=1000, seed=3)
+TOPIC = "plant/line1/press1/stroke"
+RESULTS, ERRORS = "plant/line1/press1/estimate", "plant/line1/press1/errors"
+
+
+def stored_count(store: Path) -> int:
+    if not store.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=1.0) as db:
+            return int(db.execute("SELECT COUNT(*) FROM products").fetchone()[0])
+    except sqlite3.Error:
+        return 0
+
+
+def publish(url: str, payloads: list[bytes]) -> None:
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=f"pub-{time.time_ns()}")
+    c.connect("127.0.0.1", int(url.rsplit(":", 1)[1]))
+    c.loop_start()
+    infos = [c.publish(TOPIC, p, qos=1) for p in payloads]
+    for i in infos:
+        i.wait_for_publish(10)
+    c.disconnect()
+    c.loop_stop()
+
+
+def stop(proc: subprocess.Popen[bytes]) -> int:
+    proc.send_signal(signal.SIGTERM)
+    return proc.wait(20)
+
+
+def test_serve_publishes_estimates_and_rejects_bad_input(
+        mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
+    strokes = read_stream(make_stream(tmp_path / "s.npz", 12, seed=2))
+    good = [dumps(s.to_message()) for s in strokes]
+    base = json.loads(good[0])
+    bad = {
+        "malformed_json": b"{oops",
+        "unknown_schema": dumps({**base, "schema": "formtwin.stroke/9"}),
+        "missing_field": dumps({k: v for k, v in base.items() if k != "cycle"}),
+        "wrong_length": dumps({**base, "part_id": "L", "force_N": base["force_N"][:50]}),
+        "non_finite": good[0].replace(b'"force_N":[', b'"force_N":[NaN,').replace(
+            base["part_id"].encode(), b"NF"),
+        "negative_force": dumps({**base, "part_id": "N", "force_N": [-1e3] * 101}),
+        "absurd_force": dumps({**base, "part_id": "A", "force_N": [1e7] * 101}),
+        "oversized": b"{" + b" " * 70_000 + b"}",
+        "duplicate_part_id": dumps({**base, "force_N": [f + 1.0 for f in base["force_N"]]}),
+        "out_of_order": dumps({**base, "part_id": "late", "cycle": 0}),
+    }
+    col = Collector(mosquitto.url, [RESULTS, ERRORS])
+    log = tmp_path / "serve.log"
+    proc = start_serve(serve_cmd(mosquitto, tmp_path / "a.sqlite", *FAST), log)
+    try:
+        wait_serving(proc, log)
+        publish(mosquitto.url, good[:6] + list(bad.values()) + good[6:])
+        wait_for(lambda: len(col.get(RESULTS)) >= 12 and len(col.get(ERRORS)) >= len(bad),
+                 60, "12 estimates and all errors")
+        assert proc.poll() is None, "the service must keep running"
+        errors = col.get(ERRORS)
+        assert sorted(e["reason"] for e in errors) == sorted(bad)  # type: ignore[type-var]
+        assert all(e["schema"] == "formtwin.error/1" and e["detail"] for e in errors)
+        results = col.get(RESULTS)
+        assert [r["part_id"] for r in results] == [s.part_id for s in strokes]
+        r = results[-1]
+        assert r["schema"] == "formtwin.estimate/1" and r["index"] == 11
+        assert len(r["mean"]) == 18  # type: ignore[arg-type]
+        assert len(r["angles_mean"]) == 2 and r["ess"] > 0  # type: ignore[arg-type,operator]
+        assert r["measured_angles_deg"] == pytest.approx(strokes[-1].angles_deg.tolist())  # type: ignore[union-attr]
+        # the stored estimates equal an in-process run on the good strokes only
+        ref = open_processor(tmp_path / "ref.sqlite", SETTINGS)
+        want = [ref.handle(p).message for p in good]
+        assert [m["mean"] for m in want] == [m["mean"] for m in results]
+        ref.close()
+        ref.store.close()
+        assert stop(proc) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        col.stop()
+
+
+def test_sigkill_restarts_lose_nothing_and_double_nothing(
+        mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
+    n = 2000
+    stream = make_stream(tmp_path / "s.npz", n, seed=5)
+    store, log = tmp_path / "kill.sqlite", tmp_path / "serve.log"
+    cmd = serve_cmd(mosquitto, store, *FAST)
+    col = Collector(mosquitto.url, [RESULTS, ERRORS])
+    rng = np.random.default_rng(11)
+    thresholds = sorted(int(t) for t in rng.choice(np.arange(100, n - 100), 4, replace=False))
+    proc = start_serve(cmd, log)
+    kills, deadline = 0, time.monotonic() + 200
+    try:
+        wait_serving(proc, log)
+        replay = subprocess.Popen(
+            [*FORMTWIN, "replay", str(stream), "--broker",
+             mosquitto.url, "--rate", "0"], cwd=REPO, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT)
+        while stored_count(store) < n and time.monotonic() < deadline:
+            if thresholds and stored_count(store) >= thresholds[0]:
+                thresholds.pop(0)
+                proc.send_signal(signal.SIGKILL)
+                proc.wait(10)
+                kills += 1
+                proc = start_serve(cmd, log)
+                if kills == 2:  # and once more at a random moment of the restart itself
+                    time.sleep(float(rng.uniform(0.3, 2.0)))
+                    proc.send_signal(signal.SIGKILL)
+                    proc.wait(10)
+                    kills += 1
+                    proc = start_serve(cmd, log)
+            time.sleep(0.01)
+        out = replay.communicate(timeout=60)[0].decode()
+        assert replay.returncode == 0, out
+        assert stored_count(store) == n, f"{stored_count(store)} of {n} stored after {kills} kills"
+        got_ids = lambda: {r["part_id"] for r in col.get(RESULTS)}  # noqa: E731
+        ids = {s.part_id for s in read_stream(stream)}
+        wait_for(lambda: len(got_ids()) == n, 30,
+                 lambda: f"an estimate for every product; missing {sorted(ids - got_ids())[:9]}")
+        assert stop(proc) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        col.stop()
+    assert kills >= 5
+    # nothing lost, nothing doubled, and bit for bit what an uninterrupted run stores
+    with sqlite3.connect(store) as db:
+        rows = db.execute("SELECT seq, part_id, estimate FROM products ORDER BY seq").fetchall()
+        assert db.execute("SELECT COUNT(*) FROM rejections").fetchone()[0] == 0
+    strokes = read_stream(stream)
+    assert [r[0] for r in rows] == list(range(1, n + 1))
+    assert [r[1] for r in rows] == [s.part_id for s in strokes]
+    ref = open_processor(tmp_path / "ref.sqlite", SETTINGS)
+    keep = ("part_id", "index", "mean", "std", "angles_mean", "angles_std", "ess", "loglik")
+    for (_, pid, est), s in zip(rows, strokes, strict=True):
+        want = ref.handle(dumps(s.to_message())).message
+        have = json.loads(est)
+        assert {k: have[k] for k in keep} == {k: want[k] for k in keep}, pid
+    ref.close()
+    ref.store.close()
+    # redelivered estimates (at least once on the results topic) equal the stored ones
+    by_id: dict[str, list[dict[str, object]]] = {}
+    for r in col.get(RESULTS):
+        by_id.setdefault(str(r["part_id"]), []).append(r)
+    for msgs in by_id.values():
+        assert all({k: m[k] for k in keep} == {k: msgs[0][k] for k in keep} for m in msgs)
+    print(f"kill test: {n} products, {kills} SIGKILLs, "
+          f"{sum(len(v) - 1 for v in by_id.values())} results redelivered")
+
+
+def test_password_and_tls(tmp_path: Path) -> None:
+    require_binary("openssl")
+    passwd = require_binary("mosquitto_passwd", ("/usr/bin/mosquitto_passwd",))
+    d = tmp_path
+
+    def ssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=d, check=True, capture_output=True)
+
+    ssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+        "-keyout", "ca.key", "-out", "ca.crt", "-subj", "/CN=formtwin-test-ca", "-days", "1")
+    ssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+        "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=127.0.0.1")
+    (d / "ext").write_text("subjectAltName=IP:127.0.0.1\n")
+    ssl("x509", "-req", "-in", "server.csr", "-CA", "ca.crt", "-CAkey", "ca.key",
+        "-CAcreateserial", "-out", "server.crt", "-days", "1", "-extfile", "ext")
+    subprocess.run([passwd, "-b", "-c", str(d / "passwd"), "alice", "s3cret"], check=True)
+    user = "user root\n" if os.geteuid() == 0 else ""  # keep read access to tmp_path
+    tls = Mosquitto(d, anonymous=False, extra_conf=(
+        f"{user}cafile {d / 'ca.crt'}\ncertfile {d / 'server.crt'}\n"
+        f"keyfile {d / 'server.key'}\npassword_file {d / 'passwd'}\n"))
+    try:
+        url = f"mqtts://127.0.0.1:{tls.port}"
+        stream = make_stream(d / "s.npz", 3, seed=1)
+        base = [*FORMTWIN, "replay", str(stream), "--broker", url,
+                "--rate", "0", "--username", "alice"]
+
+        def replay(password: str, *extra: str) -> subprocess.CompletedProcess[str]:
+            env = dict(os.environ, FORMTWIN_MQTT_PASSWORD=password)
+            return subprocess.run(base + list(extra), cwd=REPO, env=env, text=True,
+                                  capture_output=True, timeout=60)
+
+        ok = replay("s3cret", "--ca-file", str(d / "ca.crt"))
+        assert ok.returncode == 0 and "published 3 strokes" in ok.stdout, ok.stderr
+        wrong = replay("wrong", "--ca-file", str(d / "ca.crt"))
+        assert wrong.returncode == 2 and "Not authorized" in wrong.stderr
+        untrusted = replay("s3cret")  # the broker's CA is not trusted by default
+        assert untrusted.returncode == 2 and "CERTIFICATE_VERIFY_FAILED" in untrusted.stderr
+    finally:
+        tls.stop()

@@ -1,0 +1,153 @@
+"""The broker-free service core: idempotent redelivery, rejections that leave the tracker
+untouched, restart from the store, the outlier gate, export."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formtwin.service.export import export_store
+from formtwin.service.messages import dumps
+from formtwin.service.processor import Processor
+from formtwin.service.runtime import ServiceSettings, open_processor
+from formtwin.service.streams import make_stream, read_stream
+
+SETTINGS = ServiceSettings(n_particles=64, n_mc=1000, seed=3)
+
+
+@pytest.fixture(scope="module")
+def payloads(tmp_path_factory: pytest.TempPathFactory) -> list[bytes]:
+    path = make_stream(tmp_path_factory.mktemp("stream") / "s.npz", 40, seed=1)
+    return [dumps(s.to_message()) for s in read_stream(path)]
+
+
+def run(proc: Processor, items: list[bytes]) -> list[dict[str, object]]:
+    return [proc.handle(p).message for p in items]
+
+
+def strip(msg: dict[str, object]) -> dict[str, object]:
+    return {k: v for k, v in msg.items() if k not in ("flags", "received_at")}
+
+
+def test_redelivery_is_idempotent(tmp_path: Path, payloads: list[bytes]) -> None:
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    first = run(proc, payloads[:5])
+    again = proc.handle(payloads[2])
+    assert again.kind == "redelivered"
+    assert strip(again.message) == strip(first[2])
+    assert again.message["flags"]["redelivered"] is True  # type: ignore[index]
+    assert proc.store.counts() == {"accepted": 5, "gated": 0, "rejected": 0}
+    nxt = proc.handle(payloads[5])
+    assert nxt.kind == "accepted" and nxt.seq == 6 and nxt.message["index"] == 5
+    proc.close()
+    proc.store.close()
+
+
+def test_duplicate_and_out_of_order(tmp_path: Path, payloads: list[bytes]) -> None:
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    run(proc, payloads[:3])
+    msg = json.loads(payloads[1])
+    msg["force_N"][10] += 1.0  # same part id, different curve
+    out = proc.handle(dumps(msg))
+    assert out.kind == "rejected" and out.message["reason"] == "duplicate_part_id"
+    late = json.loads(payloads[5])
+    late["cycle"] = 2  # a new part with an old cycle count
+    out = proc.handle(dumps(late))
+    assert out.kind == "rejected" and out.message["reason"] == "out_of_order"
+    assert "cycle 2" in str(out.message["detail"])
+    # the same bad payload redelivered is counted once
+    proc.handle(dumps(late))
+    assert proc.store.rejection_counts() == {"duplicate_part_id": 1, "out_of_order": 1}
+    proc.close()
+    proc.store.close()
+
+
+def test_rejections_leave_the_tracker_untouched(tmp_path: Path,
+                                                payloads: list[bytes]) -> None:
+    clean = open_processor(tmp_path / "clean.sqlite", SETTINGS)
+    ref = run(clean, payloads[:12])
+    dirty = open_processor(tmp_path / "dirty.sqlite", SETTINGS)
+    bad = [b"{", b'{"schema": "x"}', dumps({**json.loads(payloads[0]), "force_N": [1.0]}),
+           payloads[0].replace(b'"force_N":[', b'"force_N":[NaN,'), b"x" * 70_000]
+    got = []
+    for i, p in enumerate(payloads[:12]):
+        out = dirty.handle(bad[i % len(bad)])
+        assert out.kind == "rejected"
+        got.append(dirty.handle(p).message)
+    assert [strip(m) for m in got] == [strip(m) for m in ref]
+    assert dirty.store.counts()["rejected"] == len(bad)
+    for p in (clean, dirty):
+        p.close()
+        p.store.close()
+
+
+def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes]) -> None:
+    ref_proc = open_processor(tmp_path / "ref.sqlite", SETTINGS)
+    ref = run(ref_proc, payloads[:20])
+    path = tmp_path / "crash.sqlite"
+    proc = open_processor(path, SETTINGS)
+    got = run(proc, payloads[:7])
+    proc.tracker.step(json.loads(payloads[7])["force_N"])  # stepped, then "killed" pre-commit
+    proc.close()
+    proc.store.close()
+    proc = open_processor(path, SETTINGS)
+    got += run(proc, payloads[7:20])
+    assert [strip(m) for m in got] == [strip(m) for m in ref]
+    assert proc.store.counts()["accepted"] == 20
+    with pytest.raises(ValueError, match="n_particles"):
+        open_processor(path, dataclasses.replace(SETTINGS, n_particles=65))
+    for p in (proc, ref_proc):
+        p.close()
+        p.store.close()
+
+
+def test_gate_skips_a_single_outlier(tmp_path: Path, payloads: list[bytes]) -> None:
+    gated = dataclasses.replace(SETTINGS, gate_k=50.0)
+    ref_proc = open_processor(tmp_path / "ref.sqlite", gated)
+    ref = run(ref_proc, payloads[:30])
+    proc = open_processor(tmp_path / "g.sqlite", gated)
+    got = run(proc, payloads[:25])
+    odd = json.loads(payloads[25])
+    odd["part_id"] += "-odd"
+    odd["cycle"] = json.loads(payloads[24])["cycle"] * 1000 + 1
+    odd["force_N"] = [3.0 * f + 300.0 for f in odd["force_N"]]
+    out = proc.handle(dumps(odd))
+    assert out.kind == "gated" and out.message["reason"] == "outlier_gated"
+    # the tracker continues as if the outlier had not come (cycle counts aside)
+    for p in payloads[25:30]:
+        m = json.loads(p)
+        m["cycle"] += odd["cycle"]
+        got.append(proc.handle(dumps(m)).message)
+    keep = ("mean", "std", "angles_mean", "angles_std", "ess", "loglik")
+    assert [{k: m[k] for k in keep} for m in got] == [{k: m[k] for k in keep} for m in ref]
+    assert proc.store.counts() == {"accepted": 30, "gated": 1, "rejected": 0}
+    for p in (proc, ref_proc):
+        p.close()
+        p.store.close()
+
+
+def test_export_parquet_and_csv(tmp_path: Path, payloads: list[bytes]) -> None:
+    import pyarrow.parquet as pq
+
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    msgs = run(proc, payloads[:6])
+    proc.handle(b"{")
+    proc.close()
+    proc.store.close()
+    path, n = export_store(tmp_path / "a.sqlite", tmp_path / "e.parquet", curves=True)
+    t = pq.read_table(path)
+    assert n == 6 and t.num_rows == 6
+    assert t.column("part_id").to_pylist() == [m["part_id"] for m in msgs]
+    assert np.allclose(t.column("mean_yield_stress").to_pylist(),
+                       [m["mean"]["yield_stress"] for m in msgs])  # type: ignore[index]
+    assert "f100" in t.column_names and "angle2_measured" in t.column_names
+    path, n = export_store(tmp_path / "a.sqlite", tmp_path / "r.csv", rejections=True)
+    rows = list(csv.DictReader(open(path, encoding="utf-8")))
+    assert n == 1 and rows[0]["reason"] == "malformed_json"
+    with pytest.raises(ValueError, match="format"):
+        export_store(tmp_path / "a.sqlite", tmp_path / "x.xlsx")
