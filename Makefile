@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench live-demo clean
+.PHONY: demo test lint bench live-demo system-deps clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -19,8 +19,19 @@ lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks examples
 	$(BIN)/mypy
 
-test: $(STAMP) lint
+test: $(STAMP) lint system-deps
 	OMP_NUM_THREADS=1 $(BIN)/pytest
+
+# the service tests need a real mosquitto broker and a headless chromium (Debian packages)
+system-deps:
+	@if { command -v mosquitto || test -x /usr/sbin/mosquitto; } >/dev/null && \
+	    command -v chromium >/dev/null && command -v openssl >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ]; then \
+	    apt-get update -qq && apt-get install -y -qq mosquitto chromium openssl; \
+	else echo "system-deps: mosquitto/chromium missing and not root: service tests will skip"; fi
+
+live-demo: $(STAMP) system-deps
+	OMP_NUM_THREADS=1 $(BIN)/python -m formtwin.service.livedemo
 
 bench: $(STAMP)
 	for f in benchmarks/bench_*.py; do $(BIN)/python $$f || exit 1; done

@@ -166,7 +166,10 @@ class MqttService:
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, rc: Any,
                        props: Any = None) -> None:
         self.connected.clear()
-        log.warning("disconnected from broker (%s); paho reconnects", rc)
+        if getattr(rc, "is_failure", True):
+            log.warning("disconnected from broker (%s); paho reconnects", rc)
+        else:
+            log.info("disconnected from broker (%s)", rc)
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
