@@ -1,14 +1,13 @@
 """paho-mqtt plumbing: broker address, security options, the serving loop and replay.
 
 Delivery guarantees. The service subscribes with QoS 1 on a persistent session (fixed
-client id, ``clean_session=False``) and acknowledges a message only *after* its outcome is
-committed to the store and its answer published (paho's ``manual_ack``). A service killed
-at any instant therefore gets every unacknowledged stroke again from the broker when it
-restarts; the store recognises the ones it had already committed (same part id, same
-curve) and answers them with the stored estimate instead of counting them twice. Results and errors are published
-with QoS 1 (at least once): consumers de-duplicate by ``part_id``. The stroke is
-acknowledged only when the broker has acknowledged the answer (estimate or error), so an
-answer can be doubled by a kill but never lost.
+client id, ``clean_session=False``) and acknowledges a stroke only *after* its outcome is
+committed to the store and the broker has acknowledged its answer (estimate or error;
+paho's ``manual_ack``). A service killed at any instant therefore gets every
+unacknowledged stroke again from the broker when it restarts; the store recognises the ones
+it had already committed (same part id, same curve) and answers them with the stored
+estimate instead of counting them twice. Answers are published with QoS 1: a kill can
+double an answer but never lose one, and consumers de-duplicate by ``part_id``.
 """
 
 from __future__ import annotations
