@@ -11,18 +11,24 @@ Rank deficiency and the choice made here
 ----------------------------------------
 Metamodel curves are combinations of a few POD modes, so ``K_MC`` has rank ``r <= n_modes``
 (far below ``n_t = 101``) and ``N(., K_MC)`` has no density off that span. Curves from the
-physics model, from the real press or passed through ``g^-1`` do leave the span. We use the
-probabilistic-PCA form of the covariance (Tipping & Bishop 1999)::
+physics model, from the real press or passed through ``g^-1`` do leave the span. We add an
+isotropic sensor noise to the paper's covariance and store it in probabilistic-PCA form
+(Tipping & Bishop 1999)::
 
-    Sigma = U diag(lam) U^T + s2 (I - U U^T)
+    Sigma = fraction^2 K_MC + sigma_n^2 I
+          = U diag(lam + sigma_n^2) U^T + (tail + sigma_n^2) (I - U U^T)
 
-* ``U`` (n_t, r), ``lam`` (r,): principal directions and variances of ``fraction^2 K_MC``,
-  keeping the directions with ``lam >= rel_tol * lam_max``;
-* ``s2``: the isotropic *residual* variance of the discarded directions, the PPCA estimate
-  (mean of the discarded eigenvalues of ``fraction^2 K_MC``) floored by a sensor-noise
-  variance ``sensor_noise^2`` and by ``rel_floor * lam_max``, so that ``cond(Sigma) <=
-  1 / rel_floor`` whatever the data.
+* ``U`` (n_t, r), ``lam`` (r,): principal directions and variances of ``fraction^2 K_MC``
+  with ``lam >= rel_tol * lam_max`` (numerically zero directions are dropped);
+* ``tail``: the mean of the dropped eigenvalues (the PPCA estimate; ~0 for a metamodel);
+* ``sigma_n^2 = max(sensor_noise^2, rel_floor * lam_max)``: the sensor-noise variance,
+  floored relative to the largest variance, so that ``cond(Sigma) <= 1 + 1/rel_floor``
+  whatever the data. With the defaults (``rel_floor = 1e-4``) ``sigma_n`` is 1 % of the
+  largest principal std of ``w``; directions of ``K_MC`` weaker than that are not trusted
+  more than the sensor, which keeps numerically tiny POD directions from making the
+  likelihood spiky.
 
+The stored ``lam`` and ``s2`` already include ``sigma_n^2``.
 Then, for a difference ``d = obs - model`` (n_t,), with ``c = U^T d``::
 
     -2 log p = sum(c^2 / lam) + (|d|^2 - |c|^2) / s2 + sum(log lam) + (n_t - r) log s2
@@ -137,8 +143,8 @@ class MeasurementModel:
     Attributes
     ----------
     basis : (n_t, r) orthonormal principal directions of ``fraction^2 K_MC``.
-    lam : (r,) their variances, N^2.
-    s2 : residual variance off the span, N^2.
+    lam : (r,) variances along them, sensor noise included, N^2.
+    s2 : variance off the span (tail + sensor noise), N^2.
     nu : Student-t degrees of freedom, or ``inf`` for the Gaussian of eq. 12.
     mean : (n_t,) mean Monte-Carlo curve, N (kept for diagnostics; not used by loglik).
     """
@@ -169,17 +175,17 @@ class MeasurementModel:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_curves(cls, curves: FloatArray, fraction: float = 0.5, rel_tol: float = 1e-8,
-                    rel_floor: float = 1e-6, sensor_noise: float = 0.0,
+    def from_curves(cls, curves: FloatArray, fraction: float = 0.5, rel_tol: float = 1e-10,
+                    rel_floor: float = 1e-4, sensor_noise: float = 0.0,
                     nu: float = math.inf) -> MeasurementModel:
         """Build from a Monte-Carlo set of curves ``(n, n_t)`` (their covariance is K_MC).
 
         Parameters
         ----------
         fraction : the std of ``w`` as a fraction of the Monte-Carlo std (paper: 1/2).
-        rel_tol : directions with variance below ``rel_tol * lam_max`` are residual.
-        rel_floor : ``s2 >= rel_floor * lam_max`` (bounds the condition number).
-        sensor_noise : std of the sensor, N; ``s2 >= sensor_noise^2``.
+        rel_tol : directions with variance below ``rel_tol * lam_max`` join the tail.
+        rel_floor : ``sigma_n^2 >= rel_floor * lam_max`` (bounds the condition number).
+        sensor_noise : std of the sensor, N: ``sigma_n >= sensor_noise``.
         nu : Student-t degrees of freedom; ``inf`` (default) is the paper's Gaussian.
         """
         z = np.asarray(curves, dtype=np.float64)
@@ -202,11 +208,12 @@ class MeasurementModel:
         if lam_max <= 0:
             raise ValueError("the Monte-Carlo curves do not vary: K_MC is zero")
         r = int(np.sum(eig_all >= rel_tol * lam_max))
-        ppca = float(eig_all[r:].mean()) if r < n_t else 0.0
-        s2 = max(ppca, sensor_noise**2, rel_floor * lam_max)
-        log.info("measurement model: rank %d of %d, lam_max %.3g, s2 %.3g (ppca %.3g)",
-                 r, n_t, lam_max, s2, ppca)
-        return cls(basis=vt[:r].T.copy(), lam=eig_all[:r].copy(), s2=s2, nu=nu, mean=mean)
+        tail = float(eig_all[r:].mean()) if r < n_t else 0.0
+        noise = max(sensor_noise**2, rel_floor * lam_max)
+        log.info("measurement model: rank %d of %d, lam_max %.3g, tail %.3g, sigma_n %.3g",
+                 r, n_t, lam_max, tail, math.sqrt(noise))
+        return cls(basis=vt[:r].T.copy(), lam=eig_all[:r] + noise, s2=tail + noise, nu=nu,
+                   mean=mean)
 
     @classmethod
     def from_monte_carlo(cls, model: ProcessModel, spec: ProcessSpec | None = None,

@@ -53,6 +53,10 @@ log = logging.getLogger(__name__)
 
 _CHECKPOINT_FORMAT = "formtwin.tracker/1"
 
+#: where the likelihood compares curves: "model" (paper eq. 12: g^-1(z, theta_d) against
+#: z~(x, theta)) or "measurement" (z against g(z~(x, theta), theta_d))
+COMPARE = ("model", "measurement")
+
 
 @dataclass(frozen=True)
 class TrackerConfig:
@@ -81,8 +85,11 @@ class TrackerConfig:
     seed: int = 0
     filter: str = "sir"
     ess_threshold: float = 1.0
+    compare: str = "model"
 
     def __post_init__(self) -> None:
+        if self.compare not in COMPARE:
+            raise ValueError(f"compare = {self.compare!r}; known: {', '.join(COMPARE)}")
         for name in ("mu", "sigma", "rho"):
             v = getattr(self, name)
             if v is not None:  # store as a tuple of floats so the config stays hashable/JSON
@@ -261,9 +268,11 @@ class BendingSSM:
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
         curves = self.model.predict_curves(x[:, : self.n_in])
-        obs = self.deviation.invert(y, x[:, self.n_in:]) if self.config.estimate_deviation \
-            else y
-        return self.measurement.loglik(curves, obs)
+        if not self.config.estimate_deviation:
+            return self.measurement.loglik(curves, y)
+        if self.config.compare == "measurement":
+            return self.measurement.loglik(self.deviation.apply(curves, x[:, self.n_in:]), y)
+        return self.measurement.loglik(curves, self.deviation.invert(y, x[:, self.n_in:]))
 
 
 def validate_curve(curve: Any, n_t: int) -> FloatArray:
