@@ -94,6 +94,10 @@ def _serve(args: argparse.Namespace) -> int:
         estimate_deviation=not args.no_deviation, seed=args.seed, nu=args.robust_nu,
         gate_k=args.gate, n_mc=args.n_mc, max_bytes=args.max_bytes,
         min_force_N=args.min_force, max_force_N=args.max_force)
+    from threadpoolctl import threadpool_limits
+
+    # one BLAS thread: the step is many small products (see formtwin._threads)
+    threadpool_limits(limits=1, user_api="blas")
     proc = open_processor(args.store, settings, synchronous=args.sync.upper())
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -116,7 +120,8 @@ def _serve(args: argparse.Namespace) -> int:
               f"{topics.results}, errors -> {topics.errors}", flush=True)
         service.run(stop, timeout=args.connect_timeout,
                     on_connected=lambda: print("connected and subscribed", flush=True))
-        print(f"stopped after {service.handled} messages", flush=True)
+        print(f"stopped after {service.handled} messages ({service.busy_s:.2f} s busy)",
+              flush=True)
     finally:
         if page is not None:
             page.stop()

@@ -140,6 +140,7 @@ class MqttService:
         self.refused: str | None = None
         self.broker = broker
         self.handled = 0
+        self.busy_s = 0.0
 
     def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, rc: Any,
                     props: Any = None) -> None:
@@ -171,6 +172,7 @@ class MqttService:
             log.info("disconnected from broker (%s)", rc)
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
+        t0 = time.perf_counter()
         out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
         topic = self.topics.errors if out.is_error else self.topics.results
         info = client.publish(topic, dumps(out.message), qos=1)
@@ -180,6 +182,7 @@ class MqttService:
             with self._lock:
                 self._pending[info.mid] = (msg.mid, msg.qos)
         self.handled += 1
+        self.busy_s += time.perf_counter() - t0
 
     def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, rc: Any = None,
                     props: Any = None) -> None:

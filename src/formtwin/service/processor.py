@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import os
 import shutil
 import tempfile
 import threading
@@ -164,7 +165,10 @@ class Processor:
         self.gate = gate
         self.on_outcome = on_outcome
         self._lock = threading.Lock()
-        self._tmp = Path(tempfile.mkdtemp(prefix="formtwin-serve-"))
+        # scratch for the checkpoint file: tmpfs when there is one (it is read back at once)
+        shm = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) \
+            else None
+        self._tmp = Path(tempfile.mkdtemp(prefix="formtwin-serve-", dir=shm))
         self._ckpt_path = self._tmp / CHECKPOINT_NAME
         self._last_cycle = store.last_cycle()
         if gate is not None:

@@ -1,0 +1,186 @@
+"""Service throughput and latency through a real mosquitto, N = 500 particles.
+
+A private mosquitto on 127.0.0.1, ``formtwin serve`` as a subprocess (page on, store in a
+temporary folder, default ``synchronous=NORMAL``), and this script as press and consumer:
+
+* ``products_per_s``: ``--n`` strokes published at full speed; products divided by the time
+  from the first publish to the last estimate received (the broker queues, the service
+  drains it: the sustained rate);
+* ``latency_p50_ms`` / ``latency_p99_ms``: publish -> estimate received, strokes paced at
+  ``latency_rate_per_s`` (the target 100/s, or 80 % of the measured throughput if lower, so
+  that queueing does not dominate);
+* ``full_speed_latency_p99_ms``: the same measured during the full-speed phase (queueing);
+* peers in the same run: ``processor_products_per_s`` (the same processing in-process, no
+  broker) and ``tracker_step_ms`` (the tracker alone).
+
+Usage: ``python benchmarks/bench_service.py [--metamodel FILE] [--n 1000] [--particles 500]``
+(the analytic stand-in is the model unless ``--metamodel`` is given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from formtwin._bench import write_result
+from formtwin.service.messages import dumps
+from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
+from formtwin.service.runtime import ServiceSettings, open_processor
+from formtwin.service.streams import make_stream, read_stream
+
+TOPIC = "plant/line1/press1/stroke"
+RESULTS = "plant/line1/press1/estimate"
+CLI = [sys.executable, "-c", "import sys; from formtwin.cli import main; sys.exit(main())"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Receiver:
+    """Consumer of the results topic: perf_counter time of the first estimate per part."""
+
+    def __init__(self, broker: BrokerConfig) -> None:
+        self.t: dict[str, float] = {}
+        self.lock = threading.Lock()
+        self.client = make_client(broker, f"bench-rx-{time.time_ns()}")
+        ready = threading.Event()
+        self.client.on_subscribe = lambda *a: ready.set()
+        self.client.on_message = self._on_message
+        self.client.connect(broker.host, broker.port)
+        self.client.subscribe(RESULTS, qos=1)
+        self.client.loop_start()
+        if not ready.wait(10):
+            raise TimeoutError("receiver could not subscribe")
+
+    def _on_message(self, c: object, u: object, msg: object) -> None:
+        now = time.perf_counter()
+        pid = json.loads(msg.payload)["part_id"]  # type: ignore[attr-defined]
+        with self.lock:
+            self.t.setdefault(pid, now)
+
+    def wait(self, ids: list[str], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                if all(i in self.t for i in ids):
+                    return
+            time.sleep(0.01)
+        raise TimeoutError(f"estimates missing after {timeout} s")
+
+
+def run_phase(strokes: list, broker: BrokerConfig, rx: Receiver, rate: float
+              ) -> tuple[float, np.ndarray]:
+    sent: dict[str, float] = {}
+    publish_strokes(strokes, broker, TOPIC, rate=rate,
+                    on_sent=lambda s, t: sent.__setitem__(s.part_id, t))
+    ids = [s.part_id for s in strokes]
+    rx.wait(ids, timeout=30 + 0.5 * len(ids))
+    t_first = min(sent.values())
+    t_last = max(rx.t[i] for i in ids)
+    lat = np.array([rx.t[i] - sent[i] for i in ids]) * 1e3
+    return len(ids) / (t_last - t_first), lat
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--metamodel", help="metamodel file (default: the analytic stand-in)")
+    ap.add_argument("--n", type=int, default=1000, help="strokes of the full-speed phase")
+    ap.add_argument("--n-latency", type=int, default=500, help="strokes of the paced phase")
+    ap.add_argument("--particles", type=int, default=500)
+    args = ap.parse_args()
+    load0 = os.getloadavg()[0]  # other jobs on the machine share its 2 cores
+    mosq = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    if not os.path.exists(mosq):
+        raise SystemExit("mosquitto not installed: make system-deps")
+    tmp = Path(tempfile.mkdtemp(prefix="bench-service-"))
+    port = free_port()
+    (tmp / "m.conf").write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
+                                "persistence false\nmax_queued_messages 100000\n")
+    n_warm = 30
+    strokes = read_stream(make_stream(tmp / "s.npz", n_warm + args.n + args.n_latency, seed=9))
+    model = ["--metamodel", args.metamodel] if args.metamodel else ["--analytic"]
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        procs.append(subprocess.Popen([mosq, "-c", str(tmp / "m.conf")],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        broker = BrokerConfig.from_url(f"mqtt://127.0.0.1:{port}")
+        log = tmp / "serve.log"
+        with open(log, "wb") as fh:
+            procs.append(subprocess.Popen(
+                [*CLI, "serve", *model, "--broker", f"mqtt://127.0.0.1:{port}", "--store",
+                 str(tmp / "b.sqlite"), "--particles", str(args.particles), "--http-port",
+                 str(free_port())], stdout=fh, stderr=subprocess.STDOUT,
+                env=dict(os.environ, PYTHONUNBUFFERED="1")))
+        deadline = time.monotonic() + 180
+        while "connected and subscribed" not in log.read_text(errors="replace"):
+            if procs[-1].poll() is not None or time.monotonic() > deadline:
+                raise SystemExit(f"serve did not start:\n{log.read_text()}")
+            time.sleep(0.1)
+        rx = Receiver(broker)
+        run_phase(strokes[:n_warm], broker, rx, rate=0.0)
+        rate_full, lat_full = run_phase(strokes[n_warm:n_warm + args.n], broker, rx, 0.0)
+        lat_rate = min(100.0, 0.8 * rate_full)
+        _, lat = run_phase(strokes[n_warm + args.n:], broker, rx, rate=lat_rate)
+        rx.client.disconnect()
+        rx.client.loop_stop()
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait(20)
+    # peers in the same run: the processor without a broker, the tracker alone
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+    settings = ServiceSettings(model=str(Path(args.metamodel).resolve()) if args.metamodel
+                               else "analytic", n_particles=args.particles)
+    proc = open_processor(tmp / "peer.sqlite", settings)
+    payloads = [dumps(s.to_message()) for s in strokes[:300]]
+    for p in payloads[:n_warm]:
+        proc.handle(p)
+    t0 = time.perf_counter()
+    for p in payloads[n_warm:]:
+        proc.handle(p)
+    peer_rate = (len(payloads) - n_warm) / (time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    for s in strokes[300:500]:
+        proc.tracker.step(s.force_N)
+    step_ms = (time.perf_counter() - t0) / 200 * 1e3
+    proc.close()
+    proc.store.close()
+    shutil.rmtree(tmp, ignore_errors=True)
+    write_result("service", {
+        "model": "metamodel" if args.metamodel else "analytic stand-in",
+        "n_particles": args.particles,
+        "products_per_s": round(rate_full, 1),
+        "latency_rate_per_s": round(lat_rate, 1),
+        "latency_p50_ms": round(float(np.percentile(lat, 50)), 2),
+        "latency_p99_ms": round(float(np.percentile(lat, 99)), 2),
+        "full_speed_latency_p99_ms": round(float(np.percentile(lat_full, 99)), 1),
+        "processor_products_per_s": round(peer_rate, 1),
+        "tracker_step_ms": round(step_ms, 2),
+        "target_products_per_s": 100,
+        "target_latency_p99_ms": 50,
+        "n_full_speed": args.n,
+        "n_latency": args.n_latency,
+        "load_avg_1min_before": round(load0, 2),
+        "load_avg_1min_after": round(os.getloadavg()[0], 2),
+    })
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
