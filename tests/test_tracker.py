@@ -178,3 +178,16 @@ def test_measurement_domain_comparison_runs_and_is_validated(
     assert TrackerConfig.from_json(cfg.to_json()).compare == "measurement"
     with pytest.raises(ValueError, match="known: model, measurement"):
         TrackerConfig(compare="real")
+
+
+def test_blocks_of_particles_give_the_same_numbers(
+        monkeypatch: pytest.MonkeyPatch, model: AnalyticModel, mm: MeasurementModel,
+        series1: dict[str, np.ndarray]) -> None:
+    import formtwin.tracker as tracker_mod
+
+    curves = series1["curves"][:3]
+    whole = Tracker(model, mm, TrackerConfig(n_particles=50, seed=2)).run(curves)
+    monkeypatch.setattr(tracker_mod, "CHUNK", 7)
+    blocks = Tracker(model, mm, TrackerConfig(n_particles=50, seed=2)).run(curves)
+    np.testing.assert_allclose(blocks.mean, whole.mean, rtol=1e-12)
+    np.testing.assert_allclose(blocks.angles_mean, whole.angles_mean, rtol=1e-12)

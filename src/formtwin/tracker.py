@@ -57,6 +57,9 @@ _CHECKPOINT_FORMAT = "formtwin.tracker/1"
 #: z~(x, theta)) or "measurement" (z against g(z~(x, theta), theta_d))
 COMPARE = ("model", "measurement")
 
+#: particles per block when evaluating the model (bounds peak memory at large N)
+CHUNK = 8192
+
 
 @dataclass(frozen=True)
 class TrackerConfig:
@@ -267,6 +270,18 @@ class BendingSSM:
         return out
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        if x.shape[0] <= CHUNK:
+            return self._loglik(x, y)
+        # in blocks of particles: bounds the (N, n_t) temporaries of model and g^-1
+        return np.concatenate([self._loglik(x[i: i + CHUNK], y)
+                               for i in range(0, x.shape[0], CHUNK)])
+
+    def predict_angles(self, x: FloatArray) -> FloatArray:
+        """Angles (N, 2) of augmented particles ``x`` (N, 18), in blocks of particles."""
+        return np.concatenate([self.model.predict_angles(x[i: i + CHUNK, : self.n_in])
+                               for i in range(0, x.shape[0], CHUNK)])
+
+    def _loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
         curves = self.model.predict_curves(x[:, : self.n_in])
         if not self.config.estimate_deviation:
             return self.measurement.loglik(curves, y)
@@ -350,7 +365,7 @@ class Tracker:
         return self._estimate(s)
 
     def _estimate(self, s: Step) -> Estimate:
-        angles = self.model.predict_angles(s.x[:, : self.spec.n_inputs])
+        angles = self.ssm.predict_angles(s.x)
         ok = np.all(np.isfinite(angles), axis=1)
         w = np.where(ok, s.w, 0.0)
         if w.sum() > 0:

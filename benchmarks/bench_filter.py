@@ -1,0 +1,236 @@
+"""Benchmark of the tracker (SIR particle filter) against the ``particles`` library.
+
+Run ``python benchmarks/bench_filter.py [--model analytic|METAMODEL_FILE]``. One core, BLAS
+single-threaded. Figures (``benchmarks/results/bench_filter.json``):
+
+* ``step_ms_n500``: median wall time per product at N = 500, everything included (curve
+  validation, transition, model curves, ``g^-1``, likelihood, normalisation, resampling,
+  estimates and predicted angles), deviation estimated (the heaviest series, 3 and 6),
+  over a 1000-product run; ``step_ms_n500_nodev`` the same without ``theta_d``;
+* ``run_1000_s``: wall time of that 1000-product run;
+* ``breakdown_n500_*_ms``: the parts of a step, timed separately;
+* ``step_ms_n{1e3,1e4,1e5}``, ``peak_mb_n{...}``: time per step and tracemalloc peak;
+* ``speedup_vs_particles``: ``particles_step_ms_n500 / step_ms_n500`` as each is
+  installed (particles on numpy < 2); ``speedup_vs_particles_same_numpy``: the two
+  filters interleaved product by product in one process on numpy < 2;
+* ``particles_step_ms_n500``: the same model (same transition, likelihood and angle
+  prediction code, same data, same estimates per step) through ``particles.SMC`` with its
+  ``Bootstrap`` Feynman-Kac model and systematic resampling every step. ``particles`` 0.4
+  pins ``numpy < 2``, so it runs in its own virtual environment
+  ``benchmarks/.venv-particles`` (built on first use with ``pip install particles``) by the
+  child script ``benchmarks/_particles_child.py``; data and measurement model are
+  exchanged as ``.npz`` files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formtwin._bench import write_result
+from formtwin._threads import single_blas_thread
+from formtwin.deviation import DeviationModel
+from formtwin.evolution import simulate
+from formtwin.measurement import AnalyticModel, MeasurementModel, ProcessModel
+from formtwin.spec import load_spec
+from formtwin.tracker import Tracker, TrackerConfig
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+VENV = HERE / ".venv-particles"
+WORK = HERE / ".cache"
+
+
+def load_model(name: str) -> tuple[ProcessModel, str]:
+    if name == "analytic":
+        return AnalyticModel(load_spec()), "analytic stand-in (formtwin.physics.analytic)"
+    from formtwin.metamodel import Metamodel  # type: ignore[import-not-found,unused-ignore]
+
+    model: ProcessModel = Metamodel.load(name)
+    return model, f"metamodel {name}"
+
+
+def make_data(model: ProcessModel, n: int, seed: int) -> dict[str, Any]:
+    """Series-3-like data: state by eq. 4, curves from the model, deviated by g."""
+    spec = model.spec
+    st, pa, dv = spec.state, spec.params, spec.deviation.group
+    rng = np.random.default_rng(seed)
+    mu = st.mu_min + (st.mu_max - st.mu_min) * rng.random(len(st))
+    theta = pa.lo + (pa.hi - pa.lo) * rng.random(len(pa))
+    theta_d = dv.lo + (dv.hi - dv.lo) * rng.random(len(dv))
+    x = simulate(n, mu, st.sigma, st.rho, rng, st.lo, st.hi)
+    X = np.hstack([x, np.tile(theta, (n, 1))])
+    clean = model.predict_curves(X)
+    curves = np.vstack([DeviationModel.from_spec(spec).apply(c, theta_d)[0] for c in clean])
+    return {"mu": mu, "X": X, "theta_d": theta_d, "clean": clean, "curves": curves}
+
+
+def timed_run(tracker: Tracker, curves: np.ndarray) -> np.ndarray:
+    out = np.empty(len(curves))
+    for i, c in enumerate(curves):
+        t0 = time.perf_counter()
+        tracker.step(c)
+        out[i] = time.perf_counter() - t0
+    return out
+
+
+def median_ms(fn: Any, reps: int = 100) -> float:
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts) * 1e3)
+
+
+def breakdown(tracker: Tracker, curve: np.ndarray) -> dict[str, float]:
+    """Median ms of each part of a step at the tracker's current particles."""
+    ssm, f, rng = tracker.ssm, tracker.filter, np.random.default_rng(0)
+    x = f.x if f.x is not None else ssm.sample_initial(f.n, rng)
+    n_in = tracker.spec.n_inputs
+    curves = tracker.model.predict_curves(x[:, :n_in])
+    obs = ssm.deviation.invert(curve, x[:, n_in:])
+    w = np.full(f.n, 1.0 / f.n)
+    # two inputs in turn, so that a model caching its last batch is timed honestly
+    xs = [x[:, :n_in], x[:, :n_in] * (1.0 + 1e-9)]
+    turn = iter(range(10**9))
+    parts = {
+        "transition": lambda: ssm.sample_transition(x, rng),
+        "predict_curves": lambda: tracker.model.predict_curves(xs[next(turn) % 2]),
+        "predict_angles": lambda: tracker.model.predict_angles(xs[next(turn) % 2]),
+        "deviation_invert": lambda: ssm.deviation.invert(curve, x[:, n_in:]),
+        "deviation_apply": lambda: ssm.deviation.apply(curves, x[:, n_in:]),
+        "loglik": lambda: tracker.measurement.loglik(curves, obs),
+        "resample": lambda: f.resample(w, rng, f.n),
+    }
+    return {f"breakdown_n{f.n}_{k}_ms": round(median_ms(v), 4) for k, v in parts.items()}
+
+
+def scaling(model: ProcessModel, mm: MeasurementModel, curves: np.ndarray,
+            n: int, steps: int) -> dict[str, float]:
+    tr = Tracker(model, mm, TrackerConfig(n_particles=n, seed=1))
+    tr.step(curves[0])
+    ms = float(np.median(timed_run(tr, curves[1:steps + 1])) * 1e3)
+    tracemalloc.start()
+    tr.step(curves[steps + 1])
+    peak = tracemalloc.get_traced_memory()[1] / 2**20
+    tracemalloc.stop()
+    tag = f"n{n:.0e}".replace("+0", "").replace("+", "")
+    return {f"step_ms_{tag}": round(ms, 3), f"peak_mb_{tag}": round(peak, 1)}
+
+
+def ensure_venv() -> Path | None:
+    py = VENV / "bin" / "python"
+    if py.exists():
+        return py
+    print(f"building {VENV} for particles (numpy < 2) ...", file=sys.stderr)
+    try:
+        subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True)
+        subprocess.run([str(py), "-m", "pip", "install", "-q", "particles", "scipy",
+                        "threadpoolctl"], check=True)
+    except (subprocess.CalledProcessError, OSError) as exc:
+        print(f"could not build the particles venv: {exc}", file=sys.stderr)
+        return None
+    return py
+
+
+def run_particles(model_name: str, mm_path: Path, data_path: Path, n: int,
+                  n_products: int) -> dict[str, Any] | None:
+    py = ensure_venv()
+    if py is None:
+        return None
+    out = WORK / "particles_result.json"
+    cmd = [str(py), str(HERE / "_particles_child.py"), "--model", model_name,
+           "--measurement", str(mm_path), "--data", str(data_path), "--particles", str(n),
+           "--products", str(n_products), "--out", str(out), "--src", str(ROOT / "src")]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        print(proc.stderr[-3000:], file=sys.stderr)
+        return None
+    res: dict[str, Any] = json.loads(out.read_text())
+    return res
+
+
+def nrmse(est_mean: np.ndarray, X: np.ndarray, col: int, scale: float) -> float:
+    half = slice(len(X) // 2, None)
+    return float(np.sqrt(np.mean((est_mean[half, col] - X[half, col]) ** 2)) / scale)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="analytic", help="'analytic' or a metamodel file")
+    ap.add_argument("--products", type=int, default=1000)
+    ap.add_argument("--no-particles", action="store_true", help="skip the particles peer")
+    ap.add_argument("--no-scaling", action="store_true", help="skip N = 1e3..1e5")
+    args = ap.parse_args()
+    WORK.mkdir(exist_ok=True)
+    model, model_desc = load_model(args.model)
+    spec = model.spec
+    figures: dict[str, Any] = {"model": model_desc}
+    with single_blas_thread():
+        data = make_data(model, args.products, seed=2024)
+        mm = MeasurementModel.from_monte_carlo(model, mu=data["mu"], n=10_000,
+                                               rng=np.random.default_rng(7))
+        mm_path = mm.save(WORK / "bench_filter_measurement.npz")
+        data_path = WORK / "bench_filter_data.npz"
+        np.savez(data_path, curves=data["curves"], mu=data["mu"], X=data["X"])
+        curves = data["curves"]
+
+        cfg = TrackerConfig(n_particles=500, mu=tuple(data["mu"]), seed=3)
+        tr = Tracker(model, mm, cfg)
+        t0 = time.perf_counter()
+        ts = timed_run(tr, curves)
+        figures["run_1000_s" if args.products == 1000 else f"run_{args.products}_s"] = \
+            round(time.perf_counter() - t0, 3)
+        figures["step_ms_n500"] = round(float(np.median(ts) * 1e3), 3)
+        figures["step_ms_n500_p90"] = round(float(np.percentile(ts, 90) * 1e3), 3)
+        figures.update(breakdown(tr, curves[-1]))
+        est = Tracker.restore(tr.checkpoint(WORK / "ck.npz"), model, mm)  # sanity: restorable
+        del est
+        tr2 = Tracker(model, mm, TrackerConfig(n_particles=500, mu=tuple(data["mu"]), seed=3,
+                                               estimate_deviation=False))
+        figures["step_ms_n500_nodev"] = round(float(np.median(
+            timed_run(tr2, data["clean"][:300])) * 1e3), 3)
+        # accuracy of the timed run, to compare with the peer's
+        tr3 = Tracker(model, mm, cfg)
+        e = tr3.run(curves)
+        k = spec.augmented.index["punch_end_distance"]
+        figures["nrmse_punch_end_distance"] = round(
+            nrmse(e.mean, data["X"], k, spec.state.sigma[k]), 3)
+        figures["mean_ess_n500"] = round(float(e.ess.mean()), 1)
+        if not args.no_scaling:
+            for n, steps in ((1_000, 50), (10_000, 10), (100_000, 3)):
+                figures.update(scaling(model, mm, curves, n, steps))
+    if not args.no_particles:
+        res = run_particles(args.model, mm_path, data_path, 500, args.products)
+        if res is None:
+            figures["particles_step_ms_n500"] = None
+        else:
+            figures["particles_step_ms_n500"] = round(res["step_ms"], 3)
+            figures["particles_version"] = res["version"]
+            figures["particles_nrmse_punch_end_distance"] = round(
+                nrmse(np.asarray(res["mean"]), data["X"], k, spec.state.sigma[k]), 3)
+            figures["step_ms_n500_in_particles_venv"] = round(
+                res["formtwin_step_ms_same_numpy"], 3)
+            figures["particles_numpy"] = res["numpy"]
+            figures["filter_overhead_ms_n500"] = round(res["overhead_formtwin_ms"], 4)
+            figures["particles_filter_overhead_ms_n500"] = round(res["overhead_particles_ms"], 4)
+            # as installed: particles is tied to numpy < 2, formtwin runs on numpy 2
+            figures["speedup_vs_particles"] = round(
+                res["step_ms"] / figures["step_ms_n500"], 2)
+            # same process and numpy, interleaved: the filters themselves
+            figures["speedup_vs_particles_same_numpy"] = round(
+                res["step_ms"] / res["formtwin_step_ms_same_numpy"], 2)
+    write_result("filter", figures)
+
+
+if __name__ == "__main__":
+    main()
