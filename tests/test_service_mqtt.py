@@ -223,3 +223,53 @@ def test_password_and_tls(tmp_path: Path) -> None:
         assert untrusted.returncode == 2 and "CERTIFICATE_VERIFY_FAILED" in untrusted.stderr
     finally:
         tls.stop()
+
+
+def test_storage_failure_stops_without_ack_and_restart_gets_the_stroke(
+        mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
+    import threading
+
+    from formtwin.service.mqtt import BrokerConfig, MqttService, Topics
+
+    strokes = read_stream(make_stream(tmp_path / "s.npz", 3, seed=6))
+    broker = BrokerConfig.from_url(mosquitto.url)
+    topics = Topics.from_input(TOPIC)
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    real_commit = proc.store.commit_product
+
+    def disk_full(**kw: object) -> int:
+        raise sqlite3.OperationalError("database or disk is full")
+
+    proc.store.commit_product = disk_full  # type: ignore[method-assign]
+    svc = MqttService(proc, broker, topics, client_id="formtwin-fail-test")
+    errors: list[BaseException] = []
+    stop_ev = threading.Event()
+
+    def serve() -> None:
+        try:
+            svc.run(stop_ev)
+        except RuntimeError as e:
+            errors.append(e)
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    wait_for(svc.connected.is_set, 20, "in-process service to subscribe")
+    publish(mosquitto.url, [dumps(s.to_message()) for s in strokes])
+    t.join(20)
+    assert errors and "disk is full" in str(errors[0].__cause__)
+    assert proc.store.counts()["accepted"] == 0
+    # the restarted service (same session id) gets every stroke again and stores them once
+    proc.close()
+    proc.store.close()
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    assert proc.store.commit_product.__func__ is real_commit.__func__  # type: ignore[attr-defined]
+    svc = MqttService(proc, broker, topics, client_id="formtwin-fail-test")
+    stop_ev = threading.Event()
+    t = threading.Thread(target=svc.run, args=(stop_ev,), daemon=True)
+    t.start()
+    wait_for(lambda: proc.store.counts()["accepted"] == 3, 30, "the 3 strokes after restart")
+    stop_ev.set()
+    t.join(20)
+    assert [r.part_id for r in proc.store.products()] == [s.part_id for s in strokes]
+    proc.close()
+    proc.store.close()

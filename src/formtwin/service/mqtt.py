@@ -138,6 +138,7 @@ class MqttService:
         self.connected = threading.Event()
         self._answered = threading.Event()
         self.refused: str | None = None
+        self.fatal: BaseException | None = None
         self.broker = broker
         self.handled = 0
         self.busy_s = 0.0
@@ -166,14 +167,23 @@ class MqttService:
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, rc: Any,
                        props: Any = None) -> None:
         self.connected.clear()
+        with self._lock:  # the broker redelivers unacknowledged strokes after a reconnect
+            self._pending.clear()
         if getattr(rc, "is_failure", True):
             log.warning("disconnected from broker (%s); paho reconnects", rc)
         else:
             log.info("disconnected from broker (%s)", rc)
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
+        if self.fatal is not None:
+            return  # stopping: leave the stroke unacknowledged for the next start
         t0 = time.perf_counter()
-        out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
+        try:
+            out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
+        except Exception as exc:  # storage failure: never acknowledge, stop the service
+            log.exception("processing a stroke failed; stopping without acknowledging it")
+            self.fatal = exc
+            return
         topic = self.topics.errors if out.is_error else self.topics.results
         info = client.publish(topic, dumps(out.message), qos=1)
         if msg.qos > 0:
@@ -199,6 +209,10 @@ class MqttService:
         ------
         ConnectionError
             If the broker cannot be reached within ``timeout`` seconds.
+        RuntimeError
+            If processing a message failed unexpectedly (e.g. the store's disk is full): the
+            stroke is not acknowledged, the service stops, and a restart (by a supervisor)
+            gets the stroke again.
         """
         self.client.connect_async(self.broker.host, self.broker.port, self.broker.keepalive)
         self.client.loop_start()
@@ -212,7 +226,11 @@ class MqttService:
                                       f"{self.broker.port} within {timeout:g} s")
             if on_connected is not None:
                 on_connected()
-            stop.wait()
+            while not stop.wait(0.2) and self.fatal is None:
+                pass
+            if self.fatal is not None:
+                raise RuntimeError(f"processing failed, service stopped: {self.fatal!r}") \
+                    from self.fatal
         finally:
             self.client.disconnect()
             self.client.loop_stop()
