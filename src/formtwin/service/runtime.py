@@ -127,7 +127,8 @@ def measurement_path(store_path: Path) -> Path:
 
 
 def open_processor(store_path: str | Path, settings: ServiceSettings,
-                   synchronous: str = "NORMAL") -> Processor:
+                   synchronous: str = "NORMAL", background_checkpoint_s: float = 1.0
+                   ) -> Processor:
     """Open (or create) a store and return a processor with the tracker restored.
 
     Parameters
@@ -138,10 +139,13 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
         Must equal the stored settings on a restart.
     synchronous : str
         SQLite ``synchronous`` (``NORMAL`` or ``FULL``), see :class:`Store`.
+    background_checkpoint_s : float
+        WAL checkpoint interval of the store's background thread (0: inside commits).
     """
     path = Path(store_path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    store = Store(path, synchronous=synchronous)
+    store = Store(path, synchronous=synchronous,
+                  background_checkpoint_s=background_checkpoint_s)
     try:
         settings = check_settings(store, settings)
         model = load_model(settings.model)

@@ -97,9 +97,15 @@ class Store:
         SQLite ``synchronous`` in WAL mode. ``NORMAL`` survives a killed process (the
         committed WAL is in the OS page cache); ``FULL`` also survives power loss, at the
         price of an fsync per product.
+    background_checkpoint_s : float
+        If > 0, WAL checkpoints (copying the WAL into the database, with fsyncs) run every
+        this many seconds in a background thread on a second connection instead of inside
+        a commit, which keeps them off the per-product latency. 0 leaves SQLite's automatic
+        checkpoints in the commits.
     """
 
-    def __init__(self, path: str | Path, synchronous: str = "NORMAL") -> None:
+    def __init__(self, path: str | Path, synchronous: str = "NORMAL",
+                 background_checkpoint_s: float = 0.0) -> None:
         if synchronous.upper() not in ("NORMAL", "FULL"):
             raise ValueError(f"synchronous must be NORMAL or FULL, got {synchronous!r}")
         self.path = Path(path)
@@ -115,9 +121,32 @@ class Store:
         elif version != SCHEMA_VERSION:
             raise ValueError(f"{self.path}: store schema_version {version!r}, this formtwin "
                              f"reads {SCHEMA_VERSION!r}")
+        self._stop = threading.Event()
+        self._ckpt_thread: threading.Thread | None = None
+        if background_checkpoint_s > 0:
+            self._db.execute("PRAGMA wal_autocheckpoint=0")
+            self._ckpt_thread = threading.Thread(
+                target=self._checkpointer, args=(background_checkpoint_s,),
+                name="formtwin-wal-checkpoint", daemon=True)
+            self._ckpt_thread.start()
+
+    def _checkpointer(self, interval: float) -> None:
+        db = sqlite3.connect(str(self.path), isolation_level=None, timeout=30.0)
+        try:
+            while not self._stop.wait(interval):
+                try:
+                    db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+                except sqlite3.Error as exc:  # busy or I/O: the next round retries
+                    log.warning("WAL checkpoint failed: %s", exc)
+            db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+        finally:
+            db.close()
 
     def close(self) -> None:
-        """Close the connection."""
+        """Stop the background checkpoints (if any) and close the connection."""
+        self._stop.set()
+        if self._ckpt_thread is not None:
+            self._ckpt_thread.join(timeout=30.0)
         with self._lock:
             self._db.close()
 
