@@ -171,6 +171,7 @@ class Processor:
         self._tmp = Path(tempfile.mkdtemp(prefix="formtwin-serve-", dir=shm))
         self._ckpt_path = self._tmp / CHECKPOINT_NAME
         self._last_cycle = store.last_cycle()
+        self._next_seq = store.next_seq()  # this processor is the store's only writer
         if gate is not None:
             gate.history = store.recent_logliks(gate.window)
             gate.last_gated = store.last_status() == "gated"
@@ -276,6 +277,7 @@ class Processor:
                 measured_angles=angles, estimate=None, checkpoint=None, received_at=now)
             self.gate.record(loglik, gated=True)
             self._last_cycle = stroke.cycle
+            self._next_seq = seq + 1
             err = MessageError("outlier_gated", f"loglik {loglik:.4g} < gate {thr:.4g}; "
                                "state not updated", stroke.part_id)
             log.warning("part %s gated as outlier: %s", stroke.part_id, err.detail)
@@ -283,7 +285,7 @@ class Processor:
         ckpt = self._checkpoint_bytes()
         flags = {"collapsed": bool(est.collapsed), "redelivered": False}
         msg = estimate_message(stroke, est.to_dict(), seq=-1, flags=flags)
-        seq = self.store.next_seq()
+        seq = self._next_seq
         msg["seq"] = seq
         got = self.store.commit_product(
             part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
@@ -294,6 +296,7 @@ class Processor:
                                "service writing to the same store?")
         self._last_ckpt = ckpt
         self._last_cycle = stroke.cycle
+        self._next_seq = seq + 1
         if self.gate is not None:
             self.gate.record(loglik, gated=False)
         return Outcome("accepted", msg, stroke.part_id, seq)
