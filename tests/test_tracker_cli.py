@@ -53,3 +53,20 @@ def test_track_csv_input_and_errors(tmp_path: Path, curves: np.ndarray,
     assert main(["track", "--metamodel", "analytic", "--curves", str(src), "--out",
                  str(out)]) == 2
     assert "expected (n, 101)" in capsys.readouterr().err
+
+
+def test_track_reads_a_study_realisation_by_source(tmp_path: Path, curves: np.ndarray) -> None:
+    xr = pytest.importorskip("xarray")
+    from formtwin.cli.track import read_curves
+
+    stack = np.stack([curves, 2 * curves])
+    ds = xr.Dataset({"curves": (("source", "product", "time"), stack)},
+                    coords={"source": ["MM", "gMM"]})
+    path = tmp_path / "real.nc"
+    ds.to_netcdf(path, engine="h5netcdf")
+    np.testing.assert_array_equal(read_curves(path, 101, "gMM"), 2 * curves)
+    with pytest.raises(ValueError, match="pass --source, one of MM, gMM"):
+        read_curves(path, 101)
+    out = tmp_path / "e.csv"
+    assert main(["track", "--metamodel", "analytic", "--curves", str(path), "--source", "MM",
+                 "--out", str(out), "--n-mc", "500", "--particles", "32"]) == 0

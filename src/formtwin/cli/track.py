@@ -31,6 +31,8 @@ def register(sub: Any) -> None:
                         "optional header) or .nc/.h5 dataset (variable 'curves')")
     p.add_argument("--out", required=True, type=Path,
                    help="estimates: .csv, or .parquet (needs pyarrow)")
+    p.add_argument("--source", help="for a study realisation file (curves by source): which "
+                   "curves to track (MM, gMM, FE, gFE)")
     p.add_argument("--measurement", type=Path,
                    help="measurement-model .npz; default: built by Monte Carlo on the model")
     p.add_argument("--n-mc", type=int, default=10_000,
@@ -59,8 +61,12 @@ def load_model(name: str) -> Any:
     return metamodel.Metamodel.load(name)
 
 
-def read_curves(path: Path, n_t: int) -> NDArray[np.float64]:
-    """Curves (n, n_t) from an npz, CSV or NetCDF/HDF5 file; ``ValueError`` if absent."""
+def read_curves(path: Path, n_t: int, source: str | None = None) -> NDArray[np.float64]:
+    """Curves (n, n_t) from an npz, CSV or NetCDF/HDF5 file; ``ValueError`` if absent.
+
+    A NetCDF variable with a ``source`` dimension (the study's realisation files) needs
+    ``source`` to pick one of them.
+    """
     suffix = path.suffix.lower()
     if not path.exists():
         raise ValueError(f"--curves {path}: no such file")
@@ -87,7 +93,13 @@ def read_curves(path: Path, n_t: int) -> NDArray[np.float64]:
                 str(k) for k, v in ds.data_vars.items() if v.ndim == 2 and v.shape[-1] == n_t]
             if not names:
                 raise ValueError(f"{path}: no curve variable (tried {', '.join(CURVE_KEYS)})")
-            arr = np.asarray(ds[names[0]].values, dtype=np.float64)
+            var = ds[names[0]]
+            if "source" in var.dims:
+                known = [str(v) for v in ds["source"].values]
+                if source not in known:
+                    raise ValueError(f"{path}: pass --source, one of {', '.join(known)}")
+                var = var.sel(source=source)
+            arr = np.asarray(var.values, dtype=np.float64)
     else:
         raise ValueError(f"--curves {path}: unknown file type {suffix!r} "
                          "(expected .npz, .csv, .nc or .h5)")
@@ -124,7 +136,7 @@ def _track(args: argparse.Namespace) -> int:
 
     model = load_model(args.metamodel)
     spec = model.spec
-    curves = read_curves(args.curves, spec.n_t)
+    curves = read_curves(args.curves, spec.n_t, args.source)
     ok = np.all(np.isfinite(curves), axis=1)
     if not ok.all():
         print(f"skipping {int((~ok).sum())} curves with NaN/inf (failed runs)")
