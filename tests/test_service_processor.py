@@ -99,6 +99,10 @@ def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes]) ->
     got += run(proc, payloads[7:20])
     assert [strip(m) for m in got] == [strip(m) for m in ref]
     assert proc.store.counts()["accepted"] == 20
+    with pytest.raises(ValueError, match="in use by another"):
+        open_processor(path, SETTINGS)
+    proc.close()
+    proc.store.close()
     with pytest.raises(ValueError, match="n_particles"):
         open_processor(path, dataclasses.replace(SETTINGS, n_particles=65))
     for p in (proc, ref_proc):

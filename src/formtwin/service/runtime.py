@@ -145,7 +145,7 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
     path = Path(store_path)
     path.parent.mkdir(parents=True, exist_ok=True)
     store = Store(path, synchronous=synchronous,
-                  background_checkpoint_s=background_checkpoint_s)
+                  background_checkpoint_s=background_checkpoint_s, exclusive=True)
     try:
         settings = check_settings(store, settings)
         model = load_model(settings.model)

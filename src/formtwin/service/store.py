@@ -29,7 +29,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -97,6 +97,9 @@ class Store:
         SQLite ``synchronous`` in WAL mode. ``NORMAL`` survives a killed process (the
         committed WAL is in the OS page cache); ``FULL`` also survives power loss, at the
         price of an fsync per product.
+    exclusive : bool
+        Hold an exclusive ``flock`` on ``<path>.lock`` while open, so that a second service
+        cannot write to the same store (the lock dies with the process, even on SIGKILL).
     background_checkpoint_s : float
         If > 0, WAL checkpoints (copying the WAL into the database, with fsyncs) run every
         this many seconds in a background thread on a second connection instead of inside
@@ -105,10 +108,22 @@ class Store:
     """
 
     def __init__(self, path: str | Path, synchronous: str = "NORMAL",
-                 background_checkpoint_s: float = 0.0) -> None:
+                 background_checkpoint_s: float = 0.0, exclusive: bool = False) -> None:
         if synchronous.upper() not in ("NORMAL", "FULL"):
             raise ValueError(f"synchronous must be NORMAL or FULL, got {synchronous!r}")
         self.path = Path(path)
+        self._lockfile: IO[bytes] | None = None
+        if exclusive:
+            import fcntl
+
+            fh = open(self.path.with_name(self.path.name + ".lock"), "ab")  # noqa: SIM115
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                fh.close()
+                raise ValueError(f"{self.path} is in use by another formtwin serve "
+                                 "(one service per store)") from None
+            self._lockfile = fh
         self._lock = threading.Lock()
         self._db = sqlite3.connect(str(self.path), isolation_level=None,
                                    check_same_thread=False, timeout=30.0)
@@ -149,6 +164,9 @@ class Store:
             self._ckpt_thread.join(timeout=30.0)
         with self._lock:
             self._db.close()
+        if self._lockfile is not None:
+            self._lockfile.close()  # releases the flock
+            self._lockfile = None
 
     # -- meta -------------------------------------------------------------------------
     def get_meta(self, key: str) -> str | None:
