@@ -11,7 +11,11 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   that queueing does not dominate);
 * ``full_speed_latency_p99_ms``: the same measured during the full-speed phase (queueing);
 * peers in the same run: ``processor_products_per_s`` (the same processing in-process, no
-  broker) and ``tracker_step_ms`` (the tracker alone).
+  broker) and ``tracker_step_ms`` (the tracker alone);
+* CPU time, which other jobs on the machine disturb far less than wall time:
+  ``serve_cpu_ms_per_product`` (the whole serve process: MQTT, validation, tracker, store,
+  page; during the full-speed phase), ``tracker_step_cpu_ms`` (thread time of a step), and
+  ``capacity_products_per_s_one_free_core`` = 1000 / serve CPU ms.
 
 Usage: ``python benchmarks/bench_service.py [--metamodel FILE] [--n 1000] [--particles 500]``
 (the analytic stand-in is the model unless ``--metamodel`` is given).
@@ -82,6 +86,12 @@ class Receiver:
         raise TimeoutError(f"estimates missing after {timeout} s")
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (Linux ``/proc``), s."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def run_phase(strokes: list, broker: BrokerConfig, rx: Receiver, rate: float
               ) -> tuple[float, np.ndarray]:
     sent: dict[str, float] = {}
@@ -132,7 +142,9 @@ def main() -> int:
             time.sleep(0.1)
         rx = Receiver(broker)
         run_phase(strokes[:n_warm], broker, rx, rate=0.0)
+        cpu0 = cpu_seconds(procs[-1].pid)
         rate_full, lat_full = run_phase(strokes[n_warm:n_warm + args.n], broker, rx, 0.0)
+        serve_cpu_ms = (cpu_seconds(procs[-1].pid) - cpu0) / args.n * 1e3
         lat_rate = min(100.0, 0.8 * rate_full)
         _, lat = run_phase(strokes[n_warm + args.n:], broker, rx, rate=lat_rate)
         rx.client.disconnect()
@@ -155,10 +167,11 @@ def main() -> int:
     for p in payloads[n_warm:]:
         proc.handle(p)
     peer_rate = (len(payloads) - n_warm) / (time.perf_counter() - t0)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     for s in strokes[300:500]:
         proc.tracker.step(s.force_N)
     step_ms = (time.perf_counter() - t0) / 200 * 1e3
+    step_cpu_ms = (time.thread_time() - c0) / 200 * 1e3
     proc.close()
     proc.store.close()
     shutil.rmtree(tmp, ignore_errors=True)
@@ -172,6 +185,9 @@ def main() -> int:
         "full_speed_latency_p99_ms": round(float(np.percentile(lat_full, 99)), 1),
         "processor_products_per_s": round(peer_rate, 1),
         "tracker_step_ms": round(step_ms, 2),
+        "serve_cpu_ms_per_product": round(serve_cpu_ms, 2),
+        "tracker_step_cpu_ms": round(step_cpu_ms, 2),
+        "capacity_products_per_s_one_free_core": round(1e3 / serve_cpu_ms, 1),
         "target_products_per_s": 100,
         "target_latency_p99_ms": 50,
         "n_full_speed": args.n,
