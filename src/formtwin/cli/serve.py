@@ -88,6 +88,8 @@ def _serve(args: argparse.Namespace) -> int:
 
     broker = broker_config(args)
     topics = Topics.from_input(args.topic, args.results_topic, args.errors_topic)
+    if args.metamodel and not Path(args.metamodel).exists():
+        raise ValueError(f"--metamodel {args.metamodel}: no such file")
     settings = ServiceSettings(
         model="analytic" if args.analytic else str(Path(args.metamodel).resolve()),
         n_particles=args.particles, alpha=args.alpha,

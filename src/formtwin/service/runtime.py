@@ -95,7 +95,16 @@ def load_model(name: str) -> ProcessModel:
 
 
 def _file_digest(path: str) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    """SHA-256 of a model file (or of the files of a model folder, in name order)."""
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"{p}: no such metamodel file")
+    h = hashlib.sha256()
+    for f in sorted(p.rglob("*")) if p.is_dir() else [p]:
+        if f.is_file():
+            h.update(f.relative_to(p).as_posix().encode() if p.is_dir() else b"")
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def check_settings(store: Store, settings: ServiceSettings) -> ServiceSettings:
