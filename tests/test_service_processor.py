@@ -155,3 +155,49 @@ def test_export_parquet_and_csv(tmp_path: Path, payloads: list[bytes]) -> None:
     assert n == 1 and rows[0]["reason"] == "malformed_json"
     with pytest.raises(ValueError, match="format"):
         export_store(tmp_path / "a.sqlite", tmp_path / "x.xlsx")
+
+
+def test_any_interleaving_of_redeliveries_and_bad_input_stores_the_clean_run(
+        tmp_path_factory: pytest.TempPathFactory, payloads: list[bytes]) -> None:
+    """Property: whatever mix of redeliveries and bad messages arrives between the good
+    strokes, the store ends up with exactly the clean run's products and estimates."""
+    import shutil
+
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from formtwin.service.runtime import measurement_path
+
+    cpath = tmp_path_factory.mktemp("clean") / "c.sqlite"
+    clean = open_processor(cpath, SETTINGS)
+    ref = [strip(m) for m in run(clean, payloads[:8])]
+    clean.close()
+    clean.store.close()
+    bad = [b"", b"{}", b"null", b'{"schema": "formtwin.stroke/1"}', b"\x00" * 10]
+
+    @settings(max_examples=10, deadline=None)
+    @given(st.lists(st.tuples(st.integers(0, 2), st.integers(0, 7)), max_size=12))
+    def check(noise: list[tuple[int, int]]) -> None:
+        path = tmp_path_factory.mktemp("p") / "p.sqlite"
+        shutil.copy(measurement_path(cpath), measurement_path(path))  # skip Monte Carlo
+        proc = open_processor(path, SETTINGS)
+        extra = iter(noise)
+        done = 0
+        for i, p in enumerate(payloads[:8]):
+            proc.handle(p)
+            done = i + 1
+            for kind, k in [next(extra, (-1, 0))]:
+                if kind == 0:  # redeliver an already processed stroke
+                    assert proc.handle(payloads[k % done]).kind == "redelivered"
+                elif kind == 1:
+                    assert proc.handle(bad[k % len(bad)]).kind == "rejected"
+                elif kind == 2 and done < 8:  # an old cycle under a new part id
+                    m = json.loads(payloads[k % done])
+                    m["part_id"] += "-x"
+                    assert proc.handle(dumps(m)).message["reason"] == "out_of_order"
+        got = [strip(r.estimate) for r in proc.store.products()]  # type: ignore[arg-type]
+        assert got == ref
+        proc.close()
+        proc.store.close()
+
+    check()
