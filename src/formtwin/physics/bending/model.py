@@ -174,7 +174,8 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
 
     pa = np.array([crank(t0, press)[0]])
     ct_t = np.zeros((n_nodes, n_tools))
-    ct_rel = np.zeros((n_nodes, n_tools, 2))
+    ct_rel = np.repeat(sheet.positions[:, None, :], n_tools, axis=1)
+    ct_rel[:, :, 1] -= pa[0] * (tools.owner == 1)[None, :]
     ct_act = np.zeros((n_nodes, n_tools), dtype=np.int64)
     rec_u = np.zeros((targets.size, n))
     rec_f = np.zeros((targets.size, 8))

@@ -97,14 +97,9 @@ def assemble(t, u, p, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unty
             gap = sd - half
             if gap >= 0.0 or gap < -thick:
                 continue
-            if ct_act[nd, k] == 1:
-                tt_n = ct_t[nd, k]
-                drx = px - ct_rel[nd, k, 0]
-                dry = py - ct_rel[nd, k, 1]
-            else:
-                tt_n = 0.0
-                drx = 0.0
-                dry = 0.0
+            tt_n = ct_t[nd, k] if ct_act[nd, k] == 1 else 0.0
+            drx = px - ct_rel[nd, k, 0]
+            dry = py - ct_rel[nd, k, 1]
             fx, fy, tt, slip = contact_node(gap, press[G0], nx, ny, rho, pen[nd, 0],
                                             pen[nd, 1], tmu[k], tt_n, drx, dry, J)
             ct_act_t[nd, k] = 1
@@ -337,10 +332,9 @@ def run_history(targets, lam, t_start, X, thick, ylay, wlay, xg, wg, mat,  # typ
                 for k in range(n_tools):
                     ct_act[nd, k] = ct_act_t[nd, k]
                     ct_t[nd, k] = ct_t_t[nd, k]
-                    if ct_act_t[nd, k] == 1:
-                        ty = pt[0] if towner[k] == 1 else 0.0
-                        ct_rel[nd, k, 0] = X[nd, 0] + u_trial[3 * nd]
-                        ct_rel[nd, k, 1] = X[nd, 1] + u_trial[3 * nd + 1] - ty
+                    ty = pt[0] if towner[k] == 1 else 0.0
+                    ct_rel[nd, k, 0] = X[nd, 0] + u_trial[3 * nd]
+                    ct_rel[nd, k, 1] = X[nd, 1] + u_trial[3 * nd + 1] - ty
             for i in range(n):
                 du_prev[i] = u_trial[i] - u[i]
                 u[i] = u_trial[i]
