@@ -18,7 +18,7 @@
     el("grid").appendChild(box);
     const series = [{label: "product"}].concat(opts.series);
     const plot = new uPlot({
-      width: 320, height: 150, series: series, bands: opts.bands || [],
+      width: Math.max(280, box.clientWidth - 10), height: 150, series: series, bands: opts.bands || [],
       legend: {show: false}, scales: {x: {time: false}},
       axes: [{size: 24}, {size: 62}],
     }, opts.series.map(() => []).concat([[]]), box);
@@ -117,6 +117,12 @@
       if (e.type === "point") { addPoint(e); schedule(); }
       showCounts(e.counts, e.reasons);
     };
+  });
+  window.addEventListener("resize", () => {
+    charts.forEach((c) => {
+      const w = Math.max(280, c.plot.root.parentNode.clientWidth - 10);
+      c.plot.setSize({width: w, height: 150});
+    });
   });
   window.formtwinLive = {points: () => nPoints, charts: charts};
 })();
