@@ -51,6 +51,10 @@ def test_csv_stream(tmp_path: Path) -> None:
     strokes = read_stream(path)
     assert [(s.part_id, s.cycle) for s in strokes] == [("A", 7), ("B", 9)]
     assert strokes[1].force_N.tolist() == [2.0] * 101 and strokes[0].angles_deg is None
+    from formtwin.service.messages import Limits, dumps, parse_stroke
+
+    for s in strokes:  # what replay publishes is a valid stroke message
+        assert parse_stroke(dumps(s.to_message()), Limits(n_t=101)).digest == s.digest
 
 
 def test_cli_errors_name_the_problem(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -33,6 +33,7 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
 import numpy as np
@@ -148,6 +149,20 @@ def _number_list(doc: dict[str, Any], key: str, part_id: str) -> FloatArray:
     return arr
 
 
+def _valid_timestamp(ts: Any) -> bool:
+    if isinstance(ts, bool):
+        return False
+    if isinstance(ts, int | float):
+        return math.isfinite(ts) and ts >= 0
+    if isinstance(ts, str) and 0 < len(ts) <= 64:
+        try:
+            datetime.fromisoformat(ts)
+        except ValueError:
+            return False
+        return True
+    return False
+
+
 def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
     """Parse and validate one stroke payload.
 
@@ -194,11 +209,9 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
         raise MessageError("bad_field", f"cycle must be a non-negative integer, got "
                            f"{cycle!r:.40}", part_id)
     ts = doc["timestamp"]
-    if isinstance(ts, bool) or not isinstance(ts, str | int | float) or \
-            (isinstance(ts, str) and len(ts) > 64) or \
-            (isinstance(ts, float) and not math.isfinite(ts)):
-        raise MessageError("bad_field", f"timestamp must be an ISO string or a number, got "
-                           f"{ts!r:.40}", part_id)
+    if not _valid_timestamp(ts):
+        raise MessageError("bad_field", f"timestamp must be an ISO 8601 string or epoch "
+                           f"seconds >= 0, got {ts!r:.40}", part_id)
     force = _number_list(doc, "force_N", part_id)
     if force.size != limits.n_t:
         raise MessageError("wrong_length", f"force_N has {force.size} samples, expected "

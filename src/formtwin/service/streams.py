@@ -157,8 +157,9 @@ def read_stream(path: str | Path, source: str = "gFE") -> list[Stroke]:
         has_a = "angle1" in rows[0] and "angle2" in rows[0]
         angles = np.array([[float(r["angle1"]), float(r["angle2"])] for r in rows]) \
             if has_a else None
-        ids = [r.get("part_id") or f"{p.stem}-{i + 1:07d}" for i, r in enumerate(rows)]
+        d_ids, _, d_stamps = _defaults(len(rows), p.stem)
+        ids = [r.get("part_id") or d_ids[i] for i, r in enumerate(rows)]
         cycles = np.array([int(r.get("cycle") or i + 1) for i, r in enumerate(rows)])
-        stamps = [r.get("timestamp") or "" for r in rows]
+        stamps = [r.get("timestamp") or d_stamps[i] for i, r in enumerate(rows)]
         return list(_strokes(curves, angles, ids, cycles, stamps))
     raise ValueError(f"{p}: unknown stream format {suffix!r} (expected .npz, .nc or .csv)")
