@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from formtwin.physics.bending.geometry import FlapGeometry, ToolSet, make_toolset
 from formtwin.physics.bending.material import Material
-from formtwin.physics.bending.solver import OK, run_history
+from formtwin.physics.bending.solver import OK, crank, run_history
 from formtwin.simulator import RunResult
 from formtwin.spec import ProcessSpec, load_spec
 
@@ -148,12 +148,14 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
           mu: FloatArray | None = None, penalty: float = 5.0e5, smooth: float = 5.0e-4,
           press: FloatArray | None = None, fix: NDArray[np.int64] | None = None,
           fix_ref: FloatArray | None = None, fref: FloatArray | None = None,
-          lam: FloatArray | None = None) -> History:
+          lam: FloatArray | None = None, lam_fix: FloatArray | None = None) -> History:
     """Advance ``sheet`` (in place) through ``targets`` (s) and record the history.
 
     ``tools`` may be None (no contact). ``mu (n_tools,)`` friction coefficients, ``press``
     ``[k (N/mm per mm width; <= 0 prescribed punch), mu_tt, v_eps, crank R, rod, omega]``;
-    ``fix`` prescribed dofs with values ``lam(t) * fix_ref``; loads ``lam(t) * fref``.
+    ``fix`` prescribed dofs with values ``lam_fix(t) * fix_ref``; loads ``lam(t) * fref``
+    (``lam, lam_fix (n_targets,)``, piecewise linear in time; ``lam_fix`` defaults to
+    ``lam``). The history starts at ``t_start`` (default ``targets[0]``).
     """
     n = sheet.u.size
     if tools is None:
@@ -168,10 +170,9 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     fix_ref = np.zeros(fix.size) if fix_ref is None else fix_ref
     fref = np.zeros(n) if fref is None else fref
     lam = np.zeros(targets.size) if lam is None else lam
+    lam_fix = lam if lam_fix is None else lam_fix
     mu = np.zeros(n_tools) if mu is None else mu
     t0 = float(targets[0]) if t_start is None else t_start
-    from formtwin.physics.bending.solver import crank
-
     pa = np.array([crank(t0, press)[0]])
     ct_t = np.zeros((n_nodes, n_tools))
     ct_rel = np.repeat(sheet.positions[:, None, :], n_tools, axis=1)
@@ -182,11 +183,10 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     rec_r = np.zeros((targets.size, n))
     counters = np.zeros(4, dtype=np.int64)
     status = run_history(
-        targets, lam, t0, sheet.X, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg,
-        material.array, sheet.u, pa, sheet.sig, sheet.epb, sheet.eps,
-        sheet.rate, tools.ptype, tools.pdata, tools.tstart, tools.owner, mu, pen, ct_t,
-        ct_rel, ct_act, press, fref, fix, fix_ref, disc.opts(dt_max), rec_u, rec_f, rec_r,
-        counters)
+        targets, lam, lam_fix, t0, sheet.X, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg,
+        sheet.wg, material.array, sheet.u, pa, sheet.sig, sheet.epb, sheet.eps, sheet.rate,
+        tools.ptype, tools.pdata, tools.tstart, tools.owner, mu, pen, ct_t, ct_rel, ct_act,
+        press, fref, fix, fix_ref, disc.opts(dt_max), rec_u, rec_f, rec_r, counters)
     return History(targets, rec_u, rec_f, rec_r, int(status), counters)
 
 

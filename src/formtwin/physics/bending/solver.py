@@ -243,14 +243,15 @@ def lam_at(t, targets, lam):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def run_history(targets, lam, t_start, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
+def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
                 u, pa, sig, epb, eps, rate,
                 ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act,
                 press, fref, fix_idx, fix_ref, opts,
                 rec_u, rec_f, rec_r, counters):
     """Advance the state ``(u, pa, sig, epb, eps, rate, ct_*)`` in place through ``targets``.
 
-    Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam(t) * fix_ref``. At each
+    Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam_fix(t) * fix_ref``
+    (both piecewise linear through their values at ``targets``). At each
     target it records ``u`` in ``rec_u``; ``[measured force, F_v, F_lat, p, c, steps,
     iterations, cuts]`` in ``rec_f``; the residual with prescribed dofs kept (reactions) in
     ``rec_r``. ``counters = [steps, iterations, cuts, assemblies]``. Returns a status code
@@ -292,8 +293,9 @@ def run_history(targets, lam, t_start, X, thick, ylay, wlay, xg, wg, mat,  # typ
                 u_trial[i] = u[i]
                 if dt_prev > 0.0:
                     u_trial[i] += opts[PREDICT] * du_prev[i] * h / dt_prev
+            lff = lam_at(tn, targets, lam_fix)
             for m in range(fix_idx.shape[0]):
-                u_trial[fix_idx[m]] = lf * fix_ref[m]
+                u_trial[fix_idx[m]] = lff * fix_ref[m]
             c_new, _ = crank(tn, press)
             pt = np.empty(1)
             if spring:

@@ -1,0 +1,167 @@
+"""Verification of the bending model's beam, material and contact against known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")
+
+from formtwin.physics.bending.geometry import make_toolset  # noqa: E402
+from formtwin.physics.bending.material import Material  # noqa: E402
+from formtwin.physics.bending.model import Discretisation, Sheet, solve  # noqa: E402
+
+T = 0.3  # mm
+ELASTIC = Material(yield_stress=1e9, rate=False)
+EPP = Material(yield_stress=300.0, hardening=False, rate=False)  # elastic-perfectly plastic
+DISC = Discretisation(dt_min=1e-9, max_iter=40)
+
+
+def strip(length: float, n_el: int, n_layers: int = 15) -> Sheet:
+    return Sheet.straight(0.0, length, 0.0, n_el, T, n_layers, 2)
+
+
+def ramp(n: int = 11) -> np.ndarray:
+    return np.linspace(0.0, 1.0, n)
+
+
+def bending_stiffness(m: Material) -> float:
+    return m.plane_strain_modulus * T**3 / 12.0
+
+
+def tip_load(length: float, n_el: int, p: float, steps: int = 11,
+             material: Material = ELASTIC) -> tuple[Sheet, np.ndarray]:
+    sheet = strip(length, n_el)
+    fref = np.zeros(sheet.u.size)
+    fref[-2] = p  # dead vertical load at the tip
+    t = ramp(steps)
+    h = solve(sheet, material, None, t, DISC, dt_max=1.0 / (steps - 1), lam=t, fref=fref)
+    assert h.status == 0
+    return sheet, h.u[-1]
+
+
+def test_cantilever_tip_load_small_deflection() -> None:
+    length, ei = 10.0, bending_stiffness(ELASTIC)
+    p = 1e-4 * 3 * ei / length**2  # deflection / L = 1e-4: linear range
+    _, u = tip_load(length, 20, p, steps=2)
+    expected = p * length**3 / (3 * ei)
+    assert u[-2] == pytest.approx(expected, rel=5e-3)
+    assert u[-1] == pytest.approx(p * length**2 / (2 * ei), rel=5e-3)
+
+
+@pytest.mark.parametrize(("load", "x_over_l", "y_over_l"), [
+    (1.0, 0.9436, 0.3017), (2.0, 0.8394, 0.4935), (5.0, 0.6124, 0.7138), (10.0, 0.4450, 0.8106)])
+def test_elastica_dead_tip_load(load: float, x_over_l: float, y_over_l: float) -> None:
+    length = 10.0
+    p = load * bending_stiffness(ELASTIC) / length**2
+    sheet, u = tip_load(length, 20, p, steps=21)
+    tip = sheet.X[-1] + u[-3:-1]
+    assert tip[0] / length == pytest.approx(x_over_l, rel=5e-3)
+    assert tip[1] / length == pytest.approx(y_over_l, rel=5e-3)
+
+
+def test_pure_moment_quarter_circle() -> None:
+    length, ei = 10.0, bending_stiffness(ELASTIC)
+    sheet = strip(length, 20)
+    fref = np.zeros(sheet.u.size)
+    fref[-1] = ei * (math.pi / 2) / length  # M L / EI = pi/2
+    t = ramp(11)
+    h = solve(sheet, ELASTIC, None, t, DISC, dt_max=0.1, lam=t, fref=fref)
+    assert h.status == 0
+    radius = 2 * length / math.pi
+    tip = sheet.positions[-1]
+    assert tip[0] == pytest.approx(radius, rel=2e-3)
+    assert tip[1] == pytest.approx(radius, rel=2e-3)
+    assert sheet.u[-1] == pytest.approx(math.pi / 2, rel=1e-6)
+
+
+def curvature_controlled(material: Material, kappa: float, length: float = 1.0,
+                         n_el: int = 4) -> tuple[Sheet, float]:
+    """Bend a strip to a uniform curvature by its end rotation; return the root moment."""
+    sheet = strip(length, n_el)
+    n = sheet.u.size
+    fix = np.array([0, 1, 2, n - 1])
+    t = ramp(21)
+    h = solve(sheet, material, None, t, DISC, dt_max=0.05, fix=fix,
+              fix_ref=np.array([0.0, 0.0, 0.0, kappa * length]), lam=t)
+    assert h.status == 0
+    return sheet, float(h.reactions[-1, 2])
+
+
+def test_fully_plastic_moment_plane_strain() -> None:
+    sy = EPP.yield_stress
+    kappa_y = 2 * (2 * sy / math.sqrt(3)) / (EPP.plane_strain_modulus * T)
+    _, moment = curvature_controlled(EPP, 50 * kappa_y)
+    mp = sy * T**2 / (2 * math.sqrt(3))
+    assert abs(moment) == pytest.approx(mp * (1 - 1 / (3 * 50**2)), rel=1e-2)
+
+
+@pytest.mark.parametrize("rho", [0.1, 0.3])
+def test_springback_elastic_perfectly_plastic(rho: float) -> None:
+    sbar = 2 * EPP.yield_stress / math.sqrt(3)
+    r_i = rho * EPP.plane_strain_modulus * T / sbar
+    length = 5.0
+    sheet, _ = curvature_controlled(EPP, 1.0 / r_i, length=length, n_el=8)
+    # release the end rotation: no load, only the root clamped
+    t = np.array([1.0, 1.1])
+    h = solve(sheet, EPP, None, t, DISC, dt_max=0.1, t_start=1.0)
+    assert h.status == 0
+    r_f = length / sheet.u[-1]
+    assert r_i / r_f == pytest.approx(1 - 3 * rho + 4 * rho**3, rel=2e-2)
+
+
+def friction_history(mu: float) -> tuple[np.ndarray, np.ndarray]:
+    """A stiff strip on a flat die, pressed by 1 N/mm per node, dragged +d, then back to -d.
+
+    Returns ``(lam_fix, reaction)`` at the recorded instants (reaction at the dragged dof).
+    """
+    stiff = Material(yield_stress=1e12, E=1e9, rate=False)
+    sheet = Sheet.straight(0.0, 1.0, 0.5 * T, 4, T, 15, 2)
+    die = make_toolset([("die", 0, [(np.array([[-5.0, 0.0], [5.0, 0.0]]), np.zeros(0))])])
+    fref = np.zeros(sheet.u.size)
+    fref[1::3] = -1.0
+    t = np.r_[0.0, 0.5, 1.0, 1.01, 2.0, 2.005, 2.5, 3.0]
+    lam = np.minimum(t, 1.0)
+    lam_fix = np.interp(t, [0.0, 1.0, 2.0, 3.0], [0.0, 0.0, 1.0, -1.0])
+    h = solve(sheet, stiff, die, t, DISC, dt_max=0.01, mu=np.array([mu]), lam=lam,
+              lam_fix=lam_fix, fix=np.array([0]), fix_ref=np.array([1e-4]), fref=fref)
+    assert h.status == 0
+    return lam_fix, h.reactions[:, 0]
+
+
+def test_friction_stick_slip_and_reversal() -> None:
+    mu, penalty = 0.2, 5.0e5
+    lam_fix, reaction = friction_history(mu)
+    # stick: 1e-6 mm of drag, every node sticks: reaction = penalty * length * drag (the
+    # strip's axial compliance, E = 1e9 MPa, takes 5e-4 of it)
+    assert lam_fix[3] == pytest.approx(0.01)
+    assert reaction[3] == pytest.approx(penalty * 1.0 * 1e-6, rel=1e-3)
+    # full slip: Coulomb, mu times the total normal force (5 nodes x 1 N/mm)
+    assert reaction[4] == pytest.approx(mu * 5.0, rel=1e-6)
+    # slip reversal: first 1e-6 mm back sticks again (elastic unloading of the tangential force)
+    assert reaction[5] == pytest.approx(mu * 5.0 - penalty * 1e-6, rel=1e-3)
+    # then slips the other way
+    assert reaction[6] == pytest.approx(-mu * 5.0, rel=1e-6)
+    assert reaction[7] == pytest.approx(-mu * 5.0, rel=1e-6)
+
+
+def test_frictionless_drag_needs_no_force() -> None:
+    _, reaction = friction_history(0.0)
+    assert np.abs(reaction[3:]).max() < 1e-7
+
+
+@pytest.mark.parametrize("rate", [1.0, 100.0])
+def test_cowper_symonds_bar(rate: float) -> None:
+    """Plastic bar stretched at a constant strain rate: N = t sbar (1 + (epsdot/epsdot0)^q)."""
+    m = Material(yield_stress=300.0, hardening=False, log_rate=2.0, rate_exponent=0.5)
+    sheet = strip(1.0, 1)
+    strain = 0.02
+    t = np.linspace(0.0, strain / rate, 21)
+    h = solve(sheet, m, None, t, DISC, dt_max=t[1], fix=np.array([0, 1, 2, 3, 4, 5]),
+              fix_ref=np.array([0, 0, 0, strain, 0, 0]), lam=t / t[-1])
+    assert h.status == 0
+    eq_rate = 2 / math.sqrt(3) * rate
+    sbar = 2 / math.sqrt(3) * m.yield_stress * (1 + (eq_rate / 10**m.log_rate) ** m.rate_exponent)
+    assert h.reactions[-1, 3] == pytest.approx(T * sbar, rel=1e-3)
