@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -201,3 +202,25 @@ def test_any_interleaving_of_redeliveries_and_bad_input_stores_the_clean_run(
         proc.store.close()
 
     check()
+
+
+def test_student_t_option_keeps_the_cloud_on_an_outlier(tmp_path: Path,
+                                                       payloads: list[bytes]) -> None:
+    from formtwin.measurement import MeasurementModel
+    from formtwin.service.runtime import measurement_path
+
+    odd = json.loads(payloads[10])
+    odd["force_N"] = [2.0 * f + 100.0 for f in odd["force_N"]]
+    ess = {}
+    for nu in (math.inf, 5.0):
+        path = tmp_path / f"nu{nu}.sqlite"
+        proc = open_processor(path, dataclasses.replace(SETTINGS, nu=nu))
+        assert MeasurementModel.load(measurement_path(path)).nu == nu
+        run(proc, payloads[:10])
+        out = proc.handle(dumps(odd))  # an outlier curve, no gate: accepted
+        assert out.kind == "accepted"
+        ess[nu] = float(out.message["ess"])  # type: ignore[arg-type]
+        proc.close()
+        proc.store.close()
+    # the Gaussian puts all weight on ~1 particle; the Student-t keeps a cloud
+    assert ess[math.inf] < 2.0 and ess[5.0] > 0.2 * SETTINGS.n_particles, ess
