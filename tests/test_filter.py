@@ -48,7 +48,7 @@ def test_low_variance_schemes_keep_the_integer_part() -> None:
 def test_unknown_names_list_the_known_ones_and_callables_pass() -> None:
     with pytest.raises(ValueError, match="known: multinomial, residual, stratified, systematic"):
         get_resampler("bogus")
-    with pytest.raises(ValueError, match="known: sir"):
+    with pytest.raises(ValueError, match="known: regularised, sir"):
         get_filter("bogus")
     first = lambda w, rng, m: np.zeros(m, dtype=np.intp)  # noqa: E731
     assert get_resampler(first) is first
@@ -170,3 +170,29 @@ def test_adaptive_resampling_skips_when_ess_is_high() -> None:
     f = SIR(LinearGaussian(), 1000, np.random.default_rng(0), ess_threshold=0.01)
     s = f.step(0.0)
     assert not s.resampled and not np.allclose(f.logw, f.logw[0])
+
+
+def test_regularised_filter_keeps_the_kalman_moments_and_constrains() -> None:
+    model = LinearGaussian()
+    ys = simulate_lg(model, 15, seed=8)
+    means, covs, _ = model.kalman(ys)
+    f = make_filter("regularised", model, 20_000, np.random.default_rng(9))
+    for t, y in enumerate(ys):
+        s = f.step(y)
+        var = np.diag(covs[t])
+        np.testing.assert_array_less(np.abs(s.mean() - means[t]), 6 * np.sqrt(var / s.ess))
+        np.testing.assert_allclose(s.std() ** 2, var, rtol=6 * math.sqrt(2 / s.ess))
+    # the move keeps the cloud's moments: resampled-and-moved particles vs the weighted ones
+    assert f.x is not None
+    np.testing.assert_allclose(f.x.mean(axis=0), s.mean(), atol=0.03)
+    np.testing.assert_allclose(f.x.std(axis=0), s.std(), rtol=0.03)
+
+    class Boxed(LinearGaussian):
+        def constrain(self, x: np.ndarray) -> np.ndarray:
+            return np.clip(x, -0.5, 0.5)
+
+    g = make_filter("regularised", Boxed(), 500, np.random.default_rng(0))
+    g.step(0.0)
+    assert g.x is not None and np.all(np.abs(g.x) <= 0.5)
+    with pytest.raises(ValueError, match="bandwidth"):
+        make_filter("regularised", model, 10, np.random.default_rng(0), bandwidth=1.5)

@@ -191,3 +191,18 @@ def test_blocks_of_particles_give_the_same_numbers(
     blocks = Tracker(model, mm, TrackerConfig(n_particles=50, seed=2)).run(curves)
     np.testing.assert_allclose(blocks.mean, whole.mean, rtol=1e-12)
     np.testing.assert_allclose(blocks.angles_mean, whole.angles_mean, rtol=1e-12)
+
+
+def test_regularised_filter_by_name_stays_in_bounds(
+        spec: ProcessSpec, model: AnalyticModel, mm: MeasurementModel,
+        series1: dict[str, np.ndarray]) -> None:
+    tr = Tracker(model, mm, TrackerConfig(n_particles=100, filter="regularised",
+                                          estimate_deviation=False))
+    tr.run(series1["curves"][:5])
+    x = tr.particles
+    assert x is not None
+    aug = spec.augmented
+    assert np.all(x[:, 10:] == 0)  # theta_d not estimated: stays 0 after the kernel move
+    assert np.all(x[:, :10] >= aug.lo[:10]) and np.all(x[:, :10] <= aug.hi[:10])
+    with pytest.raises(ValueError, match="unknown filter"):
+        Tracker(model, mm, TrackerConfig(filter="kalman"))

@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.deviation import DeviationModel
-from formtwin.evolution import evolve, jitter, stationary
+from formtwin.evolution import evolve, jitter, reflect, stationary
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.spec import ProcessSpec
@@ -275,6 +275,15 @@ class BendingSSM:
         # in blocks of particles: bounds the (N, n_t) temporaries of model and g^-1
         return np.concatenate([self._loglik(x[i: i + CHUNK], y)
                                for i in range(0, x.shape[0], CHUNK)])
+
+    def constrain(self, x: FloatArray) -> FloatArray:
+        """Reflect augmented particles (N, 18) into their bounds (used by kernel moves);
+        ``theta_d`` stays 0 when it is not estimated."""
+        aug = self.spec.augmented
+        out = reflect(x, aug.lo, aug.hi)
+        if not self.config.estimate_deviation:
+            out[:, self.n_in:] = 0.0
+        return out
 
     def predict_angles(self, x: FloatArray) -> FloatArray:
         """Angles (N, 2) of augmented particles ``x`` (N, 18), in blocks of particles."""

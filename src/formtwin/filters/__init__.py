@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from formtwin.filters.regularised import RegularisedSIR
 from formtwin.filters.resampling import (
     RESAMPLERS,
     Resampler,
@@ -18,7 +19,7 @@ from formtwin.filters.resampling import (
 from formtwin.filters.sir import SIR, StateSpaceModel, Step, log_normalise
 
 #: filter name -> class (constructor ``(model, n_particles, rng, resampling, ess_threshold)``)
-FILTERS: dict[str, type[SIR]] = {"sir": SIR}
+FILTERS: dict[str, type[SIR]] = {"sir": SIR, "regularised": RegularisedSIR}
 
 
 def get_filter(name: str | type[SIR]) -> type[SIR]:
@@ -37,5 +38,5 @@ def make_filter(name: str | type[SIR], *args: Any, **kwargs: Any) -> SIR:
     return get_filter(name)(*args, **kwargs)
 
 
-__all__ = ["FILTERS", "RESAMPLERS", "SIR", "Resampler", "StateSpaceModel", "Step",
+__all__ = ["FILTERS", "RESAMPLERS", "SIR", "RegularisedSIR", "Resampler", "StateSpaceModel", "Step",
            "get_filter", "get_resampler", "log_normalise", "make_filter", "register_resampler"]
