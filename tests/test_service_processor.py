@@ -222,5 +222,5 @@ def test_student_t_option_keeps_the_cloud_on_an_outlier(tmp_path: Path,
         ess[nu] = float(out.message["ess"])  # type: ignore[arg-type]
         proc.close()
         proc.store.close()
-    # the Gaussian puts all weight on ~1 particle; the Student-t keeps a cloud
-    assert ess[math.inf] < 2.0 and ess[5.0] > 0.2 * SETTINGS.n_particles, ess
+    # the Gaussian puts (nearly) all weight on one particle; the Student-t keeps a cloud
+    assert ess[5.0] > 0.2 * SETTINGS.n_particles and ess[5.0] > 3.0 * ess[math.inf], ess
