@@ -179,6 +179,7 @@ class ProcessSpec:
 
     ``inputs`` (state then parameters) are the model inputs, ``augmented`` (inputs then
     deviation) the particle filter's state. ``time`` is the force-curve grid in s.
+    ``text`` is the TOML the spec was parsed from, so that files can carry their spec.
     """
 
     name: str
@@ -188,6 +189,7 @@ class ProcessSpec:
     deviation: Deviation
     time: FloatArray
     source: str
+    text: str = field(default="", repr=False, compare=False)
 
     @property
     def inputs(self) -> Group:
@@ -267,6 +269,7 @@ def parse_spec(text: str, source: str = "<string>") -> ProcessSpec:
         deviation=deviation,
         time=np.linspace(t0, t1, n),
         source=source,
+        text=text,
     )
 
 
