@@ -206,3 +206,27 @@ def test_regularised_filter_by_name_stays_in_bounds(
     assert np.all(x[:, :10] >= aug.lo[:10]) and np.all(x[:, :10] <= aug.hi[:10])
     with pytest.raises(ValueError, match="unknown filter"):
         Tracker(model, mm, TrackerConfig(filter="kalman"))
+
+
+def test_a_failing_model_leaves_the_tracker_untouched(
+        spec: ProcessSpec, mm: MeasurementModel, series1: dict[str, np.ndarray]) -> None:
+    class Broken(AnalyticModel):
+        fail = False
+
+        def predict_curves(self, X: np.ndarray) -> np.ndarray:
+            if self.fail:
+                raise RuntimeError("model server down")
+            return super().predict_curves(X)
+
+    model = Broken(spec)
+    a = Tracker(model, mm, TrackerConfig(n_particles=50, seed=4))
+    b = Tracker(model, mm, TrackerConfig(n_particles=50, seed=4))
+    a.step(series1["curves"][0])
+    b.step(series1["curves"][0])
+    model.fail = True
+    with pytest.raises(RuntimeError):
+        a.step(series1["curves"][1])
+    model.fail = False
+    assert a.n_steps == 1
+    np.testing.assert_array_equal(a.step(series1["curves"][1]).mean,
+                                  b.step(series1["curves"][1]).mean)

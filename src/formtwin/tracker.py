@@ -368,10 +368,22 @@ class Tracker:
         return self.filter.x
 
     def step(self, curve: Any) -> Estimate:
-        """Assimilate the force curve (n_t,) N of the next product; return its estimate."""
+        """Assimilate the force curve (n_t,) N of the next product; return its estimate.
+
+        Raises ``ValueError`` for a malformed curve. If anything fails during the step
+        (the curve check, or the model raising), the tracker is left exactly as before:
+        particles, weights, step count and RNG state.
+        """
         y = validate_curve(curve, self.spec.n_t)
-        s = self.filter.step(y)
-        return self._estimate(s)
+        f = self.filter
+        saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
+        try:
+            s = f.step(y)
+            return self._estimate(s)
+        except BaseException:
+            f.x, f.logw, f.t = saved[0], saved[1], saved[2]
+            self.rng.bit_generator.state = saved[3]
+            raise
 
     def _estimate(self, s: Step) -> Estimate:
         angles = self.ssm.predict_angles(s.x)
