@@ -19,7 +19,7 @@ single-threaded. Figures (``benchmarks/results/bench_filter.json``):
   pins ``numpy < 2``, so it runs in its own virtual environment
   ``benchmarks/.venv-particles`` (built on first use with ``pip install particles``) by the
   child script ``benchmarks/_particles_child.py``; data and measurement model are
-  exchanged as ``.npz`` files.
+  exchanged as ``.npz`` files in a temporary directory.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -47,7 +48,8 @@ from formtwin.tracker import Tracker, TrackerConfig
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 VENV = HERE / ".venv-particles"
-WORK = HERE / ".cache"
+#: exchange files with the particles child (a temporary directory, set in main)
+WORK = Path(tempfile.gettempdir())
 
 
 def load_model(name: str) -> tuple[ProcessModel, str]:
@@ -174,7 +176,9 @@ def main() -> None:
     ap.add_argument("--no-particles", action="store_true", help="skip the particles peer")
     ap.add_argument("--no-scaling", action="store_true", help="skip N = 1e3..1e5")
     args = ap.parse_args()
-    WORK.mkdir(exist_ok=True)
+    global WORK
+    tmp = tempfile.TemporaryDirectory(prefix="bench_filter_")
+    WORK = Path(tmp.name)
     model, model_desc = load_model(args.model)
     spec = model.spec
     figures: dict[str, Any] = {"model": model_desc}
@@ -238,6 +242,7 @@ def main() -> None:
                 res["step_cpu_ms"] / res["formtwin_step_cpu_ms_same_numpy"], 2)
     figures["load_average_1min_end"] = round(os.getloadavg()[0], 2)
     write_result("filter", figures)
+    tmp.cleanup()
 
 
 if __name__ == "__main__":
