@@ -101,18 +101,29 @@ class DeviationModel:
         out: FloatArray = tau_base[:, seg] + slope[:, seg] * u + 0.5 * curv[:, seg] * u**2
         return out
 
+    def _inverse(self, theta_d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """``t(tau)`` at the grid's model times and ``a`` there, both ``(N, n_t)``."""
+        a, b = self._split(theta_d)
+        base, tau_base, slope, curv = self._segments(b)
+        # a is piecewise linear on the same segments: its value and slope at each base
+        zero = np.zeros((a.shape[0], 1))
+        a_base = np.concatenate([a[:, :1], a], axis=1)
+        a_slope = np.concatenate([zero, np.diff(a, axis=1) / np.diff(self.knots), zero], axis=1)
+        # segment of each model time: how many knots' tau lie at or below it
+        seg = np.zeros((b.shape[0], self.time.size), dtype=np.intp)
+        for j in range(1, tau_base.shape[1]):  # over the k knots, not over particles
+            seg += tau_base[:, j, None] <= self.time[None, :]
+        per_seg = np.stack([tau_base, slope, curv, a_base, a_slope])  # (5, N, k+1)
+        rows = np.arange(b.shape[0])[:, None] * per_seg.shape[2]
+        tau0, s1, s2, a0, da = per_seg.reshape(5, -1)[:, rows + seg]
+        c = self.time[None, :] - tau0
+        u = 2.0 * c / (s1 + np.sqrt(np.maximum(s1**2 + 2.0 * s2 * c, 0.0)))
+        a_at = a0 + da * u
+        return base[seg] + u, a_at
+
     def real_time(self, theta_d: FloatArray) -> FloatArray:
         """``t(tau)``, the inverse of ``tau``, at the grid's model times, ``(N, n_t)`` s."""
-        _, b = self._split(theta_d)
-        base, tau_base, slope, curv = self._segments(b)
-        tau_knots = tau_base[:, 1:]  # tau at each knot, increasing
-        seg = (tau_knots[:, None, :] <= self.time[None, :, None]).sum(axis=2)
-        rows = np.arange(b.shape[0])[:, None]
-        c = self.time[None, :] - tau_base[rows, seg]
-        s1, s2 = slope[rows, seg], curv[rows, seg]
-        disc = np.maximum(s1**2 + 2.0 * s2 * c, 0.0)
-        out: FloatArray = base[seg] + 2.0 * c / (s1 + np.sqrt(disc))
-        return out
+        return self._inverse(theta_d)[0]
 
     def _interp_rows(self, curves: FloatArray, tq: FloatArray) -> FloatArray:
         """Row-wise linear interpolation of curves (n_t,) or (N, n_t) at times tq (N, n_t)."""
@@ -120,6 +131,9 @@ class DeviationModel:
         pos = np.clip((tq - t0) / dt, 0.0, n - 1.0)
         i = np.minimum(pos.astype(np.intp), n - 2)
         w = pos - i
+        if curves.ndim == 1:  # one curve for all rows: plain indexing
+            out1: FloatArray = curves[i] + w * (curves[i + 1] - curves[i])
+            return out1
         curves = np.broadcast_to(curves, tq.shape)
         lo = np.take_along_axis(curves, i, axis=1)
         hi = np.take_along_axis(curves, i + 1, axis=1)
@@ -134,18 +148,6 @@ class DeviationModel:
 
     def invert(self, z: FloatArray, theta_d: FloatArray) -> FloatArray:
         """``g^-1(z, theta_d)``: real curve(s) (n_t,) or (N, n_t) -> model-time curves (N, n_t)."""
-        a, _ = self._split(theta_d)
-        t_real = self.real_time(theta_d)
-        out: FloatArray = self._interp_rows(np.asarray(z, dtype=np.float64), t_real) / (
-            1.0 + self._pwl_rows(t_real, a))
-        return out
-
-    def _pwl_rows(self, t: FloatArray, values: FloatArray) -> FloatArray:
-        """Piecewise-linear ``values`` (N, k) at per-row times ``t`` (N, n) -> (N, n)."""
-        kn = self.knots
-        idx = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, kn.size - 2)
-        w = np.clip((t - kn[idx]) / (kn[idx + 1] - kn[idx]), 0.0, 1.0)
-        lo = np.take_along_axis(values, idx, axis=1)
-        hi = np.take_along_axis(values, idx + 1, axis=1)
-        out: FloatArray = lo + w * (hi - lo)
+        t_real, a = self._inverse(theta_d)
+        out: FloatArray = self._interp_rows(np.asarray(z, dtype=np.float64), t_real) / (1.0 + a)
         return out
