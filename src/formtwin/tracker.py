@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin._threads import single_blas_thread
 from formtwin.deviation import DeviationModel
 from formtwin.evolution import evolve, jitter, reflect, stationary
 from formtwin.filters import SIR, Step, make_filter
@@ -403,7 +404,9 @@ class Tracker:
     def run(self, curves: Iterable[Any], progress: bool = False) -> Estimates:
         """Assimilate curves (n, n_t) one product at a time; return stacked estimates.
 
-        ``progress`` shows a tqdm bar (only on a terminal).
+        ``progress`` shows a tqdm bar (only on a terminal). BLAS is limited to one thread
+        for the run (:func:`formtwin._threads.single_blas_thread`); callers of :meth:`step`
+        in a loop should do the same around their loop.
         """
         items: list[Estimate] = []
         it: Iterable[Any] = curves
@@ -412,8 +415,9 @@ class Tracker:
 
             from tqdm import tqdm
             it = tqdm(curves, desc="tracking", unit="product", disable=not sys.stderr.isatty())
-        for c in it:
-            items.append(self.step(c))
+        with single_blas_thread():  # once per run: entering it costs ~0.25 ms
+            for c in it:
+                items.append(self.step(c))
         return Estimates.stack(items, self.names)
 
     # ------------------------------------------------------------------ persistence
