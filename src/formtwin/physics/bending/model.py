@@ -118,7 +118,7 @@ class Sheet:
     @property
     def positions(self) -> FloatArray:
         """Current node positions ``(n_nodes, 2)``."""
-        return self.X + self.u.reshape(-1, 3)[:, :2]
+        return np.asarray(self.X + self.u.reshape(-1, 3)[:, :2], dtype=np.float64)
 
     def tributary(self) -> FloatArray:
         """Reference length belonging to each node ``(n_nodes,)``."""
@@ -234,13 +234,17 @@ class BendingModel:
 
     def centre(self) -> FloatArray:
         """Centre of Table 1: ``mu_mid`` for the state, box centre for the parameters."""
-        return np.r_[self.spec.state.mu_mid, 0.5 * (self.spec.params.lo + self.spec.params.hi)]
+        mid = np.r_[self.spec.state.mu_mid, 0.5 * (self.spec.params.lo + self.spec.params.hi)]
+        return np.asarray(mid, dtype=np.float64)
 
     def run(self, inputs: FloatArray) -> RunResult:
         """Run one input point ``(n_inputs,)`` (internal units); never raises on divergence."""
         n_t = self.spec.time.size
+        x = np.asarray(inputs, dtype=np.float64)
+        if x.shape != (self.spec.n_inputs,) or not np.all(np.isfinite(x)):
+            return RunResult.failure(n_t, f"inputs must be {self.spec.n_inputs} finite values")
         try:
-            stage1, stage2, _ = self.simulate(np.asarray(inputs, dtype=np.float64))
+            stage1, stage2, _ = self.simulate(x)
         except (FloatingPointError, ValueError, ZeroDivisionError) as exc:
             log.warning("bending run failed: %s", exc)
             return RunResult.failure(n_t, f"error: {exc}")

@@ -1,0 +1,143 @@
+"""The two-stage bending model: Simulator protocol, outputs, and the effect of all ten inputs."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")
+
+from formtwin.physics.bending import VERSION, BendingModel, FlapGeometry  # noqa: E402
+from formtwin.simulator import RunResult  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def model() -> BendingModel:
+    return BendingModel()
+
+
+@pytest.fixture(scope="module")
+def centre_run(model: BendingModel) -> RunResult:
+    return model.run(model.centre())
+
+
+def test_centre_run_outputs(model: BendingModel, centre_run: RunResult) -> None:
+    r = centre_run
+    assert r.ok, r.reason
+    assert r.curve.shape == model.spec.time.shape
+    assert r.angles.shape == (2,)
+    t = model.spec.time
+    # no contact at the start of the window, a force rising to a peak near bottom dead
+    # centre (t = 0), released again by the end of the window
+    assert np.all(r.curve[t < -0.06] == 0.0)
+    assert 0.3 < r.curve[np.argmin(abs(t + 0.03))] / r.curve.max() < 0.5
+    assert abs(t[np.argmax(r.curve)]) <= 0.004
+    assert r.curve[-1] == 0.0
+    assert 150.0 < r.curve.max() < 300.0
+    assert 43.0 < r.angles[0] < 47.0
+    assert 85.0 < r.angles[1] < 90.0
+    assert r.info["release_force"] == 0.0
+
+
+def test_protocol_and_pickle(model: BendingModel, centre_run: RunResult) -> None:
+    assert model.version == VERSION
+    clone = pickle.loads(pickle.dumps(model))
+    again = clone.run(clone.centre())
+    np.testing.assert_allclose(again.curve, centre_run.curve, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(again.angles, centre_run.angles, rtol=1e-12)
+
+
+def test_failure_is_a_record_not_an_exception(model: BendingModel) -> None:
+    x = model.centre()
+    x[model.spec.inputs.index["thickness"]] = np.nan
+    r = model.run(x)
+    assert not r.ok and "finite" in r.reason
+    # a solver that cannot converge (one Newton iteration allowed) reports, not raises
+    r = BendingModel(max_iter=1, dt_min=1e-4).run(model.centre())
+    assert not r.ok and "did not converge" in r.reason
+    assert np.isnan(r.curve).all() and np.isnan(r.angles).all()
+
+
+# (input, metric, expected sign of d metric / d input, smallest relative change)
+EXPECTED = [
+    ("yield_stress", "mean", +1, 0.10),
+    ("yield_stress", "angle1", -1, 0.005),
+    ("log_rate", "mean", -1, 0.005),  # larger epsdot0: smaller rate factor
+    ("rate_exponent", "mean", -1, 0.03),  # (epsdot/epsdot0)^q falls with q when epsdot < epsdot0
+    ("thickness", "mean", +1, 0.05),
+    ("friction_tool_tool", "mean", +1, 0.05),
+    ("friction_tool_flap", "mean", +1, 0.03),
+    ("punch_end_distance", "peak", -1, 0.5),
+    ("punch_end_distance", "angle1", -1, 0.05),
+    ("horizontal_alignment", "peak", -1, 0.1),  # punch moves away from the die face
+    ("horizontal_alignment", "angle1", -1, 0.01),
+    ("vertical_alignment", "peak", -1, 0.1),  # punch moves up: larger gap at the bottom
+    ("vertical_alignment", "angle1", -1, 0.01),
+    ("press_stiffness", "peak", +1, 0.2),
+    ("press_stiffness", "slope", +1, 0.2),  # steeper rise towards bottom dead centre
+    ("press_stiffness", "angle1", +1, 0.01),
+]
+
+
+def metric(r: RunResult, name: str, t: np.ndarray) -> float:
+    if name == "mean":
+        return float(r.curve.mean())
+    if name == "peak":
+        return float(r.curve.max())
+    if name == "slope":
+        return float(np.max(np.diff(r.curve)[t[1:] <= 0.0]) / (t[1] - t[0]))
+    return float(r.angles[0] if name == "angle1" else r.angles[1])
+
+
+@pytest.fixture(scope="module")
+def extremes(model: BendingModel) -> dict[str, tuple[RunResult, RunResult]]:
+    out = {}
+    lo, hi, c = model.spec.inputs.lo, model.spec.inputs.hi, model.centre()
+    for name in model.spec.inputs.names:
+        i = model.spec.inputs.index[name]
+        runs = []
+        for v in (lo[i], hi[i]):
+            x = c.copy()
+            x[i] = v
+            runs.append(model.run(x))
+        out[name] = (runs[0], runs[1])
+    return out
+
+
+@pytest.mark.parametrize(("name", "what", "sign", "rel"), EXPECTED)
+def test_each_input_acts_in_the_expected_direction(
+        model: BendingModel, extremes: dict[str, tuple[RunResult, RunResult]],
+        name: str, what: str, sign: int, rel: float) -> None:
+    a, b = extremes[name]
+    assert a.ok and b.ok, (a.reason, b.reason)
+    t = model.spec.time
+    ma, mb = metric(a, what, t), metric(b, what, t)
+    change = (mb - ma) / abs(ma)
+    assert np.sign(change) == sign, (name, what, ma, mb)
+    assert abs(change) > rel, (name, what, ma, mb)
+
+
+def test_all_ten_inputs_change_the_outputs(
+        extremes: dict[str, tuple[RunResult, RunResult]]) -> None:
+    assert len(extremes) == 10
+    for name, (a, b) in extremes.items():
+        assert np.abs(a.curve - b.curve).max() > 1.0, name  # N, far above solver tolerance
+
+
+def test_force_rises_with_punch_speed() -> None:
+    """Faster crank, higher strain rates: Cowper-Symonds raises the force."""
+    slow = BendingModel(geometry=FlapGeometry(strokes_per_min=90.0))
+    fast = BendingModel(geometry=FlapGeometry(strokes_per_min=180.0))
+    x = slow.centre()
+    s = slow.simulate(x)[0]["history"]
+    f = fast.simulate(x)[0]["history"]
+    # compare the bending force at the same ram height (1.0 mm above bottom dead centre)
+    def at_height(h: object) -> float:
+        force, ram = h.force[:, 0], h.force[:, 4]  # type: ignore[attr-defined]
+        j = np.nonzero((ram < 1.0) & (np.arange(ram.size) < np.argmin(ram)))[0][0]
+        return float(force[j - 1] + (force[j] - force[j - 1]) * (1.0 - ram[j - 1])
+                     / (ram[j] - ram[j - 1]))
+    ratio = at_height(f) / at_height(s)
+    assert 1.01 < ratio < 1.3
