@@ -225,10 +225,15 @@ class BendingSSM:
     _mu: FloatArray = field(init=False, repr=False)
     _sigma: FloatArray = field(init=False, repr=False)
     _rho: FloatArray = field(init=False, repr=False)
+    _lo: FloatArray = field(init=False, repr=False)  # bounds of the augmented state (18,)
+    _hi: FloatArray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
         object.__setattr__(self, "spec", spec)
+        # the spec builds these arrays on every access (~20 us): keep them
+        object.__setattr__(self, "_lo", spec.augmented.lo)
+        object.__setattr__(self, "_hi", spec.augmented.hi)
         object.__setattr__(self, "deviation", DeviationModel.from_spec(spec))
         st, c = spec.state, self.config
         for name, v in (("mu", c.mu), ("sigma", c.sigma), ("rho", c.rho)):
@@ -251,22 +256,21 @@ class BendingSSM:
         return self.spec.n_inputs
 
     def sample_initial(self, n: int, rng: np.random.Generator) -> FloatArray:
-        aug = self.spec.augmented
-        out = aug.lo + (aug.hi - aug.lo) * rng.random((n, len(aug)))
-        st = self.spec.state
-        out[:, : self.n_x] = stationary(n, self._mu, self._sigma, rng, st.lo, st.hi)
+        lo, hi, nx = self._lo, self._hi, self.n_x
+        out = lo + (hi - lo) * rng.random((n, lo.size))
+        out[:, :nx] = stationary(n, self._mu, self._sigma, rng, lo[:nx], hi[:nx])
         if not self.config.estimate_deviation:
             out[:, self.n_in:] = 0.0
         return out
 
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
-        st, aug = self.spec.state, self.spec.augmented
+        lo, hi, nx = self._lo, self._hi, self.n_x
         out = np.empty_like(x)
-        out[:, : self.n_x] = evolve(x[:, : self.n_x], self._mu, self._sigma,
-                                    self._rho, rng, st.lo, st.hi)
-        stop = len(aug) if self.config.estimate_deviation else self.n_in
-        out[:, self.n_x: stop] = jitter(x[:, self.n_x: stop], aug.lo[self.n_x: stop],
-                                        aug.hi[self.n_x: stop], rng, self.config.alpha)
+        out[:, :nx] = evolve(x[:, :nx], self._mu, self._sigma, self._rho, rng, lo[:nx],
+                             hi[:nx])
+        stop = lo.size if self.config.estimate_deviation else self.n_in
+        out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
+                                 self.config.alpha)
         out[:, stop:] = x[:, stop:]
         return out
 
@@ -280,8 +284,7 @@ class BendingSSM:
     def constrain(self, x: FloatArray) -> FloatArray:
         """Reflect augmented particles (N, 18) into their bounds (used by kernel moves);
         ``theta_d`` stays 0 when it is not estimated."""
-        aug = self.spec.augmented
-        out = reflect(x, aug.lo, aug.hi)
+        out = reflect(x, self._lo, self._hi)
         if not self.config.estimate_deviation:
             out[:, self.n_in:] = 0.0
         return out
