@@ -230,3 +230,17 @@ def test_a_failing_model_leaves_the_tracker_untouched(
     assert a.n_steps == 1
     np.testing.assert_array_equal(a.step(series1["curves"][1]).mean,
                                   b.step(series1["curves"][1]).mean)
+
+
+def test_into_box_reflects_only_the_rows_that_left() -> None:
+    from formtwin.evolution import reflect
+    from formtwin.tracker import _into_box
+
+    rng = np.random.default_rng(0)
+    v = rng.uniform(-0.5, 1.5, (200, 3))
+    lo, hi = np.zeros(3), np.ones(3)
+    inside = np.all((v >= lo) & (v <= hi), axis=1)
+    expect = reflect(v.copy(), lo, hi)
+    out = _into_box(v.copy(), lo, hi)
+    np.testing.assert_allclose(out, expect, atol=1e-15)
+    np.testing.assert_array_equal(out[inside], v[inside])  # untouched, bit for bit

@@ -266,8 +266,9 @@ class BendingSSM:
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
         lo, hi, nx = self._lo, self._hi, self.n_x
         out = np.empty_like(x)
-        out[:, :nx] = evolve(x[:, :nx], self._mu, self._sigma, self._rho, rng, lo[:nx],
-                             hi[:nx])
+        # eq. 4-5, then reflection of the few rows that left the box
+        out[:, :nx] = _into_box(evolve(x[:, :nx], self._mu, self._sigma, self._rho, rng),
+                                lo[:nx], hi[:nx])
         stop = lo.size if self.config.estimate_deviation else self.n_in
         out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                  self.config.alpha)
@@ -301,6 +302,15 @@ class BendingSSM:
         if self.config.compare == "measurement":
             return self.measurement.loglik(self.deviation.apply(curves, x[:, self.n_in:]), y)
         return self.measurement.loglik(curves, self.deviation.invert(y, x[:, self.n_in:]))
+
+
+def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """:func:`~formtwin.evolution.reflect` applied to the rows (N, d) that left the box
+    (most rows stay inside, and ``reflect`` costs a float modulo per entry)."""
+    rows = np.any((v < lo) | (v > hi), axis=1)
+    if rows.any():
+        v[rows] = reflect(v[rows], lo, hi)
+    return v
 
 
 def validate_curve(curve: Any, n_t: int) -> FloatArray:
