@@ -165,3 +165,28 @@ def test_cowper_symonds_bar(rate: float) -> None:
     eq_rate = 2 / math.sqrt(3) * rate
     sbar = 2 / math.sqrt(3) * m.yield_stress * (1 + (eq_rate / 10**m.log_rate) ** m.rate_exponent)
     assert h.reactions[-1, 3] == pytest.approx(T * sbar, rel=1e-3)
+
+
+@pytest.mark.parametrize("kappa_rate", [0.5, 50.0])
+def test_cowper_symonds_plastic_bending(kappa_rate: float) -> None:
+    """Fully plastic bending at a constant curvature rate (1/(mm s)).
+
+    With ``epsdot(y) = (2/sqrt 3) |y| kappa_dot`` through the thickness,
+    ``M = M_p (1 + 2/(2+q) ((2/sqrt 3) kappa_dot t/2 / epsdot0)^q)``.
+    """
+    m = Material(yield_stress=300.0, hardening=False, log_rate=2.0, rate_exponent=0.5)
+    sheet = strip(1.0, 1, n_layers=31)
+    kappa = 0.5  # 1/mm: 46 times the first-yield curvature
+    t = np.linspace(0.0, kappa / kappa_rate, 41)
+    # one element, all dofs prescribed: end rotations -+ kappa L / 2 at a fixed chord give a
+    # uniform curvature kappa with no stretch of the mid-surface
+    h = solve(sheet, m, None, t, DISC, dt_max=t[1], fix=np.arange(6),
+              fix_ref=np.array([0.0, 0.0, -kappa / 2, 0.0, 0.0, kappa / 2]), lam=t / t[-1])
+    assert h.status == 0
+    mp = m.yield_stress * T**2 / (2 * math.sqrt(3))
+    edge_rate = 2 / math.sqrt(3) * kappa_rate * T / 2
+    q = m.rate_exponent
+    elastic_core = 1 - (2 * (2 / math.sqrt(3)) * m.yield_stress / (m.plane_strain_modulus * T)
+                        / kappa) ** 2 / 3
+    expected = mp * (elastic_core + 2 / (2 + q) * (edge_rate / 10**m.log_rate) ** q)
+    assert abs(h.reactions[-1, 5]) == pytest.approx(expected, rel=1e-2)

@@ -27,7 +27,7 @@ from formtwin.spec import ProcessSpec, load_spec
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-VERSION = "bending-1.0"
+VERSION = "bending-1.1"
 
 
 @dataclass(frozen=True)
@@ -56,13 +56,16 @@ class Discretisation:
     line_search, ls_ratio
         Largest number of step halvings in the line search, and the ratio of residual
         norms (new / old) above which the Newton step is halved.
+    easy_iter, easy_steps
+        The step is doubled (up to ``dt_max``) after ``easy_steps`` consecutive steps that
+        converged in at most ``easy_iter`` iterations.
     """
 
-    n_elements: int = 52
+    n_elements: int = 32
     n_layers: int = 15
     n_gauss: int = 2
     dt_max1: float = 1.0e-3
-    dt_max2: float = 2.0e-3
+    dt_max2: float = 5.0e-3
     dt_min: float = 1.0e-7
     max_iter: int = 25
     tol_force: float = 1.0e-6
@@ -71,11 +74,14 @@ class Discretisation:
     predict: float = 1.0
     line_search: int = 3
     ls_ratio: float = 1.0
+    easy_iter: int = 8
+    easy_steps: int = 2
 
     def opts(self, dt_max: float) -> FloatArray:
         """Solver option array for :func:`~.solver.run_history`."""
         return np.array([dt_max, self.dt_min, self.max_iter, self.tol_force, self.tol_disp,
-                         self.cap_disp, self.predict, self.line_search, self.ls_ratio])
+                         self.cap_disp, self.predict, self.line_search, self.ls_ratio,
+                         self.easy_iter, self.easy_steps])
 
 
 @dataclass
@@ -123,7 +129,7 @@ class Sheet:
     def tributary(self) -> FloatArray:
         """Reference length belonging to each node ``(n_nodes,)``."""
         le = np.linalg.norm(np.diff(self.X, axis=0), axis=1)
-        return np.r_[0.5 * le, 0.0] + np.r_[0.0, 0.5 * le]
+        return np.asarray(np.r_[0.5 * le, 0.0] + np.r_[0.0, 0.5 * le], dtype=np.float64)
 
 
 @dataclass

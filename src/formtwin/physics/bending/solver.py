@@ -37,7 +37,7 @@ from formtwin.physics.bending.kernels import (
 # indices into the ``press`` array
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
-DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL = range(9)
+DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N = range(11)
 # status codes
 OK, FAIL_STEP, FAIL_NAN = 0, 1, 2
 
@@ -344,8 +344,8 @@ def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, ma
             pa[0] = pt[0]
             dt_prev = h
             t = tn
-            easy = easy + 1 if its <= 6 else 0
-            if easy >= 3:
+            easy = easy + 1 if its <= opts[EASY_IT] else 0
+            if easy >= opts[EASY_N]:
                 dt = min(2.0 * dt, opts[DT_MAX])
                 easy = 0
         # record (re-assemble at the converged state for forces and reactions)
