@@ -19,6 +19,11 @@ def register(sub: Any) -> None:
                      "(default: the analytic stand-in at the centre of the box)")
     dev.add_argument("--out", default="deviation.png", help="output image (default: %(default)s)")
     dev.set_defaults(run=_deviation)
+    for name, help_ in (("bending", "tools and deformed flap of the bending model (centre)"),
+                        ("sensitivity", "bending model: each Table-1 input from min to max")):
+        fig = psub.add_parser(name, help=help_)
+        fig.add_argument("--out", default=f"{name}.png", help="output image (default: %(default)s)")
+        fig.set_defaults(run=_physics_figure)
 
 
 def _deviation(args: argparse.Namespace) -> int:
@@ -35,4 +40,17 @@ def _deviation(args: argparse.Namespace) -> int:
         centre = np.r_[spec.state.mu_mid, 0.5 * (spec.params.lo + spec.params.hi)]
         curve = AnalyticBending(spec).run(centre).curve
     print(f"wrote {plot_deviation(spec, curve, args.out)}")
+    return 0
+
+
+def _physics_figure(args: argparse.Namespace) -> int:
+    from formtwin.physics.bending import BendingModel
+    from formtwin.physics.plots import plot_bending, plot_sensitivity
+
+    model = BendingModel()
+    if args.plot_command == "bending":
+        path = plot_bending(model, model.centre(), args.out)
+    else:
+        path = plot_sensitivity(model, args.out)
+    print(f"wrote {path}")
     return 0

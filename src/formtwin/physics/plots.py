@@ -99,3 +99,49 @@ def plot_bending(model: BendingModel, inputs: FloatArray, out: str | Path) -> Pa
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_sensitivity(model: BendingModel, out: str | Path) -> Path:
+    """Stage-1 force of each of the ten inputs at its minimum and maximum (others central).
+
+    The centre is :meth:`BendingModel.centre`; each panel's title gives the two bend angles
+    at the minimum and the maximum.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    spec = model.spec
+    centre = model.centre()
+    base = model.run(centre)
+    t_ms = 1e3 * spec.time
+    fig, axes = plt.subplots(2, 5, figsize=(19, 7.5), sharex=True)
+    for ax, var in zip(axes.ravel(), spec.inputs, strict=True):
+        i = spec.inputs.index[var.name]
+        ax.plot(t_ms, base.curve, color="0.4", ls="--", lw=1, label="centre")
+        angles = []
+        for value, colour, tag in ((var.lo, "tab:blue", "min"), (var.hi, "tab:red", "max")):
+            x = centre.copy()
+            x[i] = value
+            r = model.run(x)
+            if not r.ok:
+                log.warning("sensitivity run %s=%g failed: %s", var.name, value, r.reason)
+                continue
+            shown = value / var.scale
+            ax.plot(t_ms, r.curve, color=colour, lw=1.3, label=f"{tag} {shown:g} {var.unit}")
+            angles.append(f"{r.angles[0]:.2f}/{r.angles[1]:.2f}")
+        ax.set_title(f"{var.label}\nangles (deg) {' -> '.join(angles)}", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left")
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("time (ms)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("punch force (N)")
+    fig.suptitle("formtwin.physics.bending: each Table-1 input from min to max, "
+                 "the others at the centre")
+    fig.tight_layout()
+    path = Path(out)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
