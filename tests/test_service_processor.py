@@ -224,3 +224,28 @@ def test_student_t_option_keeps_the_cloud_on_an_outlier(tmp_path: Path,
         proc.store.close()
     # the Gaussian puts (nearly) all weight on one particle; the Student-t keeps a cloud
     assert ess[5.0] > 0.2 * SETTINGS.n_particles and ess[5.0] > 3.0 * ess[math.inf], ess
+
+
+def test_serves_a_metamodel_and_restarts_on_it(tmp_path: Path, payloads: list[bytes]) -> None:
+    metamodel = pytest.importorskip("formtwin.metamodel")
+    testing = pytest.importorskip("formtwin.metamodel.testing")
+    mm_path = tmp_path / "mm.npz"
+    metamodel.Metamodel().fit(testing.analytic_dataset(50, seed=0)).save(mm_path)
+    settings = dataclasses.replace(SETTINGS, model=str(mm_path))
+    ref = open_processor(tmp_path / "ref.sqlite", settings)
+    want = [strip(m) for m in run(ref, payloads[:8])]
+    proc = open_processor(tmp_path / "a.sqlite", settings)
+    got = run(proc, payloads[:4])
+    proc.close()
+    proc.store.close()
+    proc = open_processor(tmp_path / "a.sqlite", settings)
+    got += run(proc, payloads[4:8])
+    assert [strip(m) for m in got] == want
+    assert all(m["collapsed"] is False for m in got)
+    proc.close()
+    proc.store.close()
+    # another model under the same store is refused
+    with pytest.raises(ValueError, match="differs from the one"):
+        open_processor(tmp_path / "a.sqlite", SETTINGS)
+    ref.close()
+    ref.store.close()
