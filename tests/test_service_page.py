@@ -4,6 +4,7 @@ running `formtwin serve`: points appear and grow as strokes arrive; rejections a
 from __future__ import annotations
 
 import re
+import signal
 import threading
 import time
 import urllib.request
@@ -30,11 +31,12 @@ TOPIC = "plant/line1/press1/stroke"
 def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
     chromium = require_binary("chromium", ("/usr/bin/chromium",))
     sync_api = pytest.importorskip("playwright.sync_api")
-    strokes = read_stream(make_stream(tmp_path / "s.npz", 40, seed=4))
+    strokes = read_stream(make_stream(tmp_path / "s.npz", 50, seed=4))
     port = free_port()
     log = tmp_path / "serve.log"
-    proc = start_serve(serve_cmd(mosquitto, tmp_path / "a.sqlite", "--particles", "64",
-                                 "--n-mc", "1000", "--http-port", str(port)), log)
+    cmd = serve_cmd(mosquitto, tmp_path / "a.sqlite", "--particles", "64", "--n-mc", "1000",
+                    "--http-port", str(port))
+    proc = start_serve(cmd, log)
     broker = BrokerConfig.from_url(mosquitto.url)
     try:
         wait_serving(proc, log)
@@ -66,7 +68,7 @@ def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  #
                 feeder.join(10)
                 last = int(page.inner_text("#n-points"))
                 assert first < mid < last == 40
-                assert page.inner_text("#last-part") == strokes[-1].part_id
+                assert page.inner_text("#last-part") == strokes[39].part_id
                 # the chart holds the data: the ESS chart has 40 x values
                 n_x = page.evaluate("window.formtwinLive.charts.at(-1).plot.data[0].length")
                 assert n_x == 40
@@ -76,12 +78,25 @@ def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  #
                     timeout=20_000)
                 assert "malformed_json: 1" in page.inner_text("#reasons")
                 assert page.inner_text("#n-accepted") == "40"
+                # the service is killed and restarted: the open page reloads and goes on
+                proc.send_signal(signal.SIGKILL)
+                proc.wait(10)
+                log2 = tmp_path / "serve2.log"
+                proc = start_serve(cmd, log2)
+                wait_serving(proc, log2)
+                publish_strokes(strokes[40:50], broker, TOPIC)
+                page.wait_for_function("Number(document.body.dataset.resets || 0) >= 1 && "
+                                       "Number(document.body.dataset.points) >= 50",
+                                       timeout=40_000)
+                assert page.inner_text("#n-accepted") == "50"
+                assert page.inner_text("#n-rejected") == "1"
+                assert page.inner_text("#last-part") == strokes[49].part_id
                 assert not errors, errors
                 page.screenshot(path=str(tmp_path / "live.png"))
             finally:
                 browser.close()
         state = urllib.request.urlopen(f"http://127.0.0.1:{port}/api/state", timeout=10).read()
-        assert re.search(rb'"accepted":\s*40', state)
+        assert re.search(rb'"accepted":\s*50', state)
     finally:
         proc.terminate()
         proc.wait(20)

@@ -4,7 +4,9 @@ Routes
 
 * ``GET /`` -- the page (``static/index.html`` + ``static/live.js``);
 * ``GET /api/state`` -- variable names, recent points and counters (JSON);
-* ``GET /events`` -- Server-Sent Events, one ``data:`` line per processed message;
+* ``GET /events`` -- Server-Sent Events, one ``data:`` line per processed message, ids
+  ``<epoch>:<n>``; a client coming back with another epoch (the service restarted) gets a
+  ``reset`` event and reloads ``/api/state``;
 * ``GET /static/...`` -- uPlot (MIT, see ``static/uPlot.LICENSE``) and the page's script.
 
 The page only reads; it binds 127.0.0.1 unless told otherwise.
@@ -15,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import secrets
 import threading
 from collections import deque
 from collections.abc import AsyncIterator
@@ -46,6 +49,9 @@ class LiveFeed:
 
     def __init__(self, names: tuple[str, ...], maxlen: int = 2000) -> None:
         self.names = names
+        #: changes with every process: a page that reconnects to a restarted service sees
+        #: another epoch in its Last-Event-ID and reloads the state instead of waiting
+        self.epoch = secrets.token_hex(4)
         self._lock = threading.Lock()
         self._events: deque[tuple[int, dict[str, Any]]] = deque(maxlen=maxlen)
         self._n = 0
@@ -96,7 +102,8 @@ class LiveFeed:
         with self._lock:
             points = [e for _, e in self._events if e.get("type") == "point"]
             return {"names": list(self.names), "points": points, "last": self._n,
-                    "counts": dict(self.counts), "reasons": dict(self.reasons)}
+                    "epoch": self.epoch, "counts": dict(self.counts),
+                    "reasons": dict(self.reasons)}
 
 
 def _point(msg: dict[str, Any]) -> dict[str, Any]:
@@ -127,10 +134,17 @@ def create_app(feed: LiveFeed, poll_s: float = 0.1) -> FastAPI:
         return JSONResponse(feed.snapshot())
 
     @app.get("/events")
-    async def events(request: Request, last: int = -1) -> StreamingResponse:
+    async def events(request: Request, last: int = -1, epoch: str = "") -> StreamingResponse:
         async def stream() -> AsyncIterator[str]:
             header = request.headers.get("last-event-id", "")
-            n = int(header) if header.isdigit() else (feed.since(0)[0] if last < 0 else last)
+            ep, _, num = header.partition(":")
+            if header and num.isdigit():
+                client_epoch, n = ep, int(num)
+            else:
+                client_epoch, n = epoch, (feed.since(0)[0] if last < 0 else last)
+            if client_epoch and client_epoch != feed.epoch:  # the service was restarted
+                n = feed.since(0)[0]
+                yield f"id: {feed.epoch}:{n}\ndata: {json.dumps({'type': 'reset'})}\n\n"
             idle = 0.0
             while not app.state.closing:
                 if await request.is_disconnected():
@@ -140,7 +154,8 @@ def create_app(feed: LiveFeed, poll_s: float = 0.1) -> FastAPI:
                     n = newest
                     idle = 0.0
                     for k, e in items:
-                        yield f"id: {k}\ndata: {json.dumps(e, allow_nan=False)}\n\n"
+                        data = json.dumps(e, allow_nan=False)
+                        yield f"id: {feed.epoch}:{k}\ndata: {data}\n\n"
                 else:
                     idle += poll_s
                     if idle >= 15.0:

@@ -104,20 +104,34 @@
     requestAnimationFrame(() => { dirty = false; redraw(); });
   }
 
-  fetch("/api/state").then((r) => r.json()).then((st) => {
-    build(st.names);
-    st.points.forEach(addPoint);
-    redraw();
-    showCounts(st.counts, st.reasons);
-    const es = new EventSource("/events?last=" + st.last);
-    es.onopen = () => { el("conn").textContent = "live"; };
-    es.onerror = () => { el("conn").textContent = "reconnecting"; };
-    es.onmessage = (ev) => {
-      const e = JSON.parse(ev.data);
-      if (e.type === "point") { addPoint(e); schedule(); }
-      showCounts(e.counts, e.reasons);
-    };
-  });
+  let source = null;
+  function start() {
+    fetch("/api/state").then((r) => r.json()).then((st) => {
+      nPoints = 0;
+      build(st.names);
+      st.points.forEach(addPoint);
+      redraw();
+      showCounts(st.counts, st.reasons);
+      source = new EventSource("/events?last=" + st.last + "&epoch=" + st.epoch);
+      source.onopen = () => { el("conn").textContent = "live"; };
+      source.onerror = () => { el("conn").textContent = "reconnecting"; };
+      source.onmessage = (ev) => {
+        const e = JSON.parse(ev.data);
+        if (e.type === "reset") {   // the service restarted: reload its state
+          source.close();
+          document.body.dataset.resets = String(Number(document.body.dataset.resets || 0) + 1);
+          start();
+          return;
+        }
+        if (e.type === "point") { addPoint(e); schedule(); }
+        showCounts(e.counts, e.reasons);
+      };
+    }).catch(() => {
+      el("conn").textContent = "retrying";
+      setTimeout(start, 1000);
+    });
+  }
+  start();
   window.addEventListener("resize", () => {
     charts.forEach((c) => {
       const w = Math.max(280, c.plot.root.parentNode.clientWidth - 10);
