@@ -56,6 +56,12 @@ def _replay(args: argparse.Namespace) -> int:
     rate = "full speed" if args.rate == 0 else f"{args.rate:g}/s"
     print(f"publishing {len(strokes)} strokes to {args.topic} on {broker.host}:{broker.port} "
           f"at {rate}", flush=True)
-    n = publish_strokes(strokes, broker, args.topic, rate=args.rate)
+    import sys
+
+    from tqdm import tqdm
+
+    with tqdm(total=len(strokes), unit="stroke", disable=not sys.stderr.isatty()) as bar:
+        n = publish_strokes(strokes, broker, args.topic, rate=args.rate,
+                            on_sent=lambda s, t: bar.update(1))
     print(f"published {n} strokes")
     return 0

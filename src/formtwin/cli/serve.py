@@ -77,6 +77,8 @@ def register(sub: Any) -> None:
     p.add_argument("--http-host", default="127.0.0.1", help="page bind address")
     p.add_argument("--http-port", type=int, default=8765, help="page port (0: any free)")
     p.add_argument("--no-page", action="store_true", help="do not serve the live page")
+    p.add_argument("--status-every", type=float, default=60.0, metavar="S",
+                   help="print a status line every S seconds (0: never)")
     p.add_argument("--connect-timeout", type=float, default=10.0,
                    help="seconds to wait for the broker at start")
     p.set_defaults(run=_serve)
@@ -118,6 +120,9 @@ def _serve(args: argparse.Namespace) -> int:
             page = PageServer(feed, args.http_host, args.http_port)
             print(f"live page: {page.start()}", flush=True)
         service = MqttService(proc, broker, topics, client_id=args.client_id)
+        if args.status_every > 0:
+            threading.Thread(target=_status, args=(proc, service, stop, args.status_every),
+                             daemon=True, name="formtwin-status").start()
         print(f"serving {topics.strokes} on {broker.host}:{broker.port} -> "
               f"{topics.results}, errors -> {topics.errors}", flush=True)
         service.run(stop, timeout=args.connect_timeout,
@@ -130,3 +135,15 @@ def _serve(args: argparse.Namespace) -> int:
         proc.close()
         proc.store.close()
     return 0
+
+
+def _status(proc: Any, service: Any, stop: threading.Event, every: float) -> None:
+    """Print a status line every ``every`` seconds until ``stop``."""
+    last = service.handled
+    while not stop.wait(every):
+        c = proc.store.counts()
+        rate = (service.handled - last) / every
+        last = service.handled
+        print(f"status: {c['accepted']} accepted, {c['gated']} gated, {c['rejected']} "
+              f"rejected, {proc.redelivered} redelivered; {rate:.1f} messages/s; broker "
+              f"{'connected' if service.connected.is_set() else 'DISCONNECTED'}", flush=True)
