@@ -95,11 +95,6 @@ class FlapGeometry:
         """Crank angular speed (rad/s)."""
         return 2.0 * math.pi * self.strokes_per_min / 60.0
 
-    def crank_height(self, t: FloatArray | float) -> FloatArray:
-        """Ram height above bottom dead centre (mm) at time ``t`` (s)."""
-        R, L, a = 0.5 * self.stroke, self.rod, self.omega * np.asarray(t, dtype=np.float64)
-        return np.asarray(R * (1 - np.cos(a)) + L - np.sqrt(L * L - (R * np.sin(a)) ** 2))
-
     def release_time(self) -> float:
         """Time (s) after bottom dead centre at which the ram is at ``release_height``."""
         R, L, h = 0.5 * self.stroke, self.rod, self.release_height

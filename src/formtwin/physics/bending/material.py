@@ -58,16 +58,3 @@ class Material:
         e0 = 10.0**self.log_rate if self.rate else np.inf
         return np.array([self.plane_strain_modulus, self.yield_stress, e0, self.rate_exponent,
                          1.0 if self.hardening else 0.0])
-
-    @property
-    def table(self) -> tuple[FloatArray, FloatArray]:
-        """Hardening table ``(eps_bar, h)``."""
-        if self.hardening:
-            return HARD_EPS, HARD_RATIO
-        return np.array([0.0, 1.0]), np.array([1.0, 1.0])
-
-    def flow_stress(self, eps: FloatArray, rate: FloatArray | float = 0.0) -> FloatArray:
-        """Uniaxial flow stress (MPa) at equivalent plastic strain ``eps`` and rate (1/s)."""
-        e, h = self.table
-        r = 1.0 + (np.asarray(rate) / self.array[2]) ** self.rate_exponent
-        return np.asarray(r * self.yield_stress * np.interp(eps, e, h))

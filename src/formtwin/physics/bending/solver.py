@@ -39,7 +39,7 @@ K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N = range(11)
 # status codes
-OK, FAIL_STEP, FAIL_NAN = 0, 1, 2
+OK, FAIL_STEP = 0, 1
 
 
 @njit(cache=True)
