@@ -37,7 +37,8 @@ from formtwin.physics.bending.kernels import (
 # indices into the ``press`` array
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
-DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N = range(11)
+(DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
+ RATE_TAU) = range(12)
 # status codes
 OK, FAIL_STEP = 0, 1
 
@@ -322,11 +323,14 @@ def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, ma
             counters[0] += 1
             counters[1] += its
             # commit
+            # equivalent strain rate of each layer point: the increment's rate, smoothed
+            # over the time constant opts[RATE_TAU] (0: the last increment's rate)
+            wr = h / (h + opts[RATE_TAU])
             for e in range(n_el):
                 for g in range(sig.shape[1]):
                     for k in range(sig.shape[2]):
                         de = abs(eps_t[e, g, k] - eps[e, g, k])
-                        rate[e, g, k] = 2.0 / math.sqrt(3.0) * de / h
+                        rate[e, g, k] += wr * (2.0 / math.sqrt(3.0) * de / h - rate[e, g, k])
                         sig[e, g, k] = sig_t[e, g, k]
                         epb[e, g, k] = epb_t[e, g, k]
                         eps[e, g, k] = eps_t[e, g, k]
