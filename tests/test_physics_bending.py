@@ -152,3 +152,14 @@ def test_force_rises_with_punch_speed_as_cowper_symonds() -> None:
         excess.append(ratio - 1.0)
     assert 0.05 < excess[0] < excess[1] < 1.0
     assert excess[1] / excess[0] == pytest.approx(4.0**q, rel=0.1)
+
+
+def test_plot_bending_command(tmp_path: object) -> None:
+    pytest.importorskip("matplotlib")
+    from pathlib import Path
+
+    from formtwin.cli import main
+
+    out = Path(str(tmp_path)) / "bending.png"
+    assert main(["plot", "bending", "--out", str(out)]) == 0
+    assert out.stat().st_size > 10_000
