@@ -60,9 +60,10 @@ def wait_port(port: int, timeout: float = 10.0) -> None:
 class Mosquitto:
     """A private mosquitto broker on 127.0.0.1 (temporary config, no persistence)."""
 
-    def __init__(self, workdir: Path, extra_conf: str = "", anonymous: bool = True) -> None:
+    def __init__(self, workdir: Path, extra_conf: str = "", anonymous: bool = True,
+                 port: int | None = None) -> None:
         self.binary = require_binary("mosquitto", ("/usr/sbin/mosquitto",))
-        self.port = free_port()
+        self.port = free_port() if port is None else port
         self.workdir = workdir
         self.conf = workdir / "mosquitto.conf"
         self.conf.write_text(

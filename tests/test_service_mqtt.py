@@ -273,3 +273,37 @@ def test_storage_failure_stops_without_ack_and_restart_gets_the_stroke(
     assert [r.part_id for r in proc.store.products()] == [s.part_id for s in strokes]
     proc.close()
     proc.store.close()
+
+
+def test_service_reconnects_after_a_broker_restart(tmp_path: Path) -> None:
+    strokes = read_stream(make_stream(tmp_path / "s.npz", 60, seed=8))
+    payloads = [dumps(s.to_message()) for s in strokes]
+    store, log = tmp_path / "a.sqlite", tmp_path / "serve.log"
+    (tmp_path / "b1").mkdir()
+    broker = Mosquitto(tmp_path / "b1")
+    proc = start_serve(serve_cmd(broker, store, *FAST), log)
+    try:
+        wait_serving(proc, log)
+        publish(broker.url, payloads[:5])
+        wait_for(lambda: stored_count(store) == 5, 30, "5 products before the restart")
+        broker.proc.kill()  # the broker dies (and, without persistence, forgets the session)
+        broker.proc.wait(5)
+        broker.stop()
+        (tmp_path / "b2").mkdir()
+        broker = Mosquitto(tmp_path / "b2", port=broker.port)
+        k = 5
+        deadline = time.monotonic() + 60
+        while stored_count(store) == 5 and time.monotonic() < deadline:
+            publish(broker.url, [payloads[k]])  # lost until the service has resubscribed
+            k += 1
+            time.sleep(0.5)
+        n0 = stored_count(store)
+        assert n0 > 5, "the service did not come back after the broker restart"
+        publish(broker.url, payloads[k:k + 10])
+        wait_for(lambda: stored_count(store) == n0 + 10, 30, "10 more products")
+        assert proc.poll() is None
+        assert stop(proc) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        broker.stop()
