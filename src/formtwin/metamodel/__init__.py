@@ -1,0 +1,18 @@
+"""POD + RBF metamodel of the process model (paper, section "Metamodel").
+
+``Metamodel(reduction=POD(...), approximation=RBF(...)).fit(dataset).predict(X)``; see
+:mod:`formtwin.metamodel.model`. :func:`validate` reports k-fold errors.
+"""
+
+from formtwin.metamodel.model import (
+    Approximation,
+    Dataset,
+    Metamodel,
+    Prediction,
+    Reduction,
+)
+from formtwin.metamodel.pod import POD
+from formtwin.metamodel.rbf import KERNELS, RBF, loo_residuals
+
+__all__ = ["KERNELS", "POD", "RBF", "Approximation", "Dataset", "Metamodel", "Prediction",
+           "Reduction", "loo_residuals"]

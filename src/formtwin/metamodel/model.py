@@ -1,0 +1,304 @@
+"""The metamodel: POD of the force curves plus RBF interpolation (paper, "Metamodel").
+
+Composed like an estimator: ``Metamodel(reduction=POD(...), approximation=RBF(...))``
+``.fit(dataset)`` returns itself and ``.predict(X)`` evaluates it. The curves of the
+dataset's successful runs are reduced to mode coefficients; one approximation (a copy of
+``approximation``) interpolates all coefficients, and two more copies interpolate the two
+bend angles separately (as the paper does). Inputs are first mapped per dimension to the
+unit design box ``(x - lo) / (hi - lo)`` of the spec (the scaler); the approximation may
+then learn its own per-dimension length scales.
+
+The file format (:meth:`Metamodel.save`) is a numpy ``.npz`` readable with
+``allow_pickle=False``: the spec's TOML text, the scaler, the source dataset's model
+version and the arrays of every fitted part.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, TypeVar, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin._threads import single_blas_thread
+from formtwin.metamodel.pod import POD
+from formtwin.metamodel.rbf import RBF
+from formtwin.spec import ProcessSpec, parse_spec
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+log = logging.getLogger(__name__)
+
+FORMAT = "formtwin.metamodel/1"
+
+_T = TypeVar("_T")
+
+
+class Dataset(Protocol):
+    """What :meth:`Metamodel.fit` needs of a DOE dataset (:class:`formtwin.dataset.DoeDataset`)."""
+
+    @property
+    def spec(self) -> ProcessSpec: ...
+    @property
+    def spec_text(self) -> str: ...
+    @property
+    def inputs(self) -> FloatArray: ...
+    @property
+    def curves(self) -> FloatArray: ...
+    @property
+    def angles(self) -> FloatArray: ...
+    @property
+    def ok(self) -> BoolArray: ...
+    @property
+    def model_version(self) -> str: ...
+
+
+@runtime_checkable
+class Reduction(Protocol):
+    """Reduces curves (n, n_t) to coefficients (n, r) and back (e.g. :class:`POD`)."""
+
+    kind: str
+
+    @property
+    def n_modes(self) -> int: ...
+    def fit(self, curves: FloatArray) -> Reduction: ...
+    def transform(self, curves: FloatArray) -> FloatArray: ...
+    def inverse_transform(self, coeffs: FloatArray) -> FloatArray: ...
+    def state(self) -> dict[str, np.ndarray]: ...
+
+
+@runtime_checkable
+class Approximation(Protocol):
+    """Maps unit-box inputs (n, d) to outputs (n, k) (e.g. :class:`RBF`)."""
+
+    kind: str
+
+    def fit(self, U: FloatArray, Y: FloatArray) -> Approximation: ...
+    def predict(self, U: FloatArray) -> FloatArray: ...
+    def state(self) -> dict[str, np.ndarray]: ...
+
+
+#: kinds that :meth:`Metamodel.load` can rebuild
+REDUCTIONS: dict[str, type[POD]] = {"POD": POD}
+APPROXIMATIONS: dict[str, type[RBF]] = {"RBF": RBF}
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Metamodel outputs for a batch of N input points.
+
+    Attributes
+    ----------
+    curves : ndarray, shape (N, n_t)
+        Stage-1 force curves on ``spec.time``, N.
+    angles : ndarray, shape (N, 2)
+        Bend angles after stage 1 and stage 2, degrees.
+    outside : ndarray of bool, shape (N,)
+        True where the input lies outside the DOE box (the metamodel extrapolates there).
+    """
+
+    curves: FloatArray
+    angles: FloatArray
+    outside: BoolArray
+
+
+class Metamodel:
+    """POD + RBF metamodel of a process model, fitted to a DOE dataset.
+
+    Parameters
+    ----------
+    reduction : Reduction
+        Reduction of the curves; default ``POD(n_modes=40)`` (paper).
+    approximation : Approximation
+        Template for the interpolation of the mode coefficients and of each angle;
+        default ``RBF()`` (thin-plate spline, length scales by leave-one-out). It is
+        copied, never fitted itself.
+    angle_approximation : Approximation or None
+        Template for the two angle models; ``None``: ``approximation``.
+
+    Examples
+    --------
+    >>> from formtwin.metamodel.testing import analytic_dataset
+    >>> data = analytic_dataset(300, seed=1)
+    >>> mm = Metamodel(POD(n_modes=10), RBF(length_scales="box")).fit(data)
+    >>> p = mm.predict(data.inputs[:5])
+    >>> p.curves.shape, p.angles.shape, p.outside.tolist()
+    ((5, 101), (5, 2), [False, False, False, False, False])
+    """
+
+    def __init__(self, reduction: Reduction | None = None,
+                 approximation: Approximation | None = None,
+                 angle_approximation: Approximation | None = None) -> None:
+        self.reduction: Reduction = reduction if reduction is not None else POD()
+        self.approximation: Approximation = approximation if approximation is not None \
+            else RBF()
+        self.angle_approximation = angle_approximation
+        self.curve_model: Approximation | None = None
+        self.angle_models: tuple[Approximation, ...] = ()
+        self._spec: ProcessSpec | None = None
+        self.spec_text = ""
+        self.lo = np.zeros(0)
+        self.hi = np.zeros(0)
+        self._model_version = ""
+        self.n_train = 0
+        self.fit_seconds = float("nan")
+
+    def __repr__(self) -> str:
+        return f"Metamodel(reduction={self.reduction!r}, approximation={self.approximation!r})"
+
+    # --------------------------------------------------------------- properties
+    @property
+    def spec(self) -> ProcessSpec:
+        """The process spec of the source dataset."""
+        if self._spec is None:
+            raise RuntimeError("Metamodel is not fitted: call fit(dataset) or Metamodel.load")
+        return self._spec
+
+    @property
+    def n_modes(self) -> int:
+        """Number of POD modes interpolated."""
+        return self.reduction.n_modes
+
+    @property
+    def model_version(self) -> str:
+        """Version of the process model that produced the source dataset."""
+        return self._model_version
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, dataset: Dataset) -> Metamodel:
+        """Fit to the successful runs (``dataset.ok``) of a DOE dataset; returns ``self``."""
+        with single_blas_thread():
+            return self._fit(dataset)
+
+    def _fit(self, dataset: Dataset) -> Metamodel:
+        t0 = time.perf_counter()
+        spec = dataset.spec
+        ok = np.asarray(dataset.ok, dtype=bool)
+        X = np.asarray(dataset.inputs, dtype=np.float64)[ok]
+        curves = np.asarray(dataset.curves, dtype=np.float64)[ok]
+        angles = np.asarray(dataset.angles, dtype=np.float64)[ok]
+        if X.shape[0] < spec.n_inputs + 2:
+            raise ValueError(f"Metamodel.fit: {X.shape[0]} successful runs, expected at "
+                             f"least {spec.n_inputs + 2}")
+        if X.shape[1] != spec.n_inputs or curves.shape[1] != spec.n_t or angles.shape[1] != 2:
+            raise ValueError(f"Metamodel.fit: inputs {X.shape}, curves {curves.shape}, angles "
+                             f"{angles.shape}; expected (n, {spec.n_inputs}), (n, {spec.n_t}),"
+                             " (n, 2)")
+        self._spec, self.spec_text = spec, dataset.spec_text or spec.text
+        self._model_version = str(dataset.model_version)
+        self.lo, self.hi = spec.inputs.lo, spec.inputs.hi
+        U = self.scale(X)
+        coeffs = self.reduction.fit(curves).transform(curves)
+        self.curve_model = copy.deepcopy(self.approximation).fit(U, coeffs)
+        template = self.angle_approximation or self.approximation
+        self.angle_models = tuple(copy.deepcopy(template).fit(U, angles[:, j:j + 1])
+                                  for j in range(2))
+        self.n_train = X.shape[0]
+        self.fit_seconds = time.perf_counter() - t0
+        log.info("Metamodel fitted to %d runs (%d excluded) in %.1f s, %d modes",
+                 self.n_train, int((~ok).sum()), self.fit_seconds, self.n_modes)
+        return self
+
+    # --------------------------------------------------------------- evaluation
+    def scale(self, X: FloatArray) -> FloatArray:
+        """Inputs (N, 10), internal units -> the unit design box (N, 10)."""
+        out: FloatArray = (X - self.lo) / (self.hi - self.lo)
+        return out
+
+    def _inputs(self, X: FloatArray) -> FloatArray:
+        X = np.asarray(X, dtype=np.float64)
+        if X.ndim == 1:
+            X = X[None, :]
+        d = self.spec.n_inputs
+        if X.ndim != 2 or X.shape[1] != d:
+            raise ValueError(f"Metamodel inputs of shape {X.shape}, expected (N, {d}) "
+                             f"with columns {', '.join(self.spec.inputs.names)}")
+        return X
+
+    def outside(self, X: FloatArray) -> BoolArray:
+        """True (N,) where an input lies outside the DOE box (beyond rounding)."""
+        U = self.scale(self._inputs(X))
+        out: BoolArray = np.any((U < -1e-9) | (U > 1.0 + 1e-9), axis=1)
+        return out
+
+    def predict_curves(self, X: FloatArray) -> FloatArray:
+        """Force curves (N, n_t), N, at inputs ``X`` (N, 10) or (10,), internal units."""
+        U = self.scale(self._inputs(X))
+        assert self.curve_model is not None
+        with single_blas_thread():
+            return self.reduction.inverse_transform(self.curve_model.predict(U))
+
+    def predict_angles(self, X: FloatArray) -> FloatArray:
+        """Bend angles (N, 2), degrees, at inputs ``X`` (N, 10) or (10,), internal units."""
+        U = self.scale(self._inputs(X))
+        with single_blas_thread():
+            return np.hstack([m.predict(U) for m in self.angle_models])
+
+    def predict(self, X: FloatArray) -> Prediction:
+        """Curves, angles and the outside-box flag at inputs ``X`` (N, 10) or (10,)."""
+        X = self._inputs(X)
+        return Prediction(self.predict_curves(X), self.predict_angles(X), self.outside(X))
+
+    # ------------------------------------------------------------------ storage
+    def save(self, path: str | Path) -> Path:
+        """Write the fitted metamodel to ``path`` (``.npz``, no pickle); returns the path."""
+        if self.curve_model is None:
+            raise RuntimeError("Metamodel.save: not fitted")
+        arrays: dict[str, Any] = {
+            "format": np.array(FORMAT), "spec_text": np.array(self.spec_text),
+            "spec_source": np.array(self.spec.source),
+            "model_version": np.array(self._model_version), "scaler_lo": self.lo,
+            "scaler_hi": self.hi, "n_train": np.array(self.n_train),
+            "reduction.kind": np.array(self.reduction.kind),
+            "curves.kind": np.array(self.curve_model.kind)}
+        arrays.update({f"reduction.{k}": v for k, v in self.reduction.state().items()})
+        arrays.update({f"curves.{k}": v for k, v in self.curve_model.state().items()})
+        for j, m in enumerate(self.angle_models):
+            arrays[f"angle{j}.kind"] = np.array(m.kind)
+            arrays.update({f"angle{j}.{k}": v for k, v in m.state().items()})
+        p = Path(path)
+        with open(p, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        return p
+
+    @classmethod
+    def load(cls, path: str | Path) -> Metamodel:
+        """Read a metamodel written by :meth:`save`."""
+        p = Path(path)
+        try:
+            with np.load(p, allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{p}: not a formtwin metamodel file ({exc})") from exc
+        if str(arrays.get("format", "")) != FORMAT:
+            raise ValueError(f"{p}: format {str(arrays.get('format', '?'))!r}, "
+                             f"expected {FORMAT!r}")
+
+        def part(prefix: str) -> dict[str, np.ndarray]:
+            return {k[len(prefix) + 1:]: v for k, v in arrays.items()
+                    if k.startswith(prefix + ".") and k != prefix + ".kind"}
+
+        def kind(prefix: str, registry: dict[str, type[_T]]) -> type[_T]:
+            name = str(arrays[f"{prefix}.kind"])
+            if name not in registry:
+                raise ValueError(f"{p}: {prefix}.kind = {name!r}, known: {', '.join(registry)}")
+            return registry[name]
+
+        mm = cls()
+        mm.reduction = kind("reduction", REDUCTIONS).from_state(part("reduction"))
+        mm.curve_model = kind("curves", APPROXIMATIONS).from_state(part("curves"))
+        mm.angle_models = tuple(kind(f"angle{j}", APPROXIMATIONS).from_state(part(f"angle{j}"))
+                                for j in range(2))
+        mm.spec_text = str(arrays["spec_text"])
+        mm._spec = parse_spec(mm.spec_text, str(arrays["spec_source"]))
+        mm._model_version = str(arrays["model_version"])
+        mm.lo = np.asarray(arrays["scaler_lo"], dtype=np.float64)
+        mm.hi = np.asarray(arrays["scaler_hi"], dtype=np.float64)
+        mm.n_train = int(arrays["n_train"])
+        return mm
