@@ -252,11 +252,19 @@ class BendingModel:
         return np.asarray(mid, dtype=np.float64)
 
     def run(self, inputs: FloatArray) -> RunResult:
-        """Run one input point ``(n_inputs,)`` (internal units); never raises on divergence."""
+        """Run one input point ``(n_inputs,)`` (internal units).
+
+        Never raises for a point that does not converge or has non-finite values (returns
+        a failure record with the reason); raises ``ValueError`` for a wrongly shaped input.
+        """
         n_t = self.spec.time.size
         x = np.asarray(inputs, dtype=np.float64)
-        if x.shape != (self.spec.n_inputs,) or not np.all(np.isfinite(x)):
-            return RunResult.failure(n_t, f"inputs must be {self.spec.n_inputs} finite values")
+        if x.shape != (self.spec.n_inputs,):
+            raise ValueError(f"inputs: expected shape ({self.spec.n_inputs},) in the order "
+                             f"{', '.join(self.spec.inputs.names)}; got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            bad = [n for n, v in zip(self.spec.inputs.names, x, strict=True) if not np.isfinite(v)]
+            return RunResult.failure(n_t, f"non-finite input: {', '.join(bad)}")
         try:
             stage1, stage2, _ = self.simulate(x)
         except (FloatingPointError, ValueError, ZeroDivisionError) as exc:
