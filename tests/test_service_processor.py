@@ -123,6 +123,8 @@ def test_gate_skips_a_single_outlier(tmp_path: Path, payloads: list[bytes]) -> N
     odd["force_N"] = [3.0 * f + 300.0 for f in odd["force_N"]]
     out = proc.handle(dumps(odd))
     assert out.kind == "gated" and out.message["reason"] == "outlier_gated"
+    again = proc.handle(dumps(odd))  # its redelivery is recognised, not counted again
+    assert again.kind == "gated" and "redelivered" in str(again.message["detail"])
     # the tracker continues as if the outlier had not come (cycle counts aside)
     for p in payloads[25:30]:
         m = json.loads(p)
@@ -249,3 +251,27 @@ def test_serves_a_metamodel_and_restarts_on_it(tmp_path: Path, payloads: list[by
         open_processor(tmp_path / "a.sqlite", SETTINGS)
     ref.close()
     ref.store.close()
+
+
+def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -> None:
+    """A curve the tracker refuses (ValueError) is rejected with its message; the tracker's
+    contract is that its state is then untouched, so nothing is rolled back."""
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    real = proc.tracker
+
+    class Refusing:
+        def step(self, curve: object) -> object:
+            raise ValueError("curve is not monotone before contact (test double)")
+
+        def checkpoint(self, path: object) -> object:
+            return real.checkpoint(path)  # type: ignore[arg-type]
+
+    proc.tracker = Refusing()
+    out = proc.handle(payloads[0])
+    assert out.kind == "rejected" and out.message["reason"] == "tracker_rejected"
+    assert "monotone" in str(out.message["detail"])
+    proc.tracker = real
+    assert proc.handle(payloads[1]).kind == "accepted"
+    assert proc.store.rejection_counts() == {"tracker_rejected": 1}
+    proc.close()
+    proc.store.close()
