@@ -44,7 +44,8 @@ def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  #
         publish_strokes(strokes[:5], broker, TOPIC)
         with sync_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=chromium, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu"])
+                                         args=["--no-sandbox", "--disable-gpu",
+                                               "--disable-dev-shm-usage"])
             try:
                 page = browser.new_page(viewport={"width": 1300, "height": 900})
                 errors: list[str] = []
