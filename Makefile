@@ -27,7 +27,8 @@ system-deps:
 	@if { command -v mosquitto || test -x /usr/sbin/mosquitto; } >/dev/null && \
 	    command -v chromium >/dev/null && command -v openssl >/dev/null; then :; \
 	elif [ "$$(id -u)" = 0 ]; then \
-	    apt-get update -qq && apt-get install -y -qq mosquitto chromium openssl; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	        apt-get install -y -qq mosquitto chromium openssl; \
 	else echo "system-deps: mosquitto/chromium missing and not root: service tests will skip"; fi
 
 live-demo: $(STAMP) system-deps
