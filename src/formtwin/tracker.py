@@ -58,8 +58,10 @@ _CHECKPOINT_FORMAT = "formtwin.tracker/1"
 #: z~(x, theta)) or "measurement" (z against g(z~(x, theta), theta_d))
 COMPARE = ("model", "measurement")
 
-#: particles per block when evaluating the model (bounds peak memory at large N)
-CHUNK = 8192
+#: particles per block when evaluating the model: bounds peak memory at large N and keeps
+#: the RBF distance blocks in cache (N = 1e4 on the 7024-point metamodel: 0.7 s per step
+#: with 512, 1.9 s with 8192)
+CHUNK = 512
 
 
 @dataclass(frozen=True)
