@@ -70,3 +70,15 @@ def test_track_reads_a_study_realisation_by_source(tmp_path: Path, curves: np.nd
     out = tmp_path / "e.csv"
     assert main(["track", "--metamodel", "analytic", "--curves", str(path), "--source", "MM",
                  "--out", str(out), "--n-mc", "500", "--particles", "32"]) == 0
+
+
+def test_track_reads_a_doe_dataset(tmp_path: Path) -> None:
+    pytest.importorskip("h5py")
+    from formtwin.cli.track import read_curves
+    from formtwin.metamodel.testing import analytic_dataset
+
+    data = analytic_dataset(6, seed=0, failure_clearance=0.33)
+    path = data.save(tmp_path / "doe.h5")
+    curves = read_curves(Path(path), 101)
+    assert curves.shape == (6, 101)
+    np.testing.assert_array_equal(np.isnan(curves).any(axis=1), ~data.ok)

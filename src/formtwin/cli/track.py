@@ -28,7 +28,8 @@ def register(sub: Any) -> None:
                    help="metamodel file, or 'analytic' for the closed-form stand-in")
     p.add_argument("--curves", required=True, type=Path,
                    help="curves (n, n_t) in N: .npz (key 'curves'), .csv (one curve a row, "
-                        "optional header) or .nc/.h5 dataset (variable 'curves')")
+                        "optional header), a DOE dataset .h5 (formtwin.dataset) or a "
+                        "NetCDF file with a variable 'curves' (study realisations: --source)")
     p.add_argument("--out", required=True, type=Path,
                    help="estimates: .csv, or .parquet (needs pyarrow)")
     p.add_argument("--source", help="for a study realisation file (curves by source): which "
@@ -85,6 +86,11 @@ def read_curves(path: Path, n_t: int, source: str | None = None) -> NDArray[np.f
         except ValueError:
             skip = 1  # a header line
         arr = np.loadtxt(path, delimiter=",", skiprows=skip, ndmin=2)
+    elif suffix in (".h5", ".hdf5") and _is_doe_dataset(path):
+        from formtwin.dataset import DoeDataset
+
+        data = DoeDataset.load(path, complete=False)
+        arr = np.where(data.ok[:, None], data.curves, np.nan)  # failed runs: skipped
     elif suffix in (".nc", ".h5", ".hdf5", ".nc4"):
         import xarray as xr
 
@@ -108,6 +114,19 @@ def read_curves(path: Path, n_t: int, source: str | None = None) -> NDArray[np.f
     if arr.ndim != 2 or arr.shape[1] != n_t:
         raise ValueError(f"{path}: curves have shape {arr.shape}, expected (n, {n_t})")
     return arr
+
+
+def _is_doe_dataset(path: Path) -> bool:
+    """Whether ``path`` is a DOE dataset written by :mod:`formtwin.dataset`."""
+    import h5py
+
+    from formtwin.dataset import FORMAT
+
+    try:
+        with h5py.File(path, "r") as f:
+            return bool(f.attrs.get("format") == FORMAT)
+    except OSError:
+        return False
 
 
 def write_table(columns: dict[str, NDArray[Any]], path: Path) -> None:
