@@ -113,8 +113,10 @@ def _serve(args: argparse.Namespace) -> int:
               f"{counts['rejected']} rejected", flush=True)
         if not args.no_page:
             from formtwin.service.web import LiveFeed, PageServer
+            from formtwin.spec import load_spec
 
-            feed = LiveFeed(proc.tracker_names())
+            units = {v.name: v.internal_unit for v in load_spec().augmented}
+            feed = LiveFeed(proc.tracker_names(), units=units)
             feed.seed(proc.store)
             proc.on_outcome = feed.on_outcome
             page = PageServer(feed, args.http_host, args.http_port)

@@ -45,10 +45,14 @@ class LiveFeed:
         Names of the estimated quantities.
     maxlen : int
         Points kept for a page that (re)loads.
+    units : dict, optional
+        Unit of each name (internal units), shown on the page.
     """
 
-    def __init__(self, names: tuple[str, ...], maxlen: int = 2000) -> None:
+    def __init__(self, names: tuple[str, ...], maxlen: int = 2000,
+                 units: dict[str, str] | None = None) -> None:
         self.names = names
+        self.units = dict(units or {})
         #: changes with every process: a page that reconnects to a restarted service sees
         #: another epoch in its Last-Event-ID and reloads the state instead of waiting
         self.epoch = secrets.token_hex(4)
@@ -101,7 +105,8 @@ class LiveFeed:
     def snapshot(self) -> dict[str, Any]:
         with self._lock:
             points = [e for _, e in self._events if e.get("type") == "point"]
-            return {"names": list(self.names), "points": points, "last": self._n,
+            return {"names": list(self.names), "units": self.units, "points": points,
+                    "last": self._n,
                     "epoch": self.epoch, "counts": dict(self.counts),
                     "reasons": dict(self.reasons)}
 

@@ -14,6 +14,9 @@
     box.dataset.key = key;
     const h = document.createElement("h2");
     h.textContent = title;
+    const latest = document.createElement("span");
+    latest.className = "latest";
+    h.appendChild(latest);
     box.appendChild(h);
     el("grid").appendChild(box);
     const series = [{label: "product"}].concat(opts.series);
@@ -23,7 +26,7 @@
       axes: [{size: 24}, {size: 62}],
     }, opts.series.map(() => []).concat([[]]), box);
     const c = {key: key, plot: plot, data: [[]].concat(opts.series.map(() => [])),
-               extract: opts.extract};
+               extract: opts.extract, latest: latest};
     charts.push(c);
     return c;
   }
@@ -36,11 +39,18 @@
     ];
   }
 
-  function build(names) {
+  function fmt(v) {
+    if (v === null || v === undefined) return "-";
+    const a = Math.abs(v);
+    return (a !== 0 && (a < 1e-3 || a >= 1e5)) ? v.toExponential(3) : v.toPrecision(4);
+  }
+
+  function build(names, units) {
     el("grid").innerHTML = "";
     charts.length = 0;
     names.forEach((name) => {
-      makeChart(name, name, {
+      const unit = units && units[name] ? " [" + units[name] + "]" : "";
+      makeChart(name + unit, name, {
         series: band("#1f5fa8"), bands: [{series: [3, 1], fill: "rgba(31,95,168,0.18)"}],
         extract: (p) => {
           const m = p.mean[name], s = p.std[name];
@@ -74,6 +84,9 @@
       const ys = c.extract(p);
       c.data[0].push(x);
       ys.forEach((y, i) => c.data[i + 1].push(y));
+      if (ys.length >= 3 && ys[1] !== null) {
+        c.latest.textContent = "  " + fmt(ys[1]) + " (std " + fmt((ys[2] - ys[1]) / 3) + ")";
+      }
       if (c.data[0].length > WINDOW) c.data.forEach((col) => col.shift());
     });
     nPoints += 1;
@@ -108,7 +121,7 @@
   function start() {
     fetch("/api/state").then((r) => r.json()).then((st) => {
       nPoints = 0;
-      build(st.names);
+      build(st.names, st.units);
       st.points.forEach(addPoint);
       redraw();
       showCounts(st.counts, st.reasons);
