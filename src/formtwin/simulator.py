@@ -41,9 +41,15 @@ class RunResult:
 class Simulator(Protocol):
     """A process model that can be run point by point (and pickled to worker processes)."""
 
-    spec: ProcessSpec
-    #: changes whenever the model's outputs change; stored with every dataset
-    version: str
+    @property
+    def spec(self) -> ProcessSpec:
+        """The process definition whose inputs the model takes."""
+        ...
+
+    @property
+    def version(self) -> str:
+        """Changes whenever the model's outputs change; stored with every dataset."""
+        ...
 
     def run(self, inputs: FloatArray) -> RunResult:
         """Run one input point ``(n_inputs,)`` in internal units."""

@@ -11,7 +11,17 @@ from collections.abc import Sequence
 
 from formtwin import __version__
 
-COMMANDS: tuple[str, ...] = ("spec", "plot", "doe", "demo", "serve", "replay", "export", "track")
+COMMANDS: tuple[str, ...] = (
+    "spec",
+    "plot",
+    "doe",
+    "study",
+    "demo",
+    "serve",
+    "replay",
+    "export",
+    "track",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,76 @@
+"""``formtwin study``: the paper's six simulation series and their report."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from formtwin.study.run import StudySettings
+
+QUICK = {"n_products": 120, "window": 60, "n_realisations": 2, "n_repetitions": 1,
+         "n_particles": 200}
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("study", help="run the paper's study (6 series) and write a report")
+    p.add_argument("--out", default="out/study", help="study folder (default: %(default)s)")
+    p.add_argument("--quick", action="store_true",
+                   help="smoke test: " + ", ".join(f"{k}={v}" for k, v in QUICK.items()))
+    p.add_argument("--physics", choices=("bending", "analytic"), default="bending",
+                   help="process model behind the DOE and the FE data (default: %(default)s)")
+    p.add_argument("--metamodel", help="metamodel file (default: fitted from the bundled DOE)")
+    p.add_argument("--products", type=int, help="products per realisation (paper: 1000)")
+    p.add_argument("--realisations", type=int, help="dataset realisations (paper: 5)")
+    p.add_argument("--repetitions", type=int, help="filter repetitions per dataset (paper: 5)")
+    p.add_argument("--particles", type=int, help="particles N (paper: 500)")
+    p.add_argument("--window", type=int, help="products at the end scored (paper: 500)")
+    p.add_argument("--series", help="comma-separated series numbers (default: 1,2,3,4,5,6)")
+    p.add_argument("--seed", type=int, default=0, help="master seed (default: %(default)s)")
+    p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
+    p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
+    p.set_defaults(run=run)
+
+
+def build_namespace(**given: Any) -> argparse.Namespace:
+    """The namespace ``formtwin study`` would parse, with defaults and ``given`` values."""
+    sub = argparse.ArgumentParser().add_subparsers()
+    register(sub)
+    ns = sub.choices["study"].parse_args([])
+    for key, value in given.items():
+        setattr(ns, key, value)
+    return ns
+
+
+def settings_from_args(args: argparse.Namespace) -> StudySettings:
+    values: dict[str, Any] = dict(QUICK) if args.quick else {}
+    for key, attr in (("n_products", "products"), ("n_realisations", "realisations"),
+                      ("n_repetitions", "repetitions"), ("n_particles", "particles"),
+                      ("window", "window")):
+        if getattr(args, attr) is not None:
+            values[key] = getattr(args, attr)
+    if "n_products" in values and "window" not in values:
+        values["window"] = min(500, values["n_products"] // 2)
+    if args.series:
+        values["series"] = tuple(int(s) for s in args.series.split(","))
+    return StudySettings(seed=args.seed, workers=args.workers, scheduler=args.scheduler,
+                         **values)
+
+
+def run(args: argparse.Namespace) -> int:
+    from formtwin.defaults import default_metamodel, physics_model
+    from formtwin.study.report import write_report
+    from formtwin.study.run import run_study
+
+    settings = settings_from_args(args)
+    out = Path(args.out)
+    metamodel, mm_path = default_metamodel(out / "model", args.physics, args.metamodel)
+    physics = physics_model(args.physics, metamodel.spec)
+    result = run_study(settings, out, metamodel, mm_path, physics,
+                       progress=sys.stderr.isatty())
+    report = write_report(result, metamodel.spec, out, sources={
+        "metamodel": str(mm_path), "physics model": f"{args.physics} ({physics.version})"})
+    print(f"study done in {result.timings['total_s']:.0f} s; report: {report}")
+    print(f"markdown: {out / 'report.md'}; numbers: {out / 'nrmse.csv'}")
+    return 0

@@ -1,0 +1,159 @@
+"""Pseudo-data of the study: realisations of a production run with known truth.
+
+A realisation draws its statistics and constants once (paper, "Simulation runs"):
+``mu ~ U(mu_min, mu_max)``, ``theta ~ U(bounds)``, ``theta_d ~ U(bounds)``; then the state
+sequence ``x_1..x_n`` follows eq. 4 from the stationary law (reflected into the box).
+Force curves and angles come from two sources, the metamodel (``MM``) and the physics
+model (``FE``), each also distorted by the deviation model, ``gMM = g(MM, theta_d)`` and
+``gFE = g(FE, theta_d)``. The angles come from the same source as the curve; the
+deviation acts on the force curve only. Physics runs that fail are kept as missing
+(``ok = False``): the study skips those products, as a press line would skip a stroke
+whose curve was not recorded.
+
+A realisation is stored as NetCDF (``realisation_K.nc``) and reloaded when present.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+from numpy.typing import NDArray
+
+from formtwin.deviation import DeviationModel
+from formtwin.evolution import simulate
+from formtwin.measurement import ProcessModel
+from formtwin.simulator import ANGLE_NAMES, Simulator
+from formtwin.spec import ProcessSpec
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+SOURCES = ("MM", "gMM", "FE", "gFE")
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Realisation:
+    """Truth and measurements of one pseudo production run of ``n`` products.
+
+    ``x (n, 7)``, ``theta (3,)``, ``theta_d (8,)``, ``mu (7,)``; per source in
+    :data:`SOURCES`: ``curves[source] (n, n_t)`` N, ``angles[source] (n, 2)`` degrees and
+    ``ok[source] (n,)``.
+    """
+
+    index: int
+    mu: FloatArray
+    theta: FloatArray
+    theta_d: FloatArray
+    x: FloatArray
+    curves: dict[str, FloatArray]
+    angles: dict[str, FloatArray]
+    ok: dict[str, BoolArray]
+
+    @property
+    def n(self) -> int:
+        return int(self.x.shape[0])
+
+    @property
+    def inputs(self) -> FloatArray:
+        """Model inputs ``(n, 10)``: state then constant parameters."""
+        return np.hstack([self.x, np.tile(self.theta, (self.n, 1))])
+
+    def truth(self) -> FloatArray:
+        """True augmented state ``(n, 18)``: x, theta, theta_d."""
+        return np.hstack([self.inputs, np.tile(self.theta_d, (self.n, 1))])
+
+    def to_dataset(self, spec: ProcessSpec) -> xr.Dataset:
+        return xr.Dataset(
+            {
+                "mu": (("state",), self.mu),
+                "theta": (("param",), self.theta),
+                "theta_d": (("deviation",), self.theta_d),
+                "x": (("product", "state"), self.x),
+                "curves": (("source", "product", "time"),
+                           np.stack([self.curves[s] for s in SOURCES])),
+                "angles": (("source", "product", "angle"),
+                           np.stack([self.angles[s] for s in SOURCES])),
+                "ok": (("source", "product"), np.stack([self.ok[s] for s in SOURCES])),
+            },
+            coords={"state": list(spec.state.names), "param": list(spec.params.names),
+                    "deviation": list(spec.deviation.names), "source": list(SOURCES),
+                    "time": spec.time, "angle": list(ANGLE_NAMES),
+                    "product": np.arange(self.n)},
+            attrs={"realisation": self.index, "units": "mm, N, s, MPa; angles in degrees",
+                   "description": "formtwin study pseudo-data (truth and force curves)"},
+        )
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset) -> Realisation:
+        src = [str(s) for s in ds["source"].values]
+        return cls(
+            index=int(ds.attrs["realisation"]),
+            mu=ds["mu"].values, theta=ds["theta"].values, theta_d=ds["theta_d"].values,
+            x=ds["x"].values,
+            curves={s: ds["curves"].values[i] for i, s in enumerate(src)},
+            angles={s: ds["angles"].values[i] for i, s in enumerate(src)},
+            ok={s: ds["ok"].values[i].astype(bool) for i, s in enumerate(src)},
+        )
+
+
+def draw_truth(spec: ProcessSpec, n: int, rng: np.random.Generator
+               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``mu (7,)``, ``theta (3,)``, ``theta_d (8,)`` and the state sequence ``x (n, 7)``."""
+    s, p, d = spec.state, spec.params, spec.deviation.group
+    mu = rng.uniform(s.mu_min, s.mu_max)
+    theta = rng.uniform(p.lo, p.hi)
+    theta_d = rng.uniform(d.lo, d.hi)
+    x = simulate(n, mu, s.sigma, s.rho, rng, s.lo, s.hi)
+    return mu, theta, theta_d, x
+
+
+def make_realisation(
+    spec: ProcessSpec,
+    index: int,
+    n: int,
+    seed: int,
+    metamodel: ProcessModel,
+    physics: Simulator,
+    folder: Path,
+    executor: str | None = None,
+) -> Realisation:
+    """Create (or reload from ``folder``) realisation ``index`` of ``n`` products.
+
+    The physics runs go through the DOE runner (parallel, resumable): its dataset
+    ``fe_K.nc`` in ``folder`` is the cache of the ``FE`` curves.
+    """
+    from formtwin.dataset import DoeDataset
+    from formtwin.doe import run_design
+
+    path = folder / f"realisation_{index}.nc"
+    if path.exists():
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            real = Realisation.from_dataset(ds.load())
+        if real.n == n:
+            return real
+        log.info("%s holds %d products, %d wanted: regenerating", path, real.n, n)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
+    mu, theta, theta_d, x = draw_truth(spec, n, rng)
+    inputs = np.hstack([x, np.tile(theta, (n, 1))])
+    fe_path = folder / f"fe_{index}.nc"
+    run_design(physics, inputs, fe_path, executor=executor, seed=seed)
+    fe = DoeDataset.load(fe_path)
+    g = DeviationModel.from_spec(spec)
+    mm_curves = metamodel.predict_curves(inputs)
+    curves = {"MM": mm_curves, "gMM": g.apply(mm_curves, np.tile(theta_d, (n, 1))),
+              "FE": fe.curves, "gFE": g.apply(np.nan_to_num(fe.curves),
+                                              np.tile(theta_d, (n, 1)))}
+    curves["gFE"][~fe.ok] = np.nan
+    mm_angles = metamodel.predict_angles(inputs)
+    angles = {"MM": mm_angles, "gMM": mm_angles, "FE": fe.angles, "gFE": fe.angles}
+    all_ok = np.ones(n, dtype=bool)
+    ok = {"MM": all_ok, "gMM": all_ok, "FE": fe.ok.copy(), "gFE": fe.ok.copy()}
+    real = Realisation(index, mu, theta, theta_d, x, curves, angles, ok)
+    folder.mkdir(parents=True, exist_ok=True)
+    real.to_dataset(spec).to_netcdf(path, engine="h5netcdf")
+    log.info("realisation %d: %d products, %d physics failures", index, n, int((~fe.ok).sum()))
+    return real

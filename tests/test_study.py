@@ -1,0 +1,90 @@
+"""The study end to end on the analytic stand-in: pseudo-data, six series, metrics, report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formtwin.doe import latin_hypercube, run_design
+from formtwin.metamodel import Metamodel
+from formtwin.physics.analytic import AnalyticBending
+from formtwin.spec import load_spec
+from formtwin.study.metrics import normalised_rmse, normalisers, rmse
+from formtwin.study.report import write_report
+from formtwin.study.run import StudySettings, run_study
+
+SPEC = load_spec()
+
+
+@pytest.fixture(scope="module")
+def metamodel(tmp_path_factory: pytest.TempPathFactory) -> tuple[Metamodel, Path]:
+    folder = tmp_path_factory.mktemp("mm")
+    sim = AnalyticBending(SPEC)
+    data = run_design(sim, latin_hypercube(SPEC, 600, seed=11), folder / "doe.h5",
+                      executor="serial")
+    mm = Metamodel().fit(data)
+    return mm, mm.save(folder / "mm.npz")
+
+
+def test_metrics_normalise_as_the_paper_says() -> None:
+    assert rmse(np.array([[1.0, 0.0], [3.0, np.nan]]), np.array([[2.0, 1.0], [2.0, 5.0]])
+                ).tolist() == [1.0, 1.0]
+    scale = normalisers(SPEC)
+    assert scale[0] == 6.0  # yield stress: sigma
+    assert scale[9] == pytest.approx(35000 / np.sqrt(6))  # press stiffness: range / sqrt 6
+    assert scale[10] == pytest.approx(0.4 / np.sqrt(6))  # deviation knot: range / sqrt 6
+    n = 50
+    truth = np.zeros((n, 18))
+    est = truth + scale  # every component off by exactly its normaliser
+    ang = np.c_[np.arange(n), 2 * np.arange(n)].astype(float)
+    out = normalised_rmse(SPEC, est, truth, ang + ang[-20:].std(0), ang, window=20)
+    np.testing.assert_allclose(out, 1.0)  # off by the std of the real angles in the window
+
+
+def test_quick_study_end_to_end(metamodel: tuple[Metamodel, Path], tmp_path: Path) -> None:
+    mm, mm_path = metamodel
+    settings = StudySettings(n_products=100, window=50, n_realisations=2, n_repetitions=1,
+                             n_particles=200, workers=2, seed=5)
+    result = run_study(settings, tmp_path, mm, mm_path, AnalyticBending(SPEC))
+    nrmse = result.nrmse
+    assert nrmse.shape == (6, 2, 1, 20)
+    no_dev = [0, 1, 3, 4]  # series 1, 2, 4, 5 do not estimate theta_d
+    assert np.isnan(nrmse[no_dev, :, :, 10:18]).all()
+    assert np.isfinite(nrmse[[2, 5], :, :, 10:18]).all()
+    assert np.isfinite(nrmse[:, :, :, :10]).all() and np.isfinite(nrmse[:, :, :, 18:]).all()
+    s1 = nrmse[0].mean(axis=(0, 1))
+    # with a perfect model the punch end distance is well observed
+    assert s1[6] < 0.6, s1
+    # an unmodelled deviation (series 2) is worse than the perfect model (series 1)
+    keep = np.r_[0:7, 18:20]
+    assert nrmse[1][..., keep].mean() > nrmse[0][..., keep].mean()
+    report = write_report(result, SPEC, tmp_path, sources={"metamodel": str(mm_path)})
+    text = (tmp_path / "report.md").read_text()
+    assert "Comparison with the paper" in text and "0.11" in text and "series 6" in text
+    assert report.read_text().startswith("<!DOCTYPE html>")
+    for fig in ("fig4_nrmse.png", "fig5_series1.png", "fig6_series6.png"):
+        assert (tmp_path / fig).stat().st_size > 10_000
+    assert (tmp_path / "nrmse.csv").read_text().count("\n") == 1 + 6 * 2
+    # a second run reuses every cached piece and gives the same numbers
+    again = run_study(settings, tmp_path, mm, mm_path, AnalyticBending(SPEC))
+    assert again.timings["filter_runs_computed"] == 0
+    np.testing.assert_array_equal(again.nrmse, nrmse)
+
+
+def test_study_is_reproducible_from_its_seed(metamodel: tuple[Metamodel, Path],
+                                             tmp_path: Path) -> None:
+    mm, mm_path = metamodel
+    settings = StudySettings(n_products=40, window=20, n_realisations=1, n_repetitions=1,
+                             n_particles=100, series=(3,), workers=1, seed=9)
+    a = run_study(settings, tmp_path / "a", mm, mm_path, AnalyticBending(SPEC))
+    b = run_study(settings, tmp_path / "b", mm, mm_path, AnalyticBending(SPEC))
+    np.testing.assert_array_equal(a.nrmse[2], b.nrmse[2])
+
+
+def test_bad_settings_are_named() -> None:
+    with pytest.raises(ValueError, match="window = 600"):
+        StudySettings(n_products=500, window=600)
+    with pytest.raises(ValueError, match=r"series \[7\]"):
+        StudySettings(series=(1, 7))
