@@ -45,6 +45,7 @@ from formtwin._threads import single_blas_thread
 from formtwin.deviation import DeviationModel
 from formtwin.evolution import evolve, jitter, reflect, stationary
 from formtwin.filters import SIR, Step, make_filter
+from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.spec import ProcessSpec
 
@@ -79,6 +80,11 @@ class TrackerConfig:
     seed : seed of the tracker's ``numpy.random.default_rng``.
     filter : particle-filter name (:data:`formtwin.filters.FILTERS`).
     ess_threshold : resample when ESS < ess_threshold N (1.0: every step, Algorithm 1).
+    compare : ``"model"`` (paper eq. 12) or ``"measurement"``, see :data:`COMPARE`.
+    angle_particles : predict the angles from this many particles drawn from the weighted
+        cloud by systematic resampling (cuts the cost of the angle models, adds Monte-Carlo
+        error of order ``std / sqrt(angle_particles)``); ``None`` (default): all particles
+        with their weights.
     """
 
     n_particles: int = 500
@@ -92,8 +98,11 @@ class TrackerConfig:
     filter: str = "sir"
     ess_threshold: float = 1.0
     compare: str = "model"
+    angle_particles: int | None = None
 
     def __post_init__(self) -> None:
+        if self.angle_particles is not None and self.angle_particles < 1:
+            raise ValueError(f"angle_particles = {self.angle_particles}, expected >= 1 or None")
         if self.compare not in COMPARE:
             raise ValueError(f"compare = {self.compare!r}; known: {', '.join(COMPARE)}")
         for name in ("mu", "sigma", "rho"):
@@ -402,9 +411,14 @@ class Tracker:
             raise
 
     def _estimate(self, s: Step) -> Estimate:
-        angles = self.ssm.predict_angles(s.x)
+        m = self.config.angle_particles
+        if m is None or m >= s.x.shape[0]:
+            xa, wa = s.x, s.w
+        else:
+            xa, wa = s.x[systematic(s.w, self.rng, m)], np.full(m, 1.0 / m)
+        angles = self.ssm.predict_angles(xa)
         ok = np.all(np.isfinite(angles), axis=1)
-        w = np.where(ok, s.w, 0.0)
+        w = np.where(ok, wa, 0.0)
         if w.sum() > 0:
             w = w / w.sum()
             a = np.where(ok[:, None], angles, 0.0)
