@@ -59,6 +59,8 @@ CASES: list[tuple[str, bytes]] = [
     ("malformed_json", b"{not json"),
     ("malformed_json", b"\xff\xfe\x00"),
     ("malformed_json", b"[1, 2, 3]"),
+    ("malformed_json", b'{"schema": "formtwin.stroke/1", "cycle": ' + b"1" * 5000 + b"}"),
+    ("malformed_json", b"[" * 20_000 + b"]" * 20_000),
     ("unknown_schema", dumps(good(schema="formtwin.stroke/2"))),
     ("unknown_schema", _drop("schema")),
     ("missing_field", _drop("part_id")),
@@ -101,6 +103,14 @@ def test_rejection_names_field_and_value() -> None:
     with pytest.raises(MessageError) as info:
         parse_stroke(dumps(good(force_N=[-500.0] + [1.0] * 100)), LIM)
     assert "force_N[0]" in info.value.detail and "-500" in info.value.detail
+
+
+def test_invalid_part_id_is_not_attached_to_errors() -> None:
+    for raw in (b'"\\ud800"', b'""', b'"' + b"x" * 200 + b'"', b"17"):
+        payload = b'{"schema": "formtwin.stroke/1", "part_id": ' + raw + b"}"
+        with pytest.raises(MessageError) as info:
+            parse_stroke(payload, LIM)
+        assert info.value.part_id is None
 
 
 def test_every_reason_is_covered() -> None:

@@ -49,6 +49,17 @@ def test_redelivery_is_idempotent(tmp_path: Path, payloads: list[bytes]) -> None
     proc.store.close()
 
 
+def test_poison_messages_are_rejected_not_fatal(tmp_path: Path) -> None:
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    poison = [b'{"schema": "formtwin.stroke/1", "part_id": "\\ud800"}',
+              b'{"schema": "formtwin.stroke/1", "cycle": ' + b"9" * 5000 + b"}",
+              b"[" * 20_000 + b"]" * 20_000, b"\xed\xa0\x80"]
+    assert [proc.handle(p).kind for p in poison] == ["rejected"] * len(poison)
+    assert proc.store.counts()["rejected"] == len(poison)
+    proc.close()
+    proc.store.close()
+
+
 def test_duplicate_and_out_of_order(tmp_path: Path, payloads: list[bytes]) -> None:
     proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
     run(proc, payloads[:3])
@@ -273,5 +284,18 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
     proc.tracker = real
     assert proc.handle(payloads[1]).kind == "accepted"
     assert proc.store.rejection_counts() == {"tracker_rejected": 1}
+
+    class Crashing:  # an unexpected error after touching the state: rolled back
+        def step(self, curve: object) -> object:
+            real.step(curve)
+            raise FloatingPointError("overflow in the model (test double)")
+
+        def checkpoint(self, path: object) -> object:
+            return real.checkpoint(path)  # type: ignore[arg-type]
+
+    proc.tracker = Crashing()
+    out = proc.handle(payloads[2])
+    assert out.kind == "rejected" and "FloatingPointError" in str(out.message["detail"])
+    assert proc.handle(payloads[3]).message["index"] == 1  # restored: one step so far
     proc.close()
     proc.store.close()

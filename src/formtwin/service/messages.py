@@ -149,6 +149,10 @@ def _number_list(doc: dict[str, Any], key: str, part_id: str) -> FloatArray:
     return arr
 
 
+def _valid_part_id(raw: Any) -> bool:
+    return isinstance(raw, str) and 0 < len(raw) <= _PART_ID_MAX and raw.isprintable()
+
+
 def _valid_timestamp(ts: Any) -> bool:
     if isinstance(ts, bool):
         return False
@@ -188,7 +192,7 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
         doc = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)
     except MessageError:
         raise
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+    except (ValueError, RecursionError) as exc:  # bad UTF-8, bad JSON, 5000-digit integers
         raise MessageError("malformed_json", f"{type(exc).__name__}: {exc}"[:200]) from None
     if not isinstance(doc, dict):
         raise MessageError("malformed_json", f"top level is {type(doc).__name__}, not object")
@@ -197,11 +201,11 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
         raise MessageError("unknown_schema",
                            f"schema {schema!r:.60}, expected {STROKE_SCHEMA!r}")
     raw_id = doc.get("part_id")
-    part_id = raw_id if isinstance(raw_id, str) else None
+    part_id = raw_id if _valid_part_id(raw_id) else None  # only a valid id goes into errors
     for key in ("part_id", "cycle", "timestamp", "force_N"):
         if key not in doc:
             raise MessageError("missing_field", f"field {key!r} is required", part_id)
-    if part_id is None or not 0 < len(part_id) <= _PART_ID_MAX or not part_id.isprintable():
+    if part_id is None:
         raise MessageError("bad_field", f"part_id must be a printable string of 1.."
                            f"{_PART_ID_MAX} characters, got {raw_id!r:.60}")
     cycle = doc["cycle"]

@@ -231,6 +231,11 @@ class Processor:
             stroke = parse_stroke(payload, self.limits)
         except MessageError as err:
             return self._reject(err, payload, topic, now)
+        except Exception as exc:  # never let a poison message stop the service
+            log.exception("validator failed on a message; rejecting it as malformed")
+            return self._reject(MessageError("malformed_json", f"unparseable: "
+                                             f"{type(exc).__name__}: {exc}"[:200]),
+                                payload, topic, now)
         row = self.store.product(stroke.part_id)
         if row is not None:
             if row.digest == stroke.digest and row.estimate is not None:
@@ -254,9 +259,15 @@ class Processor:
                 f"{self._last_cycle}", stroke.part_id), payload, topic, now)
         try:
             est = self.tracker.step(stroke.force_N)
-        except ValueError as exc:
+        except ValueError as exc:  # the tracker's contract: state untouched
             return self._reject(MessageError("tracker_rejected", str(exc)[:300],
                                              stroke.part_id), payload, topic, now)
+        except Exception as exc:  # unexpected: undo whatever the step did, reject the curve
+            log.exception("tracker step failed on part %s; state restored", stroke.part_id)
+            self._rollback()
+            return self._reject(MessageError(
+                "tracker_rejected", f"{type(exc).__name__}: {exc}"[:300], stroke.part_id),
+                payload, topic, now)
         try:
             return self._commit(stroke, est, topic, now)
         except BaseException:

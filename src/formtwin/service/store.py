@@ -223,7 +223,8 @@ class Store:
             cur = self._db.execute(
                 "INSERT OR IGNORE INTO rejections(payload_digest, reason, detail, part_id, "
                 "received_at) VALUES (?,?,?,?,?)",
-                (payload_digest, reason, detail[:500], part_id, now))
+                (payload_digest, _utf8(reason), _utf8(detail[:500]),
+                 None if part_id is None else _utf8(part_id), now))
             return cur.rowcount == 1
 
     # -- reads ------------------------------------------------------------------------
@@ -309,6 +310,11 @@ class Store:
             rows = self._db.execute("SELECT reason, COUNT(*) FROM rejections GROUP BY "
                                     "reason ORDER BY reason").fetchall()
         return {str(r): int(c) for r, c in rows}
+
+
+def _utf8(text: str) -> str:
+    """``text`` made storable: lone surrogates (possible in JSON) become escapes."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 _COLS = ("seq, part_id, cycle, timestamp, received_at, status, digest, curve, "
