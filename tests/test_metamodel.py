@@ -201,3 +201,19 @@ def test_bad_settings_fail_loudly() -> None:
         POD(energy=1.5)
     with pytest.raises(RuntimeError, match="not fitted"):
         _ = Metamodel().spec
+
+
+@pytest.mark.parametrize("kernel", ["thin_plate_spline", "cubic", "gaussian"])
+def test_loo_gradient_matches_finite_differences(kernel: str) -> None:
+    from scipy.optimize import approx_fprime
+
+    from formtwin.metamodel import loo_objective
+
+    rng = np.random.default_rng(9)
+    U = rng.random((50, 4))
+    Y = np.column_stack([np.sin(3 * U[:, 0]) + U[:, 1] ** 2, U[:, 2] * U[:, 3]])
+    P = polynomial(U, monomial_powers(4, 1))
+    x = rng.normal(size=4) * 0.3
+    grad = loo_objective(x, U, P, Y, kernel, 1e-4)[1]
+    fd = approx_fprime(x, lambda v: loo_objective(v, U, P, Y, kernel, 1e-4)[0], 1e-6)
+    assert np.allclose(grad, fd, rtol=1e-4, atol=1e-5)

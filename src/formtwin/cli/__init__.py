@@ -15,6 +15,7 @@ COMMANDS: tuple[str, ...] = (
     "spec",
     "plot",
     "doe",
+    "metamodel",
     "study",
     "demo",
     "serve",

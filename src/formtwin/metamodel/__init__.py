@@ -12,7 +12,14 @@ from formtwin.metamodel.model import (
     Reduction,
 )
 from formtwin.metamodel.pod import POD
-from formtwin.metamodel.rbf import KERNELS, RBF, loo_residuals
+from formtwin.metamodel.rbf import KERNELS, RBF, loo_objective, loo_residuals
+from formtwin.metamodel.validate import (
+    CrossValidation,
+    cross_validate,
+    plot_validation,
+    validate,
+)
 
-__all__ = ["KERNELS", "POD", "RBF", "Approximation", "Dataset", "Metamodel", "Prediction",
-           "Reduction", "loo_residuals"]
+__all__ = ["KERNELS", "POD", "RBF", "Approximation", "CrossValidation", "Dataset", "Metamodel",
+           "Prediction", "Reduction", "cross_validate", "loo_objective", "loo_residuals",
+           "plot_validation", "validate"]

@@ -39,6 +39,13 @@ FORMAT = "formtwin.metamodel/1"
 
 _T = TypeVar("_T")
 
+#: tolerance of the outside-box flag, as a fraction of each input's range
+_BOX_TOL = 1e-9
+
+#: RBF centres of the default curve model and of each default angle model
+DEFAULT_CENTRES = 1000
+DEFAULT_ANGLE_CENTRES = 500
+
 
 class Dataset(Protocol):
     """What :meth:`Metamodel.fit` needs of a DOE dataset (:class:`formtwin.dataset.DoeDataset`)."""
@@ -116,11 +123,13 @@ class Metamodel:
     reduction : Reduction
         Reduction of the curves; default ``POD(n_modes=40)`` (paper).
     approximation : Approximation
-        Template for the interpolation of the mode coefficients and of each angle;
-        default ``RBF()`` (thin-plate spline, length scales by leave-one-out). It is
-        copied, never fitted itself.
+        Template for the interpolation of the mode coefficients; default
+        ``RBF(n_centres=1000)`` (thin-plate spline, per-dimension length scales by
+        leave-one-out, least squares on 1000 centres; see ``docs/metamodel.md`` for the
+        accuracy/speed trade-off). It is copied, never fitted itself.
     angle_approximation : Approximation or None
-        Template for the two angle models; ``None``: ``approximation``.
+        Template for each of the two angle models. ``None``: ``RBF(n_centres=500)`` if
+        ``approximation`` is also ``None``, else ``approximation``.
 
     Examples
     --------
@@ -136,9 +145,12 @@ class Metamodel:
                  approximation: Approximation | None = None,
                  angle_approximation: Approximation | None = None) -> None:
         self.reduction: Reduction = reduction if reduction is not None else POD()
+        if angle_approximation is None:
+            angle_approximation = RBF(n_centres=DEFAULT_ANGLE_CENTRES) if approximation is None \
+                else approximation
         self.approximation: Approximation = approximation if approximation is not None \
-            else RBF()
-        self.angle_approximation = angle_approximation
+            else RBF(n_centres=DEFAULT_CENTRES)
+        self.angle_approximation: Approximation = angle_approximation
         self.curve_model: Approximation | None = None
         self.angle_models: tuple[Approximation, ...] = ()
         self._spec: ProcessSpec | None = None
@@ -150,7 +162,8 @@ class Metamodel:
         self.fit_seconds = float("nan")
 
     def __repr__(self) -> str:
-        return f"Metamodel(reduction={self.reduction!r}, approximation={self.approximation!r})"
+        return (f"Metamodel(reduction={self.reduction!r}, approximation={self.approximation!r},"
+                f" angle_approximation={self.angle_approximation!r})")
 
     # --------------------------------------------------------------- properties
     @property
@@ -196,9 +209,8 @@ class Metamodel:
         U = self.scale(X)
         coeffs = self.reduction.fit(curves).transform(curves)
         self.curve_model = copy.deepcopy(self.approximation).fit(U, coeffs)
-        template = self.angle_approximation or self.approximation
-        self.angle_models = tuple(copy.deepcopy(template).fit(U, angles[:, j:j + 1])
-                                  for j in range(2))
+        self.angle_models = tuple(
+            copy.deepcopy(self.angle_approximation).fit(U, angles[:, j:j + 1]) for j in range(2))
         self.n_train = X.shape[0]
         self.fit_seconds = time.perf_counter() - t0
         log.info("Metamodel fitted to %d runs (%d excluded) in %.1f s, %d modes",
@@ -224,26 +236,35 @@ class Metamodel:
     def outside(self, X: FloatArray) -> BoolArray:
         """True (N,) where an input lies outside the DOE box (beyond rounding)."""
         U = self.scale(self._inputs(X))
-        out: BoolArray = np.any((U < -1e-9) | (U > 1.0 + 1e-9), axis=1)
+        out: BoolArray = np.any((U < -_BOX_TOL) | (U > 1.0 + _BOX_TOL), axis=1)
         return out
+
+    def _curves(self, U: FloatArray) -> FloatArray:
+        assert self.curve_model is not None
+        return self.reduction.inverse_transform(self.curve_model.predict(U))
+
+    def _angles(self, U: FloatArray) -> FloatArray:
+        return np.hstack([m.predict(U) for m in self.angle_models])
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
         """Force curves (N, n_t), N, at inputs ``X`` (N, 10) or (10,), internal units."""
         U = self.scale(self._inputs(X))
-        assert self.curve_model is not None
         with single_blas_thread():
-            return self.reduction.inverse_transform(self.curve_model.predict(U))
+            return self._curves(U)
 
     def predict_angles(self, X: FloatArray) -> FloatArray:
         """Bend angles (N, 2), degrees, at inputs ``X`` (N, 10) or (10,), internal units."""
         U = self.scale(self._inputs(X))
         with single_blas_thread():
-            return np.hstack([m.predict(U) for m in self.angle_models])
+            return self._angles(U)
 
     def predict(self, X: FloatArray) -> Prediction:
         """Curves, angles and the outside-box flag at inputs ``X`` (N, 10) or (10,)."""
-        X = self._inputs(X)
-        return Prediction(self.predict_curves(X), self.predict_angles(X), self.outside(X))
+        U = self.scale(self._inputs(X))
+        with single_blas_thread():
+            curves, angles = self._curves(U), self._angles(U)
+        outside: BoolArray = np.any((U < -_BOX_TOL) | (U > 1.0 + _BOX_TOL), axis=1)
+        return Prediction(curves, angles, outside)
 
     # ------------------------------------------------------------------ storage
     def save(self, path: str | Path) -> Path:

@@ -13,10 +13,13 @@ column is an independent interpolant; columns share centres, kernel and scales.
   leave-one-out cross-validation on a random subset of ``n_tune`` points, using Rippa's
   closed form :func:`loo_residuals` (one matrix inverse instead of n fits).
 * With ``n_centres=None`` the model interpolates every point. With ``n_centres=m < n`` it
-  is a least-squares RBF: ``m`` centres (a seeded subset of the data spread by k-means in
-  the scaled space) fitted to all n points -- a model ``n/m`` times cheaper to evaluate.
+  is a least-squares RBF: ``m`` centres (a seeded random subset of the data points, the
+  same points the scales were tuned on first) fitted to all n points -- a model ``n/m``
+  times cheaper to evaluate that still uses every run.
 * Evaluation runs in ``dtype`` (float32 by default: the distance and kernel matrices are
-  the hot path; the polynomial tail stays float64).
+  the hot path; the polynomial tail stays float64). :meth:`RBF.fit` checks float32
+  against float64 on the data and falls back to float64 where cancellation in the
+  weighted kernel sum costs more than 5 % of the LOO error.
 
 >>> rng = np.random.default_rng(0)
 >>> U = rng.random((200, 2))
@@ -31,11 +34,11 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from itertools import combinations_with_replacement
+from typing import Any
 
 import numpy as np
 import scipy.linalg
 from numpy.typing import DTypeLike, NDArray
-from scipy.cluster.vq import kmeans2
 from scipy.optimize import minimize
 from scipy.spatial.distance import cdist
 
@@ -99,6 +102,17 @@ KERNELS: dict[str, tuple[Kernel, int]] = {
     "inverse_multiquadric": (_inverse_multiquadric, -1),
 }
 
+#: d phi / d(r^2) per kernel (its value at r = 0 is never used)
+KERNEL_SLOPES: dict[str, Kernel] = {
+    "thin_plate_spline": lambda r2: 0.5 * (np.log(np.maximum(r2, 1e-300)) + 1.0),
+    "cubic": lambda r2: 1.5 * np.sqrt(r2),
+    "quintic": lambda r2: -2.5 * r2 * np.sqrt(r2),
+    "linear": lambda r2: -0.5 / np.sqrt(np.maximum(r2, 1e-300)),
+    "gaussian": lambda r2: -np.exp(-r2),
+    "multiquadric": lambda r2: -0.5 / np.sqrt(1.0 + r2),
+    "inverse_multiquadric": lambda r2: -0.5 * (1.0 + r2) ** -1.5,
+}
+
 #: kernels whose interpolant does not change when all length scales are multiplied
 SCALE_FREE = frozenset({"thin_plate_spline", "cubic", "quintic", "linear"})
 
@@ -131,11 +145,12 @@ def polynomial(U: FloatArray, powers: NDArray[np.int64]) -> FloatArray:
     return out
 
 
-def _system(Z: FloatArray, P: FloatArray, kernel: str, smoothing: float) -> FloatArray:
-    """The symmetric interpolation matrix ``[[K + smoothing I, P], [P^T, 0]]``."""
+def _system(R2: FloatArray, P: FloatArray, kernel: str, smoothing: float) -> FloatArray:
+    """The symmetric interpolation matrix ``[[K + smoothing I, P], [P^T, 0]]`` for the
+    squared scaled distances ``R2`` (n, n) and the polynomial tail ``P`` (n, q)."""
     n, q = P.shape
     A = np.zeros((n + q, n + q))
-    A[:n, :n] = _kernel(kernel)(cdist(Z, Z, "sqeuclidean"))
+    A[:n, :n] = _kernel(kernel)(R2)
     A[:n, :n][np.diag_indices(n)] += smoothing
     A[:n, n:] = P
     A[n:, :n] = P.T
@@ -167,11 +182,43 @@ def loo_residuals(Z: FloatArray, P: FloatArray, Y: FloatArray, kernel: str,
     ndarray, shape (n, k)
         ``y_i - s_{-i}(z_i)`` for every point and output.
     """
-    n = Z.shape[0]
-    Ainv = scipy.linalg.inv(_system(Z, P, kernel, smoothing), check_finite=False)
-    coef = Ainv[:n, :n] @ Y
-    out: FloatArray = coef / np.diag(Ainv)[:n, None]
-    return out
+    R2 = cdist(Z, Z, "sqeuclidean")
+    return _loo(R2, P, Y, kernel, smoothing)[0]
+
+
+def _loo(R2: FloatArray, P: FloatArray, Y: FloatArray, kernel: str, smoothing: float
+         ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Rippa's LOO residuals ``e`` plus ``B = A^{-1}``, coefficients ``w`` and ``diag(B)``."""
+    n = R2.shape[0]
+    B = scipy.linalg.inv(_system(R2, P, kernel, smoothing), check_finite=False)
+    Bn = B[:n, :n]
+    g = np.diag(Bn).copy()
+    w = Bn @ Y
+    return w / g[:, None], Bn, w, g
+
+
+def loo_objective(log_scales: FloatArray, U: FloatArray, P: FloatArray, Y: FloatArray,
+                  kernel: str, smoothing: float = 0.0) -> tuple[float, FloatArray]:
+    """``log`` of the mean squared LOO residual and its gradient in ``log_scales`` (d,).
+
+    The gradient is exact and costs about one more matrix product of size n: with
+    ``L = sum e^2``, ``e_i = w_i / g_i`` and ``dB = -B dA B``,
+    ``dL = sum_jl dA_jl (M - Q)_jl`` where ``Q = (B a) w^T``, ``a = 2 e / g`` and
+    ``M = B diag(2 sum_k e_ik^2 / g_i) B``; ``dA`` is ``phi'(r^2)`` times the derivative
+    of the squared scaled distance, ``2 s_d^2 (u_jd - u_ld)^2``.
+    """
+    s2 = np.exp(2.0 * log_scales)
+    R2 = cdist(U * np.sqrt(s2), U * np.sqrt(s2), "sqeuclidean")
+    e, Bn, w, g = _loo(R2, P, Y, kernel, smoothing)
+    L = float(np.sum(e**2))
+    a = 2.0 * e / g[:, None]
+    M = (Bn * (2.0 * np.sum(e**2, axis=1) / g)) @ Bn
+    M -= (Bn @ a) @ w.T
+    M *= KERNEL_SLOPES[kernel](R2)
+    np.fill_diagonal(M, 0.0)
+    rows, cols = M.sum(axis=1), M.sum(axis=0)
+    quad = (U**2 * (rows + cols)[:, None]).sum(axis=0) - 2.0 * np.einsum("jd,jl,ld->d", U, M, U)
+    return float(np.log(L / e.size)), 2.0 * s2 * quad / L
 
 
 class RBF:
@@ -207,7 +254,7 @@ class RBF:
 
     def __init__(self, kernel: str | Sequence[str] = "thin_plate_spline", degree: int = 1,
                  smoothing: float = 0.0, length_scales: str | FloatArray = "loo",
-                 epsilon: float = 1.0, n_centres: int | None = None, n_tune: int = 400,
+                 epsilon: float = 1.0, n_centres: int | None = None, n_tune: int = 800,
                  seed: int = 0, dtype: DTypeLike = np.float32) -> None:
         names = [kernel] if isinstance(kernel, str) else list(kernel)
         for name in names:
@@ -237,7 +284,7 @@ class RBF:
         self.poly_coef = np.zeros((0, 0))
         self.powers = np.zeros((0, 0), dtype=np.int64)
         self.loo_rmse = np.nan
-        self._fast: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._fast: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def __repr__(self) -> str:
         return (f"RBF(kernel={self.kernels if len(self.kernels) > 1 else self.kernels[0]!r}, "
@@ -251,8 +298,8 @@ class RBF:
         Y = np.asarray(Y, dtype=np.float64).reshape(U.shape[0], -1)
         n, d = U.shape
         self.powers = monomial_powers(d, self.degree)
-        rng = np.random.default_rng(self.seed)
-        tune = rng.choice(n, size=min(n, self.n_tune), replace=False)
+        order = np.random.default_rng(self.seed).permutation(n)
+        tune = order[:self.n_tune]
         best: tuple[float, str, FloatArray] | None = None
         for name in self.kernels:
             scales, err = self._tune(U[tune], Y[tune], name)
@@ -264,8 +311,9 @@ class RBF:
         if self.n_centres is None or self.n_centres >= n:
             self._interpolate(U, Y)
         else:
-            self._least_squares(U, Y, rng)
-        self._fast = None
+            self._least_squares(U, Y, order[:self.n_centres])
+        self._fast = {}
+        self._check_precision(U[order[:500]])
         return self
 
     def _tune(self, U: FloatArray, Y: FloatArray, kernel: str) -> tuple[FloatArray, float]:
@@ -274,15 +322,14 @@ class RBF:
         P = polynomial(U, self.powers)
         eps = 1.0 if kernel in SCALE_FREE else self.epsilon
 
-        def loo(log_s: FloatArray) -> float:
-            r = loo_residuals(U * np.exp(log_s), P, Y, kernel, self.smoothing)
-            return float(np.log(np.mean(r**2)))
+        def loo(log_s: FloatArray) -> tuple[float, FloatArray]:
+            return loo_objective(log_s, U, P, Y, kernel, self.smoothing)
 
         if isinstance(self.length_scales, str) and self.length_scales == "box":
             scales = np.full(d, eps)
         elif isinstance(self.length_scales, str):
             x0 = np.full(d, np.log(eps))
-            res = minimize(loo, x0, method="L-BFGS-B",
+            res = minimize(loo, x0, jac=True, method="L-BFGS-B",
                            bounds=[(np.log(eps) - 4.0, np.log(eps) + 4.0)] * d,
                            options={"maxiter": 30})
             scales = np.exp(res.x)
@@ -290,37 +337,40 @@ class RBF:
                 scales /= np.exp(np.mean(res.x))
         else:
             scales = np.asarray(self.length_scales, dtype=np.float64).reshape(d)
-        return scales, float(np.exp(0.5 * loo(np.log(scales))))
+        return scales, float(np.exp(0.5 * loo(np.log(scales))[0]))
 
     def _interpolate(self, U: FloatArray, Y: FloatArray) -> None:
         n = U.shape[0]
         Z = U * self.scales
         P = polynomial(U, self.powers)
         rhs = np.vstack([Y, np.zeros((P.shape[1], Y.shape[1]))])
-        sol = scipy.linalg.solve(_system(Z, P, self.kernel, self.smoothing), rhs,
+        sol = scipy.linalg.solve(_system(cdist(Z, Z, "sqeuclidean"), P, self.kernel,
+                                         self.smoothing), rhs,
                                  assume_a="sym", check_finite=False)
         self.centres, self.weights, self.poly_coef = U.copy(), sol[:n], sol[n:]
 
-    def _least_squares(self, U: FloatArray, Y: FloatArray, rng: np.random.Generator) -> None:
-        assert self.n_centres is not None
+    def _least_squares(self, U: FloatArray, Y: FloatArray, centres: NDArray[np.intp]) -> None:
+        """Least-squares fit to all points with the centres ``U[centres]``."""
         Z = U * self.scales
-        start = Z[rng.choice(U.shape[0], size=self.n_centres, replace=False)]
-        C, _ = kmeans2(Z, start, iter=5, minit="matrix", seed=rng)
-        B = np.hstack([_kernel(self.kernel)(cdist(Z, C, "sqeuclidean")),
+        B = np.hstack([_kernel(self.kernel)(cdist(Z, Z[centres], "sqeuclidean")),
                        polynomial(U, self.powers)])
         sol, *_ = scipy.linalg.lstsq(B, Y, check_finite=False, lapack_driver="gelsy")
-        m = C.shape[0]
-        self.centres, self.weights, self.poly_coef = C / self.scales, sol[:m], sol[m:]
+        m = centres.size
+        self.centres, self.weights, self.poly_coef = U[centres].copy(), sol[:m], sol[m:]
 
     # --------------------------------------------------------------- evaluation
     def predict(self, U: FloatArray) -> FloatArray:
         """Outputs (N, k) at unit-box inputs ``U`` (N, d)."""
-        U = np.asarray(U, dtype=np.float64)
-        if self._fast is None:
-            C = (self.centres * self.scales).astype(self.dtype)
-            self._fast = (C, np.einsum("ij,ij->i", C, C), self.weights.astype(self.dtype))
-        C, cc, W = self._fast
-        Z = (U * self.scales).astype(self.dtype)
+        return self._evaluate(np.asarray(U, dtype=np.float64), self.dtype)
+
+    def _evaluate(self, U: FloatArray, dtype: np.dtype[Any]) -> FloatArray:
+        fast = self._fast.get(dtype.name)
+        if fast is None:
+            C = (self.centres * self.scales).astype(dtype)
+            fast = self._fast[dtype.name] = (C, np.einsum("ij,ij->i", C, C),
+                                              self.weights.astype(dtype))
+        C, cc, W = fast
+        Z = (U * self.scales).astype(dtype)
         r2 = Z @ C.T
         r2 *= -2.0
         r2 += np.einsum("ij,ij->i", Z, Z)[:, None]
@@ -330,6 +380,22 @@ class RBF:
         if self.powers.shape[0]:
             out += polynomial(U, self.powers) @ self.poly_coef
         return out
+
+    def _check_precision(self, U: FloatArray) -> None:
+        """Fall back to float64 evaluation where float32 loses accuracy.
+
+        Large weights of alternating sign cancel in ``sum_j w_j phi_j``; if the float32
+        result differs from the float64 one on the probe points ``U`` by more than 5 % of
+        the LOO error, evaluation switches to float64 (and says so in the log).
+        """
+        if self.dtype == np.float64:
+            return
+        gap = self._evaluate(U, self.dtype) - self._evaluate(U, np.dtype(np.float64))
+        rms = float(np.sqrt(np.mean(gap**2)))
+        if not rms <= 0.05 * self.loo_rmse:
+            log.warning("RBF: %s evaluation is off by %.3g (LOO error %.3g); using float64",
+                        self.dtype.name, rms, self.loo_rmse)
+            self.dtype = np.dtype(np.float64)
 
     # ------------------------------------------------------------------ storage
     def state(self) -> dict[str, np.ndarray]:

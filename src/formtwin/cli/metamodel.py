@@ -1,0 +1,105 @@
+"""``formtwin metamodel fit|validate``: fit the POD + RBF metamodel to a DOE dataset, or
+report its k-fold error with plots."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser("metamodel", help="fit or validate the POD + RBF metamodel",
+                              description=__doc__)
+    sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    fit = sub.add_parser("fit", help="fit a metamodel to a DOE dataset and save it")
+    fit.add_argument("dataset", help="DOE dataset file (formtwin doe run / import)")
+    fit.add_argument("--out", required=True, help="metamodel file to write (.npz)")
+    _model_options(fit)
+    fit.set_defaults(run=_fit)
+    val = sub.add_parser("validate", help="k-fold error of the metamodel on a DOE dataset")
+    val.add_argument("dataset", help="DOE dataset file")
+    val.add_argument("--k", type=int, default=5, help="number of folds (default: %(default)s)")
+    val.add_argument("--seed", type=int, default=0, help="seed of the folds")
+    val.add_argument("--plots", help="folder for angles.png and worst_curves.png")
+    val.add_argument("--json", help="also write the figures to this JSON file")
+    _model_options(val)
+    val.set_defaults(run=_validate)
+
+
+def _model_options(p: argparse.ArgumentParser) -> None:
+    modes = p.add_mutually_exclusive_group()
+    modes.add_argument("--modes", type=int, help="number of POD modes (default: 40)")
+    modes.add_argument("--energy", type=float,
+                       help="keep the fewest POD modes capturing this share of the variance")
+    p.add_argument("--kernel", default="thin_plate_spline",
+                   help="RBF kernel, or several separated by commas to choose by "
+                        "leave-one-out (default: %(default)s)")
+    p.add_argument("--centres", type=int, default=None,
+                   help="RBF centres of the curve model (default: the library default; "
+                        "0: interpolate every run)")
+    p.add_argument("--angle-centres", type=int, default=None,
+                   help="RBF centres of each angle model (default: the library default)")
+    p.add_argument("--scales", choices=("loo", "box"), default="loo",
+                   help="per-dimension length scales by leave-one-out, or the unit box")
+
+
+def _metamodel(args: argparse.Namespace) -> Any:
+    from formtwin.metamodel import POD, RBF, Metamodel
+
+    pod = POD(energy=args.energy) if args.energy is not None else \
+        POD(n_modes=args.modes if args.modes is not None else 40)
+    kernels = [k.strip() for k in args.kernel.split(",") if k.strip()]
+
+    def rbf(centres: int | None, default: RBF) -> RBF:
+        m = default.n_centres if centres is None else (centres or None)
+        return RBF(kernels, length_scales=args.scales, n_centres=m)
+
+    defaults = Metamodel()
+    assert isinstance(defaults.approximation, RBF)
+    assert isinstance(defaults.angle_approximation, RBF)
+    return Metamodel(pod, rbf(args.centres, defaults.approximation),
+                     rbf(args.angle_centres, defaults.angle_approximation))
+
+
+def _load(path: str) -> Any:
+    from formtwin.dataset import DoeDataset
+
+    return DoeDataset.load(path)
+
+
+def _fit(args: argparse.Namespace) -> int:
+    data = _load(args.dataset)
+    mm = _metamodel(args).fit(data)
+    out = mm.save(args.out)
+    print(f"fitted {mm.n_modes} POD modes + RBF to {mm.n_train} of {len(data.ok)} runs "
+          f"in {mm.fit_seconds:.1f} s -> {out}")
+    return 0
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from formtwin.metamodel.validate import cross_validate, figures, plot_validation
+
+    data = _load(args.dataset)
+    cv = cross_validate(_metamodel(args), data, k=args.k, seed=args.seed)
+    figs = figures(cv)
+    width = max(len(k) for k in figs)
+    print(f"{args.k}-fold validation on {figs['n_runs']} successful runs of {args.dataset}")
+    for key, value in figs.items():
+        print(f"  {key:<{width}}  {_fmt(value)}")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(figs, fh, indent=2)
+        print(f"wrote {args.json}")
+    if args.plots:
+        for path in plot_validation(cv, args.plots):
+            print(f"wrote {path}")
+    return 0
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list) and value and isinstance(value[0], float):
+        return "[" + ", ".join(f"{v:.4g}" for v in value) + "]"
+    return str(value)
