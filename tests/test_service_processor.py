@@ -297,5 +297,21 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
     out = proc.handle(payloads[2])
     assert out.kind == "rejected" and "FloatingPointError" in str(out.message["detail"])
     assert proc.handle(payloads[3]).message["index"] == 1  # restored: one step so far
+
+    class NotJson:  # an estimate that cannot be stored as JSON: rejected, state restored
+        def __init__(self, inner: object) -> None:
+            self.inner = inner
+
+        def step(self, curve: object) -> object:
+            e = self.inner.step(curve)  # type: ignore[attr-defined]
+            return dataclasses.replace(e, index=float("nan"))  # to_dict: int(nan) fails
+
+        def checkpoint(self, path: object) -> object:
+            return self.inner.checkpoint(path)  # type: ignore[attr-defined]
+
+    proc.tracker = NotJson(proc.tracker)
+    out = proc.handle(payloads[4])
+    assert out.kind == "rejected" and "not storable" in str(out.message["detail"])
+    assert proc.handle(payloads[5]).message["index"] == 2
     proc.close()
     proc.store.close()

@@ -180,12 +180,12 @@ class MqttService:
         t0 = time.perf_counter()
         try:
             out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
+            topic = self.topics.errors if out.is_error else self.topics.results
+            info = client.publish(topic, dumps(out.message), qos=1)
         except Exception as exc:  # storage failure: never acknowledge, stop the service
             log.exception("processing a stroke failed; stopping without acknowledging it")
             self.fatal = exc
             return
-        topic = self.topics.errors if out.is_error else self.topics.results
-        info = client.publish(topic, dumps(out.message), qos=1)
         if msg.qos > 0:
             # acknowledge the stroke only once the broker holds our answer: a kill before
             # that makes the broker redeliver the stroke, and the store answers it again

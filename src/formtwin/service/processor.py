@@ -23,6 +23,7 @@ import logging
 import math
 import os
 import shutil
+import sqlite3
 import tempfile
 import threading
 import time
@@ -270,6 +271,15 @@ class Processor:
                 payload, topic, now)
         try:
             return self._commit(stroke, est, topic, now)
+        except (sqlite3.Error, OSError, RuntimeError):  # storage: fatal for the service
+            self._rollback()
+            raise
+        except Exception as exc:  # e.g. an estimate that is not JSON: reject, go on
+            log.exception("storing the estimate of part %s failed", stroke.part_id)
+            self._rollback()
+            return self._reject(MessageError(
+                "tracker_rejected", f"estimate not storable: {type(exc).__name__}: {exc}"[:300],
+                stroke.part_id), payload, topic, now)
         except BaseException:
             self._rollback()
             raise
