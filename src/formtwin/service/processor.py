@@ -117,7 +117,7 @@ class OutlierGate:
     def record(self, loglik: float, gated: bool) -> None:
         """Note the outcome of a product."""
         self.last_gated = gated
-        if not gated:
+        if not gated and math.isfinite(loglik):  # as rebuilt from the store on restart
             self.history.append(float(loglik))
             del self.history[:-self.window]
 
