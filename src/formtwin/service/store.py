@@ -279,12 +279,12 @@ class Store:
             yield _row(r)
 
     def recent_logliks(self, n: int) -> list[float]:
-        """``loglik`` of the last ``n`` accepted products, oldest first."""
+        """The last ``n`` finite ``loglik`` of accepted products, oldest first."""
         with self._lock:
             rows = self._db.execute(
-                "SELECT json_extract(estimate, '$.loglik') FROM products WHERE status="
-                "'accepted' ORDER BY seq DESC LIMIT ?", (int(n),)).fetchall()
-        return [float(r[0]) for r in reversed(rows) if r[0] is not None]
+                "SELECT json_extract(estimate, '$.loglik') AS ll FROM products WHERE status="
+                "'accepted' AND ll IS NOT NULL ORDER BY seq DESC LIMIT ?", (int(n),)).fetchall()
+        return [float(r[0]) for r in reversed(rows)]
 
     def rejections(self) -> list[tuple[int, float, str, str, str | None]]:
         """All rejections as ``(id, received_at, reason, detail, part_id)``, oldest first."""
