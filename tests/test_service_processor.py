@@ -127,7 +127,13 @@ def test_gate_skips_a_single_outlier(tmp_path: Path, payloads: list[bytes]) -> N
     ref_proc = open_processor(tmp_path / "ref.sqlite", gated)
     ref = run(ref_proc, payloads[:30])
     proc = open_processor(tmp_path / "g.sqlite", gated)
-    got = run(proc, payloads[:25])
+    got = run(proc, payloads[:22])
+    window = list(proc.gate.history)  # type: ignore[union-attr]
+    proc.close()
+    proc.store.close()
+    proc = open_processor(tmp_path / "g.sqlite", gated)  # the gate's window survives
+    assert proc.gate is not None and proc.gate.history == window
+    got += run(proc, payloads[22:25])
     odd = json.loads(payloads[25])
     odd["part_id"] += "-odd"
     odd["cycle"] = json.loads(payloads[24])["cycle"] * 1000 + 1
