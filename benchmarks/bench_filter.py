@@ -59,16 +59,22 @@ PAPER_N = 7024
 
 def paper_metamodel() -> Path:
     """Fit (once; cached in the temp directory, ~5-15 min) and return the path of the
-    paper-scale metamodel of the analytic stand-in."""
-    path = Path(tempfile.gettempdir()) / f"formtwin_bench_metamodel_analytic_{PAPER_N}"
-    if not path.exists():
-        from formtwin.metamodel import Metamodel
-        from formtwin.metamodel.testing import analytic_dataset
+    paper-scale metamodel of the analytic stand-in; refit if the cached file no longer
+    loads (the metamodel file format changed)."""
+    from formtwin.metamodel import Metamodel
+    from formtwin.metamodel.testing import analytic_dataset
 
-        print(f"fitting the paper-scale metamodel ({PAPER_N} runs) -> {path}", file=sys.stderr)
-        saved = Metamodel().fit(analytic_dataset(PAPER_N, seed=0)).save(path)
-        if Path(saved) != path:
-            Path(saved).replace(path)
+    path = Path(tempfile.gettempdir()) / f"formtwin_bench_metamodel_analytic_{PAPER_N}"
+    if path.exists():
+        try:
+            Metamodel.load(path)
+            return path
+        except Exception as exc:  # a stale cache of an older format: refit
+            print(f"cached {path} does not load ({exc!r}); refitting", file=sys.stderr)
+    print(f"fitting the paper-scale metamodel ({PAPER_N} runs) -> {path}", file=sys.stderr)
+    saved = Metamodel().fit(analytic_dataset(PAPER_N, seed=0)).save(path)
+    if Path(saved) != path:
+        Path(saved).replace(path)
     return path
 
 
