@@ -109,7 +109,7 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
         ("table", ["setting", "value"], [[k, str(v)] for k, v in result.settings_dict().items()]
          + [[k, v] for k, v in sources.items()]),
         ("table", ["series", "data", "filter model", "statistics"],
-         [[str(s.number), s.data, "g(MM), estimates theta_d" if s.deviation else "MM",
+         [[str(s.number), s.data_label, "g(MM), estimates theta_d" if s.deviation else "MM",
            "mu known" if s.mu_known else "mu = (mu_min + mu_max)/2"]
           for s in SERIES if s.number in st.series]),
         ("h2", "Fig. 4: normalised RMSE"),

@@ -43,9 +43,14 @@ class Series:
     mu_known: bool
 
     @property
+    def data_label(self) -> str:
+        """The data source as the paper writes it: MM, g(MM), FE, g(FE)."""
+        return {"MM": "MM", "gMM": "g(MM)", "FE": "FE", "gFE": "g(FE)"}[self.data]
+
+    @property
     def label(self) -> str:
         model = "g(MM)" if self.deviation else "MM"
-        data = {"MM": "MM", "gMM": "g(MM)", "FE": "FE", "gFE": "g(FE)"}[self.data]
+        data = self.data_label
         stats = "mu known" if self.mu_known else "mu assumed"
         return f"{self.number}: data {data}, filter {model}, {stats}"
 
