@@ -217,3 +217,39 @@ def test_loo_gradient_matches_finite_differences(kernel: str) -> None:
     grad = loo_objective(x, U, P, Y, kernel, 1e-4)[1]
     fd = approx_fprime(x, lambda v: loo_objective(v, U, P, Y, kernel, 1e-4)[0], 1e-6)
     assert np.allclose(grad, fd, rtol=1e-4, atol=1e-5)
+    # with the log smoothing as a last parameter
+    x = np.append(x, np.log(1e-2))
+    grad = loo_objective(x, U, P, Y, kernel)[1]
+    fd = approx_fprime(x, lambda v: loo_objective(v, U, P, Y, kernel)[0], 1e-6)
+    assert grad.shape == (5,) and np.allclose(grad, fd, rtol=1e-4, atol=1e-5)
+
+
+def test_loo_smoothing_grows_with_noise() -> None:
+    rng = np.random.default_rng(10)
+    U = rng.random((200, 2))
+    clean = np.sin(3.0 * U[:, 0]) + U[:, 1] ** 2
+    y = clean + 0.05 * rng.normal(size=200)
+    exact = RBF(smoothing="loo", n_tune=200).fit(U, clean)
+    noisy = RBF(smoothing="loo", n_tune=200).fit(U, y)
+    assert noisy.smoothing > 100.0 * exact.smoothing  # measured: 8.9e-4 vs 2.4e-6
+    V = rng.random((300, 2))
+    truth = np.sin(3.0 * V[:, 0]) + V[:, 1] ** 2
+    plain = RBF(n_tune=200).fit(U, y)
+    err = [np.sqrt(np.mean((m.predict(V)[:, 0] - truth) ** 2)) for m in (noisy, plain)]
+    assert err[0] < 0.6 * err[1]  # measured: 0.023 vs 0.050
+
+
+def test_float32_falls_back_to_float64_when_it_loses_accuracy() -> None:
+    rng = np.random.default_rng(12)
+    U, V = rng.random((1500, 3)), rng.random((300, 3))
+
+    def f(U: np.ndarray) -> np.ndarray:
+        return np.sin(4.0 * U[:, 0]) + 0.01 * U[:, 1]
+
+    # a near-exact fit: float32 rounding (5e-4) would dominate the error (2e-6)
+    rbf = RBF("cubic", length_scales=np.array([20.0, 0.05, 0.05]), n_centres=500).fit(U, f(U))
+    assert rbf.dtype == np.float64
+    assert np.sqrt(np.mean((rbf.predict(V)[:, 0] - f(V)) ** 2)) < 1e-5
+    # a model whose error is far above float32 rounding stays float32
+    coarse = RBF(length_scales="box", n_centres=30).fit(U, f(U))
+    assert coarse.dtype == np.float32

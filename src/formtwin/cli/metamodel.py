@@ -32,9 +32,9 @@ def _model_options(p: argparse.ArgumentParser) -> None:
     modes.add_argument("--modes", type=int, help="number of POD modes (default: 40)")
     modes.add_argument("--energy", type=float,
                        help="keep the fewest POD modes capturing this share of the variance")
-    p.add_argument("--kernel", default="thin_plate_spline",
+    p.add_argument("--kernel", default=None,
                    help="RBF kernel, or several separated by commas to choose by "
-                        "leave-one-out (default: %(default)s)")
+                        "leave-one-out (default: the library default, cubic)")
     p.add_argument("--centres", type=int, default=None,
                    help="RBF centres of the curve model (default: the library default; "
                         "0: interpolate every run)")
@@ -49,10 +49,10 @@ def _metamodel(args: argparse.Namespace) -> Any:
 
     pod = POD(energy=args.energy) if args.energy is not None else \
         POD(n_modes=args.modes if args.modes is not None else 40)
-    kernels = [k.strip() for k in args.kernel.split(",") if k.strip()]
-
     def rbf(centres: int | None, default: RBF) -> RBF:
         m = default.n_centres if centres is None else (centres or None)
+        kernels = default.kernels if args.kernel is None else \
+            [k.strip() for k in args.kernel.split(",") if k.strip()]
         return RBF(kernels, length_scales=args.scales, n_centres=m)
 
     defaults = Metamodel()

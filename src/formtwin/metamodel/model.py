@@ -42,7 +42,8 @@ _T = TypeVar("_T")
 #: tolerance of the outside-box flag, as a fraction of each input's range
 _BOX_TOL = 1e-9
 
-#: RBF centres of the default curve model and of each default angle model
+#: kernel and RBF centres of the default curve model and of each default angle model
+DEFAULT_KERNEL = "cubic"
 DEFAULT_CENTRES = 1000
 DEFAULT_ANGLE_CENTRES = 500
 
@@ -124,12 +125,12 @@ class Metamodel:
         Reduction of the curves; default ``POD(n_modes=40)`` (paper).
     approximation : Approximation
         Template for the interpolation of the mode coefficients; default
-        ``RBF(n_centres=1000)`` (thin-plate spline, per-dimension length scales by
-        leave-one-out, least squares on 1000 centres; see ``docs/metamodel.md`` for the
-        accuracy/speed trade-off). It is copied, never fitted itself.
+        ``RBF("cubic", n_centres=1000)`` (per-dimension length scales by leave-one-out,
+        least squares on 1000 centres; see ``docs/metamodel.md`` for the accuracy/speed
+        trade-off that chose it). It is copied, never fitted itself.
     angle_approximation : Approximation or None
-        Template for each of the two angle models. ``None``: ``RBF(n_centres=500)`` if
-        ``approximation`` is also ``None``, else ``approximation``.
+        Template for each of the two angle models. ``None``: ``RBF("cubic",
+        n_centres=500)`` if ``approximation`` is also ``None``, else ``approximation``.
 
     Examples
     --------
@@ -146,10 +147,10 @@ class Metamodel:
                  angle_approximation: Approximation | None = None) -> None:
         self.reduction: Reduction = reduction if reduction is not None else POD()
         if angle_approximation is None:
-            angle_approximation = RBF(n_centres=DEFAULT_ANGLE_CENTRES) if approximation is None \
-                else approximation
+            angle_approximation = RBF(DEFAULT_KERNEL, n_centres=DEFAULT_ANGLE_CENTRES) \
+                if approximation is None else approximation
         self.approximation: Approximation = approximation if approximation is not None \
-            else RBF(n_centres=DEFAULT_CENTRES)
+            else RBF(DEFAULT_KERNEL, n_centres=DEFAULT_CENTRES)
         self.angle_approximation: Approximation = angle_approximation
         self.curve_model: Approximation | None = None
         self.angle_models: tuple[Approximation, ...] = ()

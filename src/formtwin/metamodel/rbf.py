@@ -113,6 +113,9 @@ KERNEL_SLOPES: dict[str, Kernel] = {
     "inverse_multiquadric": lambda r2: -0.5 * (1.0 + r2) ** -1.5,
 }
 
+# range and start of the smoothing chosen by leave-one-out (kernel units)
+_SMOOTHING_MIN, _SMOOTHING_START, _SMOOTHING_MAX = 1e-10, 1e-4, 1e4
+
 #: kernels whose interpolant does not change when all length scales are multiplied
 SCALE_FREE = frozenset({"thin_plate_spline", "cubic", "quintic", "linear"})
 
@@ -197,28 +200,36 @@ def _loo(R2: FloatArray, P: FloatArray, Y: FloatArray, kernel: str, smoothing: f
     return w / g[:, None], Bn, w, g
 
 
-def loo_objective(log_scales: FloatArray, U: FloatArray, P: FloatArray, Y: FloatArray,
+def loo_objective(params: FloatArray, U: FloatArray, P: FloatArray, Y: FloatArray,
                   kernel: str, smoothing: float = 0.0) -> tuple[float, FloatArray]:
-    """``log`` of the mean squared LOO residual and its gradient in ``log_scales`` (d,).
+    """``log`` of the mean squared LOO residual and its gradient in ``params``.
 
-    The gradient is exact and costs about one more matrix product of size n: with
-    ``L = sum e^2``, ``e_i = w_i / g_i`` and ``dB = -B dA B``,
+    ``params`` holds the log length scales (d,), or (d + 1,) with the log smoothing last
+    (then ``smoothing`` is ignored). The gradient is exact and costs about two more matrix
+    products of size n: with ``L = sum e^2``, ``e_i = w_i / g_i`` and ``dB = -B dA B``,
     ``dL = sum_jl dA_jl (M - Q)_jl`` where ``Q = (B a) w^T``, ``a = 2 e / g`` and
-    ``M = B diag(2 sum_k e_ik^2 / g_i) B``; ``dA`` is ``phi'(r^2)`` times the derivative
-    of the squared scaled distance, ``2 s_d^2 (u_jd - u_ld)^2``.
+    ``M = B diag(2 sum_k e_ik^2 / g_i) B``; for a length scale ``dA`` is ``phi'(r^2)``
+    times ``2 s_d^2 (u_jd - u_ld)^2``, for the log smoothing it is ``smoothing * I``.
     """
-    s2 = np.exp(2.0 * log_scales)
+    d = U.shape[1]
+    s2 = np.exp(2.0 * params[:d])
+    if params.size > d:
+        smoothing = float(np.exp(params[d]))
     R2 = cdist(U * np.sqrt(s2), U * np.sqrt(s2), "sqeuclidean")
     e, Bn, w, g = _loo(R2, P, Y, kernel, smoothing)
     L = float(np.sum(e**2))
     a = 2.0 * e / g[:, None]
     M = (Bn * (2.0 * np.sum(e**2, axis=1) / g)) @ Bn
     M -= (Bn @ a) @ w.T
+    d_smoothing = smoothing * float(np.trace(M))
     M *= KERNEL_SLOPES[kernel](R2)
     np.fill_diagonal(M, 0.0)
     rows, cols = M.sum(axis=1), M.sum(axis=0)
     quad = (U**2 * (rows + cols)[:, None]).sum(axis=0) - 2.0 * np.einsum("jd,jl,ld->d", U, M, U)
-    return float(np.log(L / e.size)), 2.0 * s2 * quad / L
+    grad = 2.0 * s2 * quad
+    if params.size > d:
+        grad = np.append(grad, d_smoothing)
+    return float(np.log(L / e.size)), grad / L
 
 
 class RBF:
@@ -232,8 +243,11 @@ class RBF:
     degree : int
         Degree of the polynomial tail (at least the kernel's minimum, e.g. 1 for the
         thin-plate spline; -1 for none).
-    smoothing : float
-        Added to the kernel matrix's diagonal (0 interpolates exactly).
+    smoothing : float or "loo"
+        Added to the kernel matrix's diagonal (0 interpolates exactly); ``"loo"``: chosen
+        with the length scales by leave-one-out (for noisy or rough data). Used by the
+        interpolating model; the least-squares model (``n_centres``) smooths by itself and
+        uses it only while choosing the scales.
     length_scales : "loo", "box" or array of shape (d,)
         ``"loo"``: per-dimension scales minimising Rippa's leave-one-out error on the
         tuning subset; ``"box"``: all 1 (isotropic in the unit box); an array: given.
@@ -253,7 +267,7 @@ class RBF:
     kind = "RBF"
 
     def __init__(self, kernel: str | Sequence[str] = "thin_plate_spline", degree: int = 1,
-                 smoothing: float = 0.0, length_scales: str | FloatArray = "loo",
+                 smoothing: float | str = 0.0, length_scales: str | FloatArray = "loo",
                  epsilon: float = 1.0, n_centres: int | None = None, n_tune: int = 800,
                  seed: int = 0, dtype: DTypeLike = np.float32) -> None:
         names = [kernel] if isinstance(kernel, str) else list(kernel)
@@ -269,7 +283,12 @@ class RBF:
             raise ValueError(f"RBF n_centres = {n_centres!r}, expected a positive int or None")
         self.kernels = tuple(names)
         self.degree = degree
-        self.smoothing = float(smoothing)
+        if isinstance(smoothing, str) and smoothing != "loo":
+            raise ValueError(f"RBF smoothing = {smoothing!r}, expected a number or 'loo'")
+        if isinstance(smoothing, str) and length_scales != "loo":
+            raise ValueError("RBF smoothing = 'loo' needs length_scales = 'loo'")
+        self.tune_smoothing = smoothing == "loo"
+        self.smoothing = 0.0 if isinstance(smoothing, str) else float(smoothing)
         self.length_scales = length_scales
         self.epsilon = float(epsilon)
         self.n_centres = n_centres
@@ -300,14 +319,15 @@ class RBF:
         self.powers = monomial_powers(d, self.degree)
         order = np.random.default_rng(self.seed).permutation(n)
         tune = order[:self.n_tune]
-        best: tuple[float, str, FloatArray] | None = None
+        best: tuple[float, str, FloatArray, float] | None = None
         for name in self.kernels:
-            scales, err = self._tune(U[tune], Y[tune], name)
-            log.info("RBF kernel %s: LOO rmse %.4g on %d points", name, err, tune.size)
+            scales, smoothing, err = self._tune(U[tune], Y[tune], name)
+            log.info("RBF kernel %s: LOO rmse %.4g on %d points (smoothing %.3g)", name, err,
+                     tune.size, smoothing)
             if best is None or err < best[0]:
-                best = (err, name, scales)
+                best = (err, name, scales, smoothing)
         assert best is not None
-        self.loo_rmse, self.kernel, self.scales = best
+        self.loo_rmse, self.kernel, self.scales, self.smoothing = best
         if self.n_centres is None or self.n_centres >= n:
             self._interpolate(U, Y)
         else:
@@ -316,28 +336,35 @@ class RBF:
         self._check_precision(U[order[:500]])
         return self
 
-    def _tune(self, U: FloatArray, Y: FloatArray, kernel: str) -> tuple[FloatArray, float]:
-        """Length scales for ``kernel`` and their LOO rmse on ``(U, Y)``."""
+    def _tune(self, U: FloatArray, Y: FloatArray, kernel: str
+              ) -> tuple[FloatArray, float, float]:
+        """Length scales and smoothing for ``kernel`` and their LOO rmse on ``(U, Y)``."""
         d = U.shape[1]
         P = polynomial(U, self.powers)
         eps = 1.0 if kernel in SCALE_FREE else self.epsilon
+        smoothing = self.smoothing
 
-        def loo(log_s: FloatArray) -> tuple[float, FloatArray]:
-            return loo_objective(log_s, U, P, Y, kernel, self.smoothing)
+        def loo(params: FloatArray) -> tuple[float, FloatArray]:
+            return loo_objective(params, U, P, Y, kernel, smoothing)
 
         if isinstance(self.length_scales, str) and self.length_scales == "box":
             scales = np.full(d, eps)
         elif isinstance(self.length_scales, str):
             x0 = np.full(d, np.log(eps))
-            res = minimize(loo, x0, jac=True, method="L-BFGS-B",
-                           bounds=[(np.log(eps) - 4.0, np.log(eps) + 4.0)] * d,
+            bounds = [(np.log(eps) - 4.0, np.log(eps) + 4.0)] * d
+            if self.tune_smoothing:
+                x0 = np.append(x0, np.log(_SMOOTHING_START))
+                bounds.append((np.log(_SMOOTHING_MIN), np.log(_SMOOTHING_MAX)))
+            res = minimize(loo, x0, jac=True, method="L-BFGS-B", bounds=bounds,
                            options={"maxiter": 30})
-            scales = np.exp(res.x)
-            if kernel in SCALE_FREE:
+            scales = np.exp(res.x[:d])
+            if self.tune_smoothing:
+                smoothing = float(np.exp(res.x[d]))
+            elif kernel in SCALE_FREE:  # the interpolant ignores a common factor
                 scales /= np.exp(np.mean(res.x))
         else:
             scales = np.asarray(self.length_scales, dtype=np.float64).reshape(d)
-        return scales, float(np.exp(0.5 * loo(np.log(scales))[0]))
+        return scales, smoothing, float(np.exp(0.5 * loo(np.log(scales))[0]))
 
     def _interpolate(self, U: FloatArray, Y: FloatArray) -> None:
         n = U.shape[0]
@@ -402,6 +429,7 @@ class RBF:
         """Arrays that define the fitted model (for the metamodel file)."""
         return {"kernel": np.array(self.kernel), "kernels": np.array(self.kernels),
                 "degree": np.array(self.degree), "smoothing": np.array(self.smoothing),
+                "tune_smoothing": np.array(self.tune_smoothing),
                 "epsilon": np.array(self.epsilon), "scales": self.scales,
                 "centres": self.centres, "weights": self.weights, "poly_coef": self.poly_coef,
                 "dtype": np.array(self.dtype.name), "loo_rmse": np.array(self.loo_rmse),
@@ -419,6 +447,7 @@ class RBF:
                   n_tune=int(arrays["n_tune"]), seed=int(arrays["seed"]),
                   dtype=str(arrays["dtype"]))
         rbf.kernel = str(arrays["kernel"])
+        rbf.tune_smoothing = bool(arrays["tune_smoothing"])
         rbf.scales = np.asarray(arrays["scales"], dtype=np.float64)
         rbf.centres = np.asarray(arrays["centres"], dtype=np.float64)
         rbf.weights = np.asarray(arrays["weights"], dtype=np.float64)
