@@ -183,10 +183,15 @@ def test_save_load_round_trip_without_pickle(tmp_path, data, model) -> None:  # 
     assert back.n_modes == model.n_modes and back.model_version == model.model_version
 
 
-def test_load_rejects_other_files(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_load_rejects_other_files(tmp_path, model) -> None:  # type: ignore[no-untyped-def]
     np.savez(tmp_path / "x.npz", a=np.zeros(3))
     with pytest.raises(ValueError, match="format"):
         Metamodel.load(tmp_path / "x.npz")
+    with np.load(model.save(tmp_path / "full.npz")) as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "curves.weights"}
+    np.savez(tmp_path / "cut.npz", **arrays)
+    with pytest.raises(ValueError, match="no array 'weights'"):
+        Metamodel.load(tmp_path / "cut.npz")
     (tmp_path / "y.npz").write_text("not a zip")
     with pytest.raises(ValueError, match="not a formtwin metamodel"):
         Metamodel.load(tmp_path / "y.npz")

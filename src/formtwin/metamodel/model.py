@@ -313,14 +313,18 @@ class Metamodel:
             return registry[name]
 
         mm = cls()
-        mm.reduction = kind("reduction", REDUCTIONS).from_state(part("reduction"))
-        mm.curve_model = kind("curves", APPROXIMATIONS).from_state(part("curves"))
-        mm.angle_models = tuple(kind(f"angle{j}", APPROXIMATIONS).from_state(part(f"angle{j}"))
-                                for j in range(2))
-        mm.spec_text = str(arrays["spec_text"])
-        mm._spec = parse_spec(mm.spec_text, str(arrays["spec_source"]))
-        mm._model_version = str(arrays["model_version"])
-        mm.lo = np.asarray(arrays["scaler_lo"], dtype=np.float64)
-        mm.hi = np.asarray(arrays["scaler_hi"], dtype=np.float64)
-        mm.n_train = int(arrays["n_train"])
+        try:
+            mm.reduction = kind("reduction", REDUCTIONS).from_state(part("reduction"))
+            mm.curve_model = kind("curves", APPROXIMATIONS).from_state(part("curves"))
+            mm.angle_models = tuple(kind(f"angle{j}", APPROXIMATIONS).from_state(
+                part(f"angle{j}")) for j in range(2))
+            mm.spec_text = str(arrays["spec_text"])
+            mm._model_version = str(arrays["model_version"])
+            mm.lo = np.asarray(arrays["scaler_lo"], dtype=np.float64)
+            mm.hi = np.asarray(arrays["scaler_hi"], dtype=np.float64)
+            mm.n_train = int(arrays["n_train"])
+            source = str(arrays["spec_source"])
+        except KeyError as exc:
+            raise ValueError(f"{p}: incomplete metamodel file, no array {exc}") from None
+        mm._spec = parse_spec(mm.spec_text, source)
         return mm
