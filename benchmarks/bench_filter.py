@@ -61,10 +61,14 @@ def paper_metamodel() -> Path:
     """Fit (once; cached in the temp directory, ~5-15 min) and return the path of the
     paper-scale metamodel of the analytic stand-in; refit if the cached file no longer
     loads (the metamodel file format changed)."""
+    import hashlib
+
     from formtwin.metamodel import Metamodel
     from formtwin.metamodel.testing import analytic_dataset
 
-    path = Path(tempfile.gettempdir()) / f"formtwin_bench_metamodel_analytic_{PAPER_N}"
+    # the defaults are part of the cache key: a change of defaults fits a new metamodel
+    key = hashlib.sha256(repr(Metamodel()).encode()).hexdigest()[:10]
+    path = Path(tempfile.gettempdir()) / f"formtwin_bench_metamodel_analytic_{PAPER_N}_{key}"
     if path.exists():
         try:
             Metamodel.load(path)
@@ -87,7 +91,7 @@ def load_model(name: str) -> tuple[ProcessModel, str, str]:
     desc = f"metamodel {name}"
     if name == "paper":
         name = str(paper_metamodel())
-        desc = (f"paper-scale metamodel: POD 40 modes + RBF fitted to {PAPER_N} LHS runs of "
+        desc = (f"paper-scale metamodel: {Metamodel()!r} fitted to {PAPER_N} LHS runs of "
                 "the analytic stand-in")
     model: ProcessModel = Metamodel.load(name)
     return model, desc, name
