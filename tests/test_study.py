@@ -88,3 +88,17 @@ def test_bad_settings_are_named() -> None:
         StudySettings(n_products=500, window=600)
     with pytest.raises(ValueError, match=r"series \[7\]"):
         StudySettings(series=(1, 7))
+
+
+def test_cli_quick_study_on_the_embedded_default(tmp_path: Path) -> None:
+    """The CI smoke test of the main job: bundled physics DOE -> metamodel -> 6 series."""
+    from formtwin.cli import main
+    from formtwin.defaults import physics_model
+
+    assert main(["study", "--quick", "--out", str(tmp_path), "--workers", "2"]) == 0
+    text = (tmp_path / "report.md").read_text()
+    assert f"bending ({physics_model('bending').version})" in text
+    lines = (tmp_path / "nrmse.csv").read_text().splitlines()
+    assert len(lines) == 1 + 6 * 2 * 1
+    s1 = np.array([[float(v) for v in line.split(",")[3:]] for line in lines[1:3]])
+    assert np.all(s1[:, 6] < 0.5), s1[:, 6]  # punch end distance is observable in series 1
