@@ -99,3 +99,11 @@ def test_bad_theta_d_is_rejected() -> None:
         G.apply(bump(T), np.zeros(7))
     with pytest.raises(ValueError, match="above -1"):
         G.apply(bump(T), np.r_[np.zeros(4), [-1.0, 0, 0, 0]])
+
+
+def test_plot_deviation_writes_a_figure(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from formtwin.cli import main
+
+    out = tmp_path / "deviation.png"
+    assert main(["plot", "deviation", "--out", str(out)]) == 0
+    assert out.stat().st_size > 20_000
