@@ -181,6 +181,7 @@ def test_save_load_round_trip_without_pickle(tmp_path, data, model) -> None:  # 
     assert back.spec.inputs.names == model.spec.inputs.names
     assert np.array_equal(back.spec.time, model.spec.time)
     assert back.n_modes == model.n_modes and back.model_version == model.model_version
+    assert repr(back) == repr(model)
 
 
 def test_load_rejects_other_files(tmp_path, model) -> None:  # type: ignore[no-untyped-def]

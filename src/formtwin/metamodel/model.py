@@ -327,4 +327,6 @@ class Metamodel:
         except KeyError as exc:
             raise ValueError(f"{p}: incomplete metamodel file, no array {exc}") from None
         mm._spec = parse_spec(mm.spec_text, source)
+        # the fitted parts stand in for the templates (repr, validate(), refitting)
+        mm.approximation, mm.angle_approximation = mm.curve_model, mm.angle_models[0]
         return mm
