@@ -165,7 +165,19 @@ def main(argv: list[str] | None = None) -> None:
                       f"{r['fit_s']:.0f} | {'/'.join(r['dtypes'])} |", flush=True)
             figures["tradeoff"] = rowsout
     figures["load_average_1min"] = os.getloadavg()[0]
+    figures["doe_7000_s"] = _doe_seconds()
     write_result("metamodel", figures)
+
+
+def _doe_seconds() -> float:
+    """Wall time of the paper-scale DOE over the physics model on 2 cores, from the runner's
+    record in the bundled dataset (``formtwin doe run`` writes it as ``elapsed_s``)."""
+    import h5py
+
+    from formtwin.defaults import bundled_doe
+
+    with h5py.File(bundled_doe("bending"), "r") as f:
+        return round(float(f.attrs["elapsed_s"]), 1)
 
 
 if __name__ == "__main__":
