@@ -2,9 +2,10 @@
 
 Runs ``formtwin study`` at the paper's size into ``--out`` (default
 ``benchmarks/.cache/study``) on the embedded default (bundled physics DOE, its metamodel)
-and reports ``full_study_s``: the 150 filter runs and the report, with the pseudo-data
-cached (its generation, physics runs included, is ``pseudo_data_s``: run the script twice to
-see the cached figure). Target: full_study_s <= 600 s on 2 cores.
+and reports ``full_study_s``: the 150 filter runs, metrics and report, the pseudo-data
+generation (physics runs included) apart as ``pseudo_data_s``. A finished study folder is
+only re-reported (``from_cache``: the figures are those of the run that computed it); use
+``--fresh-runs`` to time the filter runs again. Target: full_study_s <= 600 s on 2 cores.
 """
 
 from __future__ import annotations
@@ -38,11 +39,12 @@ def main() -> None:
     result = json.loads((out / "results.json").read_text())
     timings = result["timings"]
     figures = {
-        "full_study_s": round(wall - timings["pseudo_data_s"], 1),
+        "full_study_s": round(timings["total_s"] - timings["pseudo_data_s"], 1),
         "filter_runs_s": round(timings["filter_runs_s"], 1),
         "filter_runs_computed": int(timings["filter_runs_computed"]),
         "pseudo_data_s": round(timings["pseudo_data_s"], 1),
         "wall_s": round(wall, 1),
+        "from_cache": bool(timings.get("cached", 0.0)),
         "load_average_1min_start": round(load0, 2),
         "load_average_1min_end": round(os.getloadavg()[0], 2),
         "series1_angle_stage1_nrmse": result["nrmse_overall"]["series1"]["angle_stage1"],

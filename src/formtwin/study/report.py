@@ -121,6 +121,14 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
         ("table", header, table),
         ("h2", "Comparison with the paper"),
         *[("p", line) for line in comparison(spec, overall, st.series)],
+        ("p", "Spread of the real angles in the scoring window (the angle normaliser), mean "
+              "over datasets: " + "; ".join(
+                  f"{src} data: stage 1 {a1:.3f} deg, stage 2 {a2:.3f} deg"
+                  for src, (a1, a2) in _angle_spread(result).items()) + ". A small spread "
+              "makes the normalised angle error large even when the error in degrees is "
+              "small: our stage-2 angle hardly varies with the inputs, and the metamodel's "
+              "own stage-2 angle error is of the same order as that spread "
+              "(docs/metamodel.md)."),
         ("p", "Why ours may differ: our physics model is a corotational-beam model of an "
               "invented flap geometry, not the paper's MSC.Marc model of the real demonstrator; "
               "the sensitivities of the force curve to each parameter, and therefore what is "
@@ -150,6 +158,18 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
                                  for s in st.series}}
     (folder / "results.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
     return folder / "report.html"
+
+
+def _angle_spread(result: StudyResult) -> dict[str, tuple[float, float]]:
+    """Std of the real angles over the last ``window`` products, per data source (deg)."""
+    w = result.settings.window
+    out = {}
+    for src in ("MM", "FE"):
+        spreads = [np.nanstd(np.where(r.ok[src][-w:, None], r.angles[src][-w:], np.nan), axis=0)
+                   for r in result.realisations]
+        a1, a2 = np.mean(spreads, axis=0)
+        out[src] = (float(a1), float(a2))
+    return out
 
 
 def _json_float(v: float) -> float | None:
