@@ -35,7 +35,7 @@ All inputs are internal units (mm, N, s, MPa); see :mod:`formtwin.spec`.
 >>> mid = 0.5 * (sim.spec.inputs.lo + sim.spec.inputs.hi)
 >>> r = sim.run(mid)
 >>> r.ok, r.curve.shape, bool(r.curve.max() > 50.0), r.angles.round(1).tolist()
-(True, (101,), True, [44.0, 89.0])
+(True, (101,), True, [43.5, 87.7])
 """
 
 from __future__ import annotations
