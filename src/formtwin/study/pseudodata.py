@@ -23,7 +23,9 @@ import numpy as np
 import xarray as xr
 from numpy.typing import NDArray
 
+from formtwin.dataset import DoeDataset
 from formtwin.deviation import DeviationModel
+from formtwin.doe import run_design
 from formtwin.evolution import simulate
 from formtwin.measurement import ProcessModel
 from formtwin.simulator import ANGLE_NAMES, Simulator
@@ -126,9 +128,6 @@ def make_realisation(
     The physics runs go through the DOE runner (parallel, resumable): its dataset
     ``fe_K.nc`` in ``folder`` is the cache of the ``FE`` curves.
     """
-    from formtwin.dataset import DoeDataset
-    from formtwin.doe import run_design
-
     path = folder / f"realisation_{index}.nc"
     if path.exists():
         with xr.open_dataset(path, engine="h5netcdf") as ds:

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
 from formtwin.measurement import MeasurementModel
+from formtwin.metamodel import Metamodel
 from formtwin.study.pseudodata import Realisation
 from formtwin.tracker import Tracker, TrackerConfig
 
@@ -82,9 +83,7 @@ class Task:
 
 
 @functools.lru_cache(maxsize=2)
-def _metamodel(path: str) -> object:
-    from formtwin.metamodel import Metamodel
-
+def _metamodel(path: str) -> Metamodel:
     return Metamodel.load(path)
 
 
@@ -98,10 +97,9 @@ def _realisation(path: str) -> Realisation:
 def _measurement(metamodel_path: str, realisation_path: str, mu_known: bool,
                  seed: int) -> MeasurementModel:
     model = _metamodel(metamodel_path)
-    spec = model.spec  # type: ignore[attr-defined]
-    mu = _realisation(realisation_path).mu if mu_known else spec.state.mu_mid
+    mu = _realisation(realisation_path).mu if mu_known else model.spec.state.mu_mid
     rng = np.random.default_rng(np.random.SeedSequence([seed, 7919, int(mu_known)]))
-    return MeasurementModel.from_monte_carlo(model, spec, mu=mu, rng=rng)  # type: ignore[arg-type]
+    return MeasurementModel.from_monte_carlo(model, mu=mu, rng=rng)
 
 
 def run_task(task: Task) -> str:
@@ -122,7 +120,7 @@ def _run(task: Task, out: Path) -> None:
     series = SERIES[task.series - 1]
     model = _metamodel(task.metamodel_path)
     real = _realisation(task.realisation_path)
-    spec = model.spec  # type: ignore[attr-defined]
+    spec = model.spec
     measurement = _measurement(task.metamodel_path, task.realisation_path, series.mu_known,
                                task.seed)
     ss = np.random.SeedSequence([task.seed, task.series, task.realisation, task.repetition])
@@ -130,7 +128,7 @@ def _run(task: Task, out: Path) -> None:
         n_particles=task.n_particles, alpha=task.alpha, estimate_deviation=series.deviation,
         mu=tuple(real.mu if series.mu_known else spec.state.mu_mid),
         seed=int(ss.generate_state(1)[0]))
-    tracker = Tracker(model, measurement, config)  # type: ignore[arg-type]
+    tracker = Tracker(model, measurement, config)
     ok = real.ok[series.data]
     est = tracker.run(real.curves[series.data][ok])
     n, d = real.n, len(spec.augmented)
