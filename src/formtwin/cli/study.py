@@ -26,7 +26,8 @@ def register(sub: Any) -> None:
     p.add_argument("--repetitions", type=int, help="filter repetitions per dataset (paper: 5)")
     p.add_argument("--particles", type=int, help="particles N (paper: 500)")
     p.add_argument("--window", type=int, help="products at the end scored (paper: 500)")
-    p.add_argument("--series", help="comma-separated series numbers (default: 1,2,3,4,5,6)")
+    p.add_argument("--series", help="comma-separated series numbers (default: the paper's "
+                   "1,2,3,4,5,6; 7, 8: series 4, 6 with learned mu)")
     p.add_argument("--seed", type=int, default=0, help="master seed (default: %(default)s)")
     p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
@@ -67,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     metamodel, mm_path = default_metamodel(out / "model", args.physics, args.metamodel)
     physics = physics_model(args.physics, metamodel.spec)
+    n_runs = len(settings.series) * settings.n_realisations * settings.n_repetitions
+    print(f"study into {out}: {settings.n_realisations} datasets x {settings.n_products} "
+          f"products ({args.physics} model runs, cached), then {n_runs} filter runs with "
+          f"N = {settings.n_particles} (progress bars on a terminal; -v logs the steps)",
+          flush=True)
     result = run_study(settings, out, metamodel, mm_path, physics,
                        progress=sys.stderr.isatty())
     report = write_report(result, metamodel.spec, out, sources={
