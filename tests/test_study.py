@@ -87,8 +87,8 @@ def test_study_is_reproducible_from_its_seed(metamodel: tuple[Metamodel, Path],
 def test_bad_settings_are_named() -> None:
     with pytest.raises(ValueError, match="window = 600"):
         StudySettings(n_products=500, window=600)
-    with pytest.raises(ValueError, match=r"series \[7\]"):
-        StudySettings(series=(1, 7))
+    with pytest.raises(ValueError, match=r"series \[9\]"):
+        StudySettings(series=(1, 9))
 
 
 def test_cli_quick_study_on_the_embedded_default(tmp_path: Path) -> None:

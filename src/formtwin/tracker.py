@@ -10,6 +10,13 @@ The filter's state is the augmented vector ``[x (7), theta (3), theta_d (8)]`` n
 * likelihood (eq. 12): ``g^-1(z, theta_d)`` against the model curve ``z~(x, theta)`` under
   the :class:`~formtwin.measurement.MeasurementModel`.
 
+With ``learn_mu=True`` (the paper's Discussion: the statistics as hyperparameters
+estimated with the rest) the particles carry 7 more columns, their own mu: initially
+``U(mu_min, mu_max)``, each particle's ``x`` evolves with its own mu, then mu takes a jitter
+step of std ``mu_alpha (mu_max - mu_min)`` reflected into ``[mu_min, mu_max]``. The
+estimate reports it in ``mu_mean``/``mu_std``; ``names``/``mean``/``std`` stay the 18
+augmented variables.
+
 With ``estimate_deviation=False`` (paper series 1, 2, 4, 5) ``theta_d`` is fixed at 0
 (``g`` is the identity), never jittered, and reported with mean 0 and std 0 (an exact,
 NaN-free statement of the filter's assumption).
@@ -31,9 +38,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +49,7 @@ from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
 from formtwin.deviation import DeviationModel
+from formtwin.estimates import Estimate, Estimates
 from formtwin.evolution import evolve, jitter, reflect, stationary
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
@@ -85,6 +92,15 @@ class TrackerConfig:
         cloud by systematic resampling (cuts the cost of the angle models, adds Monte-Carlo
         error of order ``std / sqrt(angle_particles)``); ``None`` (default): all particles
         with their weights.
+    learn_mu : estimate the statistics mu as per-particle hyperparameters (prior
+        ``U(mu_min, mu_max)``); ``mu`` is then ignored. Default off (the paper's filter).
+    mu_alpha : jitter of the learned mu per product, as a fraction of ``mu_max - mu_min``.
+        0.02: with resampling every step the mu cloud collapses onto few ancestors and
+        only the jitter keeps it diverse; on the analytic stand-in (5 datasets, N = 500,
+        500 products) 0.005 left the mu posterior std at ~0.07 sigma with errors of
+        1-2 sigma, 0.02 gave the smallest mu and state errors of 0.005/0.01/0.02
+        (docs/improvements.md). The price: the filter forgets old products, mu is a
+        local level over roughly the last 50-100 products rather than a constant.
     """
 
     n_particles: int = 500
@@ -99,6 +115,8 @@ class TrackerConfig:
     ess_threshold: float = 1.0
     compare: str = "model"
     angle_particles: int | None = None
+    learn_mu: bool = False
+    mu_alpha: float = 0.02
 
     def __post_init__(self) -> None:
         if self.angle_particles is not None and self.angle_particles < 1:
@@ -113,6 +131,8 @@ class TrackerConfig:
             raise ValueError(f"n_particles = {self.n_particles}, expected >= 1")
         if self.alpha < 0:
             raise ValueError(f"alpha = {self.alpha}, expected >= 0")
+        if self.mu_alpha < 0:
+            raise ValueError(f"mu_alpha = {self.mu_alpha}, expected >= 0")
 
     def to_json(self) -> str:
         if not isinstance(self.resampling, str):
@@ -122,106 +142,6 @@ class TrackerConfig:
     @classmethod
     def from_json(cls, text: str) -> TrackerConfig:
         return cls(**json.loads(text))
-
-
-def _jsonable(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """The estimate after one product (eq. 13-14), internal units.
-
-    Attributes
-    ----------
-    index : 0-based number of the product in the tracker's stream.
-    names : (18,) names of the augmented state (``spec.augmented.names``).
-    mean, std : (18,) weighted posterior mean and std.
-    angles_mean, angles_std : (2,) posterior predictive mean and std of the angles, degrees.
-    ess : effective sample size before resampling.
-    collapsed : no particle explained the curve (estimate = predictive).
-    loglik : log marginal-likelihood increment of the curve (``-inf`` if collapsed).
-    """
-
-    index: int
-    names: tuple[str, ...]
-    mean: FloatArray
-    std: FloatArray
-    angles_mean: FloatArray
-    angles_std: FloatArray
-    ess: float
-    collapsed: bool
-    loglik: float
-
-    def __getitem__(self, name: str) -> float:
-        """Posterior mean of the variable ``name``."""
-        return float(self.mean[self.names.index(name)])
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-safe dict (non-finite numbers become ``None``)."""
-        return {
-            "index": int(self.index),
-            "mean": {n: _jsonable(v) for n, v in zip(self.names, self.mean, strict=True)},
-            "std": {n: _jsonable(v) for n, v in zip(self.names, self.std, strict=True)},
-            "angles_mean": [_jsonable(v) for v in self.angles_mean],
-            "angles_std": [_jsonable(v) for v in self.angles_std],
-            "ess": _jsonable(self.ess),
-            "collapsed": bool(self.collapsed),
-            "loglik": _jsonable(self.loglik),
-        }
-
-
-@dataclass(frozen=True)
-class Estimates:
-    """Stacked estimates of ``n`` products: arrays with a leading axis ``n``."""
-
-    names: tuple[str, ...]
-    index: NDArray[np.int64]
-    mean: FloatArray
-    std: FloatArray
-    angles_mean: FloatArray
-    angles_std: FloatArray
-    ess: FloatArray
-    collapsed: NDArray[np.bool_]
-    loglik: FloatArray
-
-    def __len__(self) -> int:
-        return int(self.index.size)
-
-    def __getitem__(self, name: str) -> FloatArray:
-        """Posterior means (n,) of the variable ``name``."""
-        out: FloatArray = self.mean[:, self.names.index(name)]
-        return out
-
-    @classmethod
-    def stack(cls, items: Sequence[Estimate], names: tuple[str, ...]) -> Estimates:
-        """Stack single estimates (possibly none) into arrays."""
-        d = len(names)
-
-        def arr(attr: str, width: int) -> FloatArray:
-            if not items:
-                return np.empty((0, width))
-            return np.array([getattr(e, attr) for e in items], dtype=np.float64)
-
-        return cls(names=names, index=np.array([e.index for e in items], dtype=np.int64),
-                   mean=arr("mean", d), std=arr("std", d), angles_mean=arr("angles_mean", 2),
-                   angles_std=arr("angles_std", 2),
-                   ess=np.array([e.ess for e in items], dtype=np.float64),
-                   collapsed=np.array([e.collapsed for e in items], dtype=bool),
-                   loglik=np.array([e.loglik for e in items], dtype=np.float64))
-
-    def columns(self) -> dict[str, NDArray[Any]]:
-        """Flat table columns: index, mean_<name>, std_<name>, angles, ess, ... (each (n,))."""
-        cols: dict[str, NDArray[Any]] = {"index": self.index}
-        for j, n in enumerate(self.names):
-            cols[f"mean_{n}"] = self.mean[:, j]
-        for j, n in enumerate(self.names):
-            cols[f"std_{n}"] = self.std[:, j]
-        for j in range(2):
-            cols[f"angle{j + 1}_mean"] = self.angles_mean[:, j]
-            cols[f"angle{j + 1}_std"] = self.angles_std[:, j]
-        cols.update(ess=self.ess, collapsed=self.collapsed, loglik=self.loglik)
-        return cols
 
 
 @dataclass(frozen=True)
@@ -236,15 +156,19 @@ class BendingSSM:
     _mu: FloatArray = field(init=False, repr=False)
     _sigma: FloatArray = field(init=False, repr=False)
     _rho: FloatArray = field(init=False, repr=False)
-    _lo: FloatArray = field(init=False, repr=False)  # bounds of the augmented state (18,)
+    # bounds of the particle columns: (18,), or (25,) with [mu_min, mu_max] when learning mu
+    _lo: FloatArray = field(init=False, repr=False)
     _hi: FloatArray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
         object.__setattr__(self, "spec", spec)
         # the spec builds these arrays on every access (~20 us): keep them
-        object.__setattr__(self, "_lo", spec.augmented.lo)
-        object.__setattr__(self, "_hi", spec.augmented.hi)
+        lo, hi = spec.augmented.lo, spec.augmented.hi
+        if self.config.learn_mu:
+            lo, hi = np.r_[lo, spec.state.mu_min], np.r_[hi, spec.state.mu_max]
+        object.__setattr__(self, "_lo", lo)
+        object.__setattr__(self, "_hi", hi)
         object.__setattr__(self, "deviation", DeviationModel.from_spec(spec))
         st, c = spec.state, self.config
         for name, v in (("mu", c.mu), ("sigma", c.sigma), ("rho", c.rho)):
@@ -266,24 +190,38 @@ class BendingSSM:
     def n_in(self) -> int:
         return self.spec.n_inputs
 
+    @property
+    def n_aug(self) -> int:
+        """Width of the augmented state ``[x, theta, theta_d]`` (18); the particles have
+        ``n_x`` more columns (their mu) when learning mu."""
+        return len(self.spec.augmented)
+
     def sample_initial(self, n: int, rng: np.random.Generator) -> FloatArray:
         lo, hi, nx = self._lo, self._hi, self.n_x
         out = lo + (hi - lo) * rng.random((n, lo.size))
-        out[:, :nx] = stationary(n, self._mu, self._sigma, rng, lo[:nx], hi[:nx])
+        if self.config.learn_mu:  # x from the stationary law of each particle's own mu
+            mu = out[:, self.n_aug:]
+            out[:, :nx] = reflect(mu + self._sigma * rng.standard_normal((n, nx)),
+                                  lo[:nx], hi[:nx])
+        else:
+            out[:, :nx] = stationary(n, self._mu, self._sigma, rng, lo[:nx], hi[:nx])
         if not self.config.estimate_deviation:
-            out[:, self.n_in:] = 0.0
+            out[:, self.n_in:self.n_aug] = 0.0
         return out
 
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
-        lo, hi, nx = self._lo, self._hi, self.n_x
+        lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
         out = np.empty_like(x)
+        mu = x[:, na:] if self.config.learn_mu else self._mu
         # eq. 4-5, then reflection of the few rows that left the box
-        out[:, :nx] = _into_box(evolve(x[:, :nx], self._mu, self._sigma, self._rho, rng),
+        out[:, :nx] = _into_box(evolve(x[:, :nx], mu, self._sigma, self._rho, rng),
                                 lo[:nx], hi[:nx])
-        stop = lo.size if self.config.estimate_deviation else self.n_in
+        stop = na if self.config.estimate_deviation else self.n_in
         out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                  self.config.alpha)
-        out[:, stop:] = x[:, stop:]
+        out[:, stop:na] = x[:, stop:na]
+        if self.config.learn_mu:
+            out[:, na:] = jitter(x[:, na:], lo[na:], hi[na:], rng, self.config.mu_alpha)
         return out
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
@@ -294,15 +232,15 @@ class BendingSSM:
                                for i in range(0, x.shape[0], CHUNK)])
 
     def constrain(self, x: FloatArray) -> FloatArray:
-        """Reflect augmented particles (N, 18) into their bounds (used by kernel moves);
+        """Reflect particles (N, 18) or (N, 25) into their bounds (used by kernel moves);
         ``theta_d`` stays 0 when it is not estimated."""
         out = reflect(x, self._lo, self._hi)
         if not self.config.estimate_deviation:
-            out[:, self.n_in:] = 0.0
+            out[:, self.n_in:self.n_aug] = 0.0
         return out
 
     def predict_angles(self, x: FloatArray) -> FloatArray:
-        """Angles (N, 2) of augmented particles ``x`` (N, 18), in blocks of particles."""
+        """Angles (N, 2) of particles ``x`` (N, 18) or (N, 25), in blocks of particles."""
         return np.concatenate([self.model.predict_angles(x[i: i + CHUNK, : self.n_in])
                                for i in range(0, x.shape[0], CHUNK)])
 
@@ -310,9 +248,10 @@ class BendingSSM:
         curves = self.model.predict_curves(x[:, : self.n_in])
         if not self.config.estimate_deviation:
             return self.measurement.loglik(curves, y)
+        td = x[:, self.n_in:self.n_aug]
         if self.config.compare == "measurement":
-            return self.measurement.loglik(self.deviation.apply(curves, x[:, self.n_in:]), y)
-        return self.measurement.loglik(curves, self.deviation.invert(y, x[:, self.n_in:]))
+            return self.measurement.loglik(self.deviation.apply(curves, td), y)
+        return self.measurement.loglik(curves, self.deviation.invert(y, td))
 
 
 def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
@@ -389,7 +328,8 @@ class Tracker:
 
     @property
     def particles(self) -> FloatArray | None:
-        """Current (resampled) particles (N, 18), or ``None`` before the first step."""
+        """Current (resampled) particles (N, 18) (N, 25 with the learned mu last), or
+        ``None`` before the first step."""
         return self.filter.x
 
     def step(self, curve: Any) -> Estimate:
@@ -426,9 +366,13 @@ class Tracker:
             astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0))
         else:
             am = astd = np.full(2, np.nan)
-        return Estimate(index=self.filter.t - 1, names=self.names, mean=s.mean(), std=s.std(),
-                        angles_mean=am, angles_std=astd, ess=s.ess, collapsed=s.collapsed,
-                        loglik=s.loglik)
+        mean, std, na = s.mean(), s.std(), len(self.names)
+        learned = self.config.learn_mu
+        return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
+                        std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
+                        collapsed=s.collapsed, loglik=s.loglik,
+                        mu_mean=mean[na:] if learned else None,
+                        mu_std=std[na:] if learned else None)
 
     def run(self, curves: Iterable[Any], progress: bool = False) -> Estimates:
         """Assimilate curves (n, n_t) one product at a time; return stacked estimates.
@@ -454,7 +398,7 @@ class Tracker:
         """Save the full state to ``path`` (.npz, atomic replace); return the path."""
         p = Path(path)
         f = self.filter
-        x = np.empty((0, len(self.names))) if f.x is None else f.x
+        x = np.empty((0, self.ssm.n_aug)) if f.x is None else f.x
         tmp = p.with_name(p.name + ".tmp")
         with open(tmp, "wb") as fh:
             np.savez(fh, format=np.array(_CHECKPOINT_FORMAT), particles=x, logw=f.logw,

@@ -1,4 +1,4 @@
-"""The six simulation series of the paper's Fig. 4 and one particle-filter run of them.
+"""The six simulation series of the paper's Fig. 4 (plus two of ours) and one filter run.
 
 =====  ==========  =========================  ================
 series  data        filter model               statistics mu
@@ -9,7 +9,15 @@ series  data        filter model               statistics mu
 4       MM          MM                         (mu_min+mu_max)/2
 5       FE          MM                         known
 6       g(FE)       g(MM), estimates theta_d   (mu_min+mu_max)/2
+7       MM          MM                         learned (prior U(mu_min, mu_max))
+8       g(FE)       g(MM), estimates theta_d   learned (prior U(mu_min, mu_max))
 =====  ==========  =========================  ================
+
+Series 7 and 8 are not the paper's: they are series 4 and 6 with the improvement its
+Discussion suggests, the statistics mu estimated as hyperparameters
+(``TrackerConfig(learn_mu=True)``, see ``docs/improvements.md``). Their K_MC is that of
+series 4 and 6 (mid-range mu), so the pairs differ only in the filter. The default study
+(``StudySettings.series``) stays the paper's six.
 
 The measurement model's K_MC is computed with the mu the filter assumes (paper,
 "Simulation runs"): the realisation's true mu when known, the mid-range otherwise.
@@ -20,6 +28,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import xarray as xr
@@ -36,12 +45,14 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Series:
-    """One simulation series: which data, whether theta_d is estimated, whether mu is known."""
+    """One simulation series: which data, whether theta_d is estimated, whether mu is known
+    (else assumed mid-range), whether the filter learns mu (then ``mu_known`` is False)."""
 
     number: int
     data: str
     deviation: bool
     mu_known: bool
+    learn_mu: bool = False
 
     @property
     def data_label(self) -> str:
@@ -52,7 +63,8 @@ class Series:
     def label(self) -> str:
         model = "g(MM)" if self.deviation else "MM"
         data = self.data_label
-        stats = "mu known" if self.mu_known else "mu assumed"
+        stats = ("mu known" if self.mu_known else "mu learned" if self.learn_mu
+                 else "mu assumed")
         return f"{self.number}: data {data}, filter {model}, {stats}"
 
 
@@ -63,7 +75,12 @@ SERIES: tuple[Series, ...] = (
     Series(4, "MM", deviation=False, mu_known=False),
     Series(5, "FE", deviation=False, mu_known=True),
     Series(6, "gFE", deviation=True, mu_known=False),
+    Series(7, "MM", deviation=False, mu_known=False, learn_mu=True),
+    Series(8, "gFE", deviation=True, mu_known=False, learn_mu=True),
 )
+
+#: the paper's six series, the default of a study
+PAPER_SERIES: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
 
 
 @dataclass(frozen=True)
@@ -127,7 +144,7 @@ def _run(task: Task, out: Path) -> None:
     config = TrackerConfig(
         n_particles=task.n_particles, alpha=task.alpha, estimate_deviation=series.deviation,
         mu=tuple(real.mu if series.mu_known else spec.state.mu_mid),
-        seed=int(ss.generate_state(1)[0]))
+        seed=int(ss.generate_state(1)[0]), learn_mu=series.learn_mu)
     tracker = Tracker(model, measurement, config)
     ok = real.ok[series.data]
     est = tracker.run(real.curves[series.data][ok])
@@ -140,6 +157,13 @@ def _run(task: Task, out: Path) -> None:
     ess[ok] = est.ess
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, mean=mean, std=std, angles_mean=ang_mean, angles_std=ang_std,
-                        ess=ess, collapsed=np.asarray(est.collapsed))
+    arrays: dict[str, Any] = {"mean": mean, "std": std, "angles_mean": ang_mean,
+                              "angles_std": ang_std, "ess": ess,
+                              "collapsed": np.asarray(est.collapsed)}
+    if est.mu_mean is not None and est.mu_std is not None:  # learned mu, (n, 7)
+        for key, value in (("mu_mean", est.mu_mean), ("mu_std", est.mu_std)):
+            full = np.full((n, len(spec.state)), np.nan)
+            full[ok] = value
+            arrays[key] = full
+    np.savez_compressed(tmp, **arrays)
     tmp.replace(out)

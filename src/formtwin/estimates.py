@@ -1,0 +1,143 @@
+"""The tracker's output: one :class:`Estimate` per product, :class:`Estimates` stacked.
+
+Both are re-exported by :mod:`formtwin.tracker`. ``names``/``mean``/``std`` always hold the
+18 augmented variables ``[x, theta, theta_d]``; a tracker that learns the statistics mu
+(``TrackerConfig(learn_mu=True)``) adds the posterior mean and std of mu in the optional
+``mu_mean``/``mu_std`` (``None`` otherwise), so consumers of the 18 names are unaffected.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def _jsonable(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The estimate after one product (eq. 13-14), internal units.
+
+    Attributes
+    ----------
+    index : 0-based number of the product in the tracker's stream.
+    names : (18,) names of the augmented state (``spec.augmented.names``).
+    mean, std : (18,) weighted posterior mean and std.
+    angles_mean, angles_std : (2,) posterior predictive mean and std of the angles, degrees.
+    ess : effective sample size before resampling.
+    collapsed : no particle explained the curve (estimate = predictive).
+    loglik : log marginal-likelihood increment of the curve (``-inf`` if collapsed).
+    mu_mean, mu_std : (7,) posterior mean and std of the statistics mu of the state
+        variables (``spec.state.names`` order, internal units) when the tracker learns mu;
+        ``None`` otherwise.
+    """
+
+    index: int
+    names: tuple[str, ...]
+    mean: FloatArray
+    std: FloatArray
+    angles_mean: FloatArray
+    angles_std: FloatArray
+    ess: float
+    collapsed: bool
+    loglik: float
+    mu_mean: FloatArray | None = None
+    mu_std: FloatArray | None = None
+
+    def __getitem__(self, name: str) -> float:
+        """Posterior mean of the variable ``name``."""
+        return float(self.mean[self.names.index(name)])
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (non-finite numbers become ``None``); ``mu_mean``/``mu_std``
+        (lists of 7) only when mu is learned."""
+        out: dict[str, Any] = {
+            "index": int(self.index),
+            "mean": {n: _jsonable(v) for n, v in zip(self.names, self.mean, strict=True)},
+            "std": {n: _jsonable(v) for n, v in zip(self.names, self.std, strict=True)},
+            "angles_mean": [_jsonable(v) for v in self.angles_mean],
+            "angles_std": [_jsonable(v) for v in self.angles_std],
+            "ess": _jsonable(self.ess),
+            "collapsed": bool(self.collapsed),
+            "loglik": _jsonable(self.loglik),
+        }
+        if self.mu_mean is not None and self.mu_std is not None:
+            out["mu_mean"] = [_jsonable(v) for v in self.mu_mean]
+            out["mu_std"] = [_jsonable(v) for v in self.mu_std]
+        return out
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """Stacked estimates of ``n`` products: arrays with a leading axis ``n``
+    (``mu_mean``, ``mu_std``: (n, 7) when mu is learned, else ``None``)."""
+
+    names: tuple[str, ...]
+    index: NDArray[np.int64]
+    mean: FloatArray
+    std: FloatArray
+    angles_mean: FloatArray
+    angles_std: FloatArray
+    ess: FloatArray
+    collapsed: NDArray[np.bool_]
+    loglik: FloatArray
+    mu_mean: FloatArray | None = None
+    mu_std: FloatArray | None = None
+
+    def __len__(self) -> int:
+        return int(self.index.size)
+
+    def __getitem__(self, name: str) -> FloatArray:
+        """Posterior means (n,) of the variable ``name``."""
+        out: FloatArray = self.mean[:, self.names.index(name)]
+        return out
+
+    @classmethod
+    def stack(cls, items: Sequence[Estimate], names: tuple[str, ...]) -> Estimates:
+        """Stack single estimates (possibly none) into arrays."""
+        d = len(names)
+
+        def arr(attr: str, width: int) -> FloatArray:
+            if not items:
+                return np.empty((0, width))
+            return np.array([getattr(e, attr) for e in items], dtype=np.float64)
+
+        learned = bool(items) and all(e.mu_mean is not None for e in items)
+        return cls(names=names, index=np.array([e.index for e in items], dtype=np.int64),
+                   mean=arr("mean", d), std=arr("std", d), angles_mean=arr("angles_mean", 2),
+                   angles_std=arr("angles_std", 2),
+                   ess=np.array([e.ess for e in items], dtype=np.float64),
+                   collapsed=np.array([e.collapsed for e in items], dtype=bool),
+                   loglik=np.array([e.loglik for e in items], dtype=np.float64),
+                   mu_mean=arr("mu_mean", 0) if learned else None,
+                   mu_std=arr("mu_std", 0) if learned else None)
+
+    def columns(self) -> dict[str, NDArray[Any]]:
+        """Flat table columns: index, mean_<name>, std_<name>, angles, ess, ... (each (n,));
+        plus mu_mean_<state name>, mu_std_<state name> when mu is learned."""
+        cols: dict[str, NDArray[Any]] = {"index": self.index}
+        for j, n in enumerate(self.names):
+            cols[f"mean_{n}"] = self.mean[:, j]
+        for j, n in enumerate(self.names):
+            cols[f"std_{n}"] = self.std[:, j]
+        for j in range(2):
+            cols[f"angle{j + 1}_mean"] = self.angles_mean[:, j]
+            cols[f"angle{j + 1}_std"] = self.angles_std[:, j]
+        cols.update(ess=self.ess, collapsed=self.collapsed, loglik=self.loglik)
+        if self.mu_mean is not None and self.mu_std is not None:
+            for j in range(self.mu_mean.shape[1]):  # the first 7 names are the state's
+                cols[f"mu_mean_{self.names[j]}"] = self.mu_mean[:, j]
+                cols[f"mu_std_{self.names[j]}"] = self.mu_std[:, j]
+        return cols
+
+
+__all__ = ["Estimate", "Estimates"]
