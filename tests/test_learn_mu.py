@@ -17,22 +17,12 @@ import pytest
 
 from formtwin.evolution import simulate
 from formtwin.measurement import AnalyticModel, MeasurementModel
-from formtwin.spec import ProcessSpec, load_spec
+from formtwin.spec import ProcessSpec
 from formtwin.study.run import StudySettings
 from formtwin.study.series import PAPER_SERIES, SERIES
 from formtwin.tracker import Tracker, TrackerConfig
 
 N_PRODUCTS = 400
-
-
-@pytest.fixture(scope="module")
-def spec() -> ProcessSpec:
-    return load_spec()
-
-
-@pytest.fixture(scope="module")
-def model(spec: ProcessSpec) -> AnalyticModel:
-    return AnalyticModel(spec)
 
 
 @pytest.fixture(scope="module")

@@ -11,18 +11,8 @@ import pytest
 
 from formtwin.evolution import simulate
 from formtwin.measurement import AnalyticModel, MeasurementModel
-from formtwin.spec import ProcessSpec, load_spec
+from formtwin.spec import ProcessSpec
 from formtwin.tracker import Estimates, Tracker, TrackerConfig
-
-
-@pytest.fixture(scope="module")
-def spec() -> ProcessSpec:
-    return load_spec()
-
-
-@pytest.fixture(scope="module")
-def model(spec: ProcessSpec) -> AnalyticModel:
-    return AnalyticModel(spec)
 
 
 @pytest.fixture(scope="module")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -13,6 +14,16 @@ from formtwin.spec import ProcessSpec
 FloatArray = NDArray[np.float64]
 
 
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the headless Agg backend (extra ``plot``, imported lazily)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def plot_deviation(spec: ProcessSpec, curve: FloatArray, path: str | Path,
                    amount: float = 0.2) -> Path:
     """Effect of each deviation knot on ``curve`` (n_t,) N, as in the paper's Fig. 1.
@@ -20,10 +31,7 @@ def plot_deviation(spec: ProcessSpec, curve: FloatArray, path: str | Path,
     One panel per knot: the curve, and the curve with that knot's force scaling and
     speed scaling set to ``-amount`` and ``+amount``. Writes ``path`` (PNG/PDF/SVG).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     g = DeviationModel.from_spec(spec)
     k = spec.deviation.n_knots

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.figures import pyplot
 from formtwin.metamodel.model import Dataset, Metamodel
 from formtwin.spec import ProcessSpec
 
@@ -163,10 +164,7 @@ def plot_validation(cv: CrossValidation, directory: str | Path, n_worst: int = 3
 
     Needs matplotlib (extra ``plot``). Returns the paths written.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.figures import pyplot
 from formtwin.physics.bending.geometry import ToolSet, tool_outline
 from formtwin.physics.bending.model import BendingModel, History, Sheet
 
@@ -56,10 +57,7 @@ def plot_bending(model: BendingModel, inputs: FloatArray, out: str | Path) -> Pa
     out
         Image file to write.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     s1, s2, sheet = model.simulate(np.asarray(inputs, dtype=np.float64))
     h1: History = s1["history"]
@@ -107,10 +105,7 @@ def plot_sensitivity(model: BendingModel, out: str | Path) -> Path:
     The centre is :meth:`BendingModel.centre`; each panel's title gives the two bend angles
     at the minimum and the maximum.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     spec = model.spec
     centre = model.centre()

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.figures import pyplot
 from formtwin.simulator import ANGLE_NAMES
 from formtwin.spec import ProcessSpec
 from formtwin.study.metrics import summarise
@@ -15,15 +15,6 @@ from formtwin.study.pseudodata import Realisation
 from formtwin.study.series import SERIES
 
 FloatArray = NDArray[np.float64]
-
-
-def _plt() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def component_labels(spec: ProcessSpec) -> list[str]:
@@ -35,7 +26,7 @@ def plot_nrmse(spec: ProcessSpec, nrmse: FloatArray, series: tuple[int, ...],
                path: Path) -> Path:
     """Fig. 4 analogue: per component, a bar per series (mean over datasets and
     repetitions), a diamond per dataset (mean over repetitions), a line at 1."""
-    plt = _plt()
+    plt = pyplot()
     labels = component_labels(spec)
     per_dataset, overall = summarise(nrmse)
     n_comp = len(labels)
@@ -70,7 +61,7 @@ def plot_nrmse(spec: ProcessSpec, nrmse: FloatArray, series: tuple[int, ...],
 def plot_timeseries(spec: ProcessSpec, real: Realisation, run: dict[str, FloatArray],
                     series: int, path: Path, last: int = 200) -> Path:
     """Figs. 5-6 analogue: truth (black) against E +- 3 s (grey) for the last products."""
-    plt = _plt()
+    plt = pyplot()
     s = SERIES[series - 1]
     truth = real.truth()
     n_show = len(spec.augmented) if s.deviation else len(spec.inputs)
