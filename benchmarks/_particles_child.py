@@ -32,16 +32,11 @@ def main() -> None:
     from particles import state_space_models as ssms
     from threadpoolctl import threadpool_limits
 
-    from formtwin.measurement import AnalyticModel, MeasurementModel
-    from formtwin.spec import load_spec
+    from formtwin.defaults import load_model
+    from formtwin.measurement import MeasurementModel
     from formtwin.tracker import BendingSSM, TrackerConfig
 
-    if args.model == "analytic":
-        model = AnalyticModel(load_spec())
-    else:
-        from formtwin.metamodel import Metamodel
-
-        model = Metamodel.load(args.model)
+    model = load_model(args.model)
     mm = MeasurementModel.load(args.measurement)
     with np.load(args.data, allow_pickle=False) as z:
         curves, mu = z["curves"][: args.products], z["mu"]

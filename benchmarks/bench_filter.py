@@ -39,9 +39,10 @@ import numpy as np
 
 from formtwin._bench import write_result
 from formtwin._threads import single_blas_thread
+from formtwin.defaults import AnalyticModel
 from formtwin.deviation import DeviationModel
-from formtwin.evolution import simulate
-from formtwin.measurement import AnalyticModel, MeasurementModel, ProcessModel
+from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.production import draw_production_run
 from formtwin.spec import load_spec
 from formtwin.tracker import Tracker, TrackerConfig
 
@@ -63,8 +64,8 @@ def paper_metamodel() -> Path:
     loads (the metamodel file format changed)."""
     import hashlib
 
+    from formtwin.defaults import analytic_dataset
     from formtwin.metamodel import Metamodel
-    from formtwin.metamodel.testing import analytic_dataset
 
     # the defaults are part of the cache key: a change of defaults fits a new metamodel
     key = hashlib.sha256(repr(Metamodel()).encode()).hexdigest()[:10]
@@ -100,16 +101,11 @@ def load_model(name: str) -> tuple[ProcessModel, str, str]:
 def make_data(model: ProcessModel, n: int, seed: int) -> dict[str, Any]:
     """Series-3-like data: state by eq. 4, curves from the model, deviated by g."""
     spec = model.spec
-    st, pa, dv = spec.state, spec.params, spec.deviation.group
-    rng = np.random.default_rng(seed)
-    mu = st.mu_min + (st.mu_max - st.mu_min) * rng.random(len(st))
-    theta = pa.lo + (pa.hi - pa.lo) * rng.random(len(pa))
-    theta_d = dv.lo + (dv.hi - dv.lo) * rng.random(len(dv))
-    x = simulate(n, mu, st.sigma, st.rho, rng, st.lo, st.hi)
-    X = np.hstack([x, np.tile(theta, (n, 1))])
+    run = draw_production_run(spec, n, np.random.default_rng(seed))
+    X, theta_d = run.inputs, run.theta_d
     clean = model.predict_curves(X)
-    curves = np.vstack([DeviationModel.from_spec(spec).apply(c, theta_d)[0] for c in clean])
-    return {"mu": mu, "X": X, "theta_d": theta_d, "clean": clean, "curves": curves}
+    curves = DeviationModel.from_spec(spec).apply(clean, np.tile(theta_d, (n, 1)))
+    return {"mu": run.mu, "X": X, "theta_d": theta_d, "clean": clean, "curves": curves}
 
 
 def timed_run(tracker: Tracker, curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -66,7 +66,8 @@ def main() -> None:
     spec = metamodel.spec
     settings = StudySettings(n_products=args.products, window=args.window,
                              n_realisations=args.realisations,
-                             n_repetitions=args.repetitions, n_particles=args.particles,
+                             n_repetitions=args.repetitions,
+                             tracker=TrackerConfig(n_particles=args.particles),
                              series=tuple(int(s) for s in args.series.split(",")),
                              workers=args.workers)
     t0 = time.perf_counter()
@@ -79,7 +80,7 @@ def main() -> None:
     figures: dict[str, object] = {
         "settings": {"products": args.products, "window": args.window,
                      "realisations": args.realisations, "repetitions": args.repetitions,
-                     "particles": args.particles, "filter": "sir", "alpha": settings.alpha,
+                     "particles": args.particles, "filter": "sir", "alpha": settings.tracker.alpha,
                      "mu_alpha": TrackerConfig().mu_alpha, "metamodel": str(mm_path)},
         "wall_s": round(wall, 1),
         "filter_runs_computed": int(result.timings.get("filter_runs_computed", 0)),

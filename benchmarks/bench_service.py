@@ -42,6 +42,7 @@ from formtwin.service.messages import dumps
 from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
 from formtwin.service.runtime import ServiceSettings, open_processor
 from formtwin.service.streams import make_stream, read_stream
+from formtwin.tracker import TrackerConfig
 
 TOPIC = "plant/line1/press1/stroke"
 RESULTS = "plant/line1/press1/estimate"
@@ -158,7 +159,7 @@ def main() -> int:
 
     threadpool_limits(limits=1, user_api="blas")
     settings = ServiceSettings(model=str(Path(args.metamodel).resolve()) if args.metamodel
-                               else "analytic", n_particles=args.particles)
+                               else "analytic", tracker=TrackerConfig(n_particles=args.particles))
     proc = open_processor(tmp / "peer.sqlite", settings)
     payloads = [dumps(s.to_message()) for s in strokes[:300]]
     for p in payloads[:n_warm]:

@@ -16,13 +16,12 @@ from tempfile import TemporaryDirectory
 import numpy as np
 
 from formtwin.doe import latin_hypercube, run_design
-from formtwin.evolution import simulate
 from formtwin.measurement import MeasurementModel
 from formtwin.metamodel import Metamodel
 from formtwin.physics.analytic import AnalyticBending
 from formtwin.spec import load_spec
 from formtwin.study.metrics import normalised_rmse
-from formtwin.tracker import Tracker, TrackerConfig
+from formtwin.tracker import TrackerConfig, build_tracker
 
 
 def main(n_products: int = 300, n_particles: int = 300, seed: int = 0) -> dict[str, float]:
@@ -36,18 +35,14 @@ def main(n_products: int = 300, n_particles: int = 300, seed: int = 0) -> dict[s
     measurement = MeasurementModel.from_monte_carlo(metamodel, rng=rng)
 
     # a production run with hidden truth: state drifts (eq. 4), machine parameters fixed
-    s, p = spec.state, spec.params
-    x = simulate(n_products, s.mu_mid, s.sigma, s.rho, rng, s.lo, s.hi)
-    theta = rng.uniform(p.lo, p.hi)
-    inputs = np.hstack([x, np.tile(theta, (n_products, 1))])
-    curves = metamodel.predict_curves(inputs)
-    angles = metamodel.predict_angles(inputs)
+    config = TrackerConfig(n_particles=n_particles, estimate_deviation=False, seed=seed)
+    tracker = build_tracker(metamodel, config, measurement)
+    run, curves = tracker.ssm.simulate(n_products, rng)  # mu mid-range, theta_d = 0
+    angles = metamodel.predict_angles(run.inputs)
 
     # online: one step per product
-    tracker = Tracker(metamodel, measurement,
-                      TrackerConfig(n_particles=n_particles, estimate_deviation=False, seed=seed))
     est = tracker.run(curves)
-    truth = np.hstack([inputs, np.zeros((n_products, len(spec.deviation.group)))])
+    truth = run.truth
     score = normalised_rmse(spec, est.mean, truth, est.angles_mean, angles,
                             window=n_products // 2)
     names = list(spec.augmented.names) + ["angle_stage1", "angle_stage2"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from formtwin.measurement import AnalyticModel
+from formtwin.defaults import AnalyticModel
 from formtwin.spec import ProcessSpec, load_spec
 
 

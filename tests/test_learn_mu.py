@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formtwin.evolution import simulate
-from formtwin.measurement import AnalyticModel, MeasurementModel
+from formtwin.defaults import AnalyticModel
+from formtwin.measurement import MeasurementModel
+from formtwin.production import draw_production_run
 from formtwin.spec import ProcessSpec
 from formtwin.study.run import StudySettings
 from formtwin.study.series import PAPER_SERIES, SERIES
@@ -33,13 +34,10 @@ def mm(model: AnalyticModel) -> MeasurementModel:
 
 
 def _data(spec: ProcessSpec, model: AnalyticModel, seed: int) -> dict[str, np.ndarray]:
-    st, pa = spec.state, spec.params
-    rng = np.random.default_rng(seed)
-    mu = st.mu_max.copy()  # one end of [mu_min, mu_max]: the mid-range guess is off by half
-    theta = pa.lo + (pa.hi - pa.lo) * rng.random(len(pa))
-    x = simulate(N_PRODUCTS, mu, st.sigma, st.rho, rng, st.lo, st.hi)
-    X = np.hstack([x, np.tile(theta, (N_PRODUCTS, 1))])
-    return {"mu": mu, "X": X, "curves": model.predict_curves(X)}
+    # mu at one end of [mu_min, mu_max]: the mid-range guess is off by half
+    run = draw_production_run(spec, N_PRODUCTS, np.random.default_rng(seed),
+                              mu=spec.state.mu_max.copy(), deviation=False)
+    return {"mu": run.mu, "X": run.inputs, "curves": model.predict_curves(run.inputs)}
 
 
 def test_learned_mu_moves_to_the_truth_and_beats_the_midrange(
@@ -134,7 +132,8 @@ def test_a_study_of_series_4_and_7_runs_and_reports(tmp_path: Path, spec: Proces
     mm = Metamodel().fit(data)
     mm_path = mm.save(tmp_path / "mm.npz")
     settings = StudySettings(n_products=40, window=20, n_realisations=1, n_repetitions=1,
-                             n_particles=100, series=(4, 7), workers=1, seed=3)
+                             tracker=TrackerConfig(n_particles=100), series=(4, 7), workers=1,
+                             seed=3)
     result = run_study(settings, tmp_path / "study", mm, mm_path, AnalyticBending(spec))
     assert result.nrmse.shape == (7, 1, 1, 20)
     assert np.isfinite(result.nrmse[[3, 6], ..., :10]).all()

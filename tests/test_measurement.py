@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from formtwin.measurement import AnalyticModel, MeasurementModel, ProcessModel
+from formtwin.defaults import AnalyticModel
+from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.spec import load_spec
 
 

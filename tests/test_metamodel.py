@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from formtwin.defaults import analytic_dataset
 from formtwin.metamodel import POD, RBF, Metamodel, loo_residuals
 from formtwin.metamodel.rbf import monomial_powers, polynomial
-from formtwin.metamodel.testing import analytic_dataset
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from formtwin.cli import main
+from formtwin.defaults import analytic_dataset
 from formtwin.metamodel import POD, RBF, Metamodel, cross_validate, plot_validation, validate
-from formtwin.metamodel.testing import analytic_dataset
 
 
 class _Mean:

@@ -29,9 +29,10 @@ from service_fixtures import (
 from formtwin.service.messages import dumps
 from formtwin.service.runtime import ServiceSettings, open_processor
 from formtwin.service.streams import make_stream, read_stream
+from formtwin.tracker import TrackerConfig
 
 FAST = ["--particles", "64", "--n-mc", "1000", "--seed", "3", "--no-page"]
-SETTINGS = ServiceSettings(n_particles=64, n_mc=1000, seed=3)
+SETTINGS = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3))
 TOPIC = "plant/line1/press1/stroke"
 RESULTS, ERRORS = "plant/line1/press1/estimate", "plant/line1/press1/errors"
 

@@ -17,8 +17,9 @@ from formtwin.service.messages import dumps
 from formtwin.service.processor import Processor
 from formtwin.service.runtime import ServiceSettings, open_processor
 from formtwin.service.streams import make_stream, read_stream
+from formtwin.tracker import TrackerConfig
 
-SETTINGS = ServiceSettings(n_particles=64, n_mc=1000, seed=3)
+SETTINGS = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3))
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +117,8 @@ def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes]) ->
     proc.close()
     proc.store.close()
     with pytest.raises(ValueError, match="n_particles"):
-        open_processor(path, dataclasses.replace(SETTINGS, n_particles=65))
+        open_processor(path, dataclasses.replace(
+            SETTINGS, tracker=dataclasses.replace(SETTINGS.tracker, n_particles=65)))
     for p in (proc, ref_proc):
         p.close()
         p.store.close()
@@ -233,7 +235,8 @@ def test_student_t_option_keeps_the_cloud_on_an_outlier(tmp_path: Path,
     ess = {}
     for nu in (math.inf, 5.0):
         path = tmp_path / f"nu{nu}.sqlite"
-        proc = open_processor(path, dataclasses.replace(SETTINGS, nu=nu))
+        proc = open_processor(path, dataclasses.replace(
+            SETTINGS, tracker=dataclasses.replace(SETTINGS.tracker, nu=nu)))
         assert MeasurementModel.load(measurement_path(path)).nu == nu
         run(proc, payloads[:10])
         out = proc.handle(dumps(odd))  # an outlier curve, no gate: accepted
@@ -242,12 +245,12 @@ def test_student_t_option_keeps_the_cloud_on_an_outlier(tmp_path: Path,
         proc.close()
         proc.store.close()
     # the Gaussian puts (nearly) all weight on one particle; the Student-t keeps a cloud
-    assert ess[5.0] > 0.2 * SETTINGS.n_particles and ess[5.0] > 3.0 * ess[math.inf], ess
+    assert ess[5.0] > 0.2 * SETTINGS.tracker.n_particles and ess[5.0] > 3.0 * ess[math.inf], ess
 
 
 def test_serves_a_metamodel_and_restarts_on_it(tmp_path: Path, payloads: list[bytes]) -> None:
     metamodel = pytest.importorskip("formtwin.metamodel")
-    testing = pytest.importorskip("formtwin.metamodel.testing")
+    testing = pytest.importorskip("formtwin.defaults")
     mm_path = tmp_path / "mm.npz"
     metamodel.Metamodel().fit(testing.analytic_dataset(50, seed=0)).save(mm_path)
     settings = dataclasses.replace(SETTINGS, model=str(mm_path))
@@ -280,8 +283,11 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
         def step(self, curve: object) -> object:
             raise ValueError("curve is not monotone before contact (test double)")
 
-        def checkpoint(self, path: object) -> object:
-            return real.checkpoint(path)  # type: ignore[arg-type]
+        def state_bytes(self) -> bytes:
+            return real.state_bytes()
+
+        def load_state_bytes(self, data: bytes) -> None:
+            real.load_state_bytes(data)
 
     proc.tracker = Refusing()
     out = proc.handle(payloads[0])
@@ -296,13 +302,17 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
             real.step(curve)
             raise FloatingPointError("overflow in the model (test double)")
 
-        def checkpoint(self, path: object) -> object:
-            return real.checkpoint(path)  # type: ignore[arg-type]
+        def state_bytes(self) -> bytes:
+            return real.state_bytes()
+
+        def load_state_bytes(self, data: bytes) -> None:
+            real.load_state_bytes(data)
 
     proc.tracker = Crashing()
     out = proc.handle(payloads[2])
     assert out.kind == "rejected" and "FloatingPointError" in str(out.message["detail"])
-    assert proc.handle(payloads[3]).message["index"] == 1  # restored: one step so far
+    proc.tracker = real  # the state was loaded back in place: one step so far
+    assert proc.handle(payloads[3]).message["index"] == 1
 
     class NotJson:  # an estimate that cannot be stored as JSON: rejected, state restored
         def __init__(self, inner: object) -> None:
@@ -312,12 +322,16 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
             e = self.inner.step(curve)  # type: ignore[attr-defined]
             return dataclasses.replace(e, index=float("nan"))  # to_dict: int(nan) fails
 
-        def checkpoint(self, path: object) -> object:
-            return self.inner.checkpoint(path)  # type: ignore[attr-defined]
+        def state_bytes(self) -> bytes:
+            return self.inner.state_bytes()  # type: ignore[attr-defined,no-any-return]
+
+        def load_state_bytes(self, data: bytes) -> None:
+            self.inner.load_state_bytes(data)  # type: ignore[attr-defined]
 
     proc.tracker = NotJson(proc.tracker)
     out = proc.handle(payloads[4])
     assert out.kind == "rejected" and "not storable" in str(out.message["detail"])
+    proc.tracker = real
     assert proc.handle(payloads[5]).message["index"] == 2
     proc.close()
     proc.store.close()

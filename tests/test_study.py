@@ -14,6 +14,7 @@ from formtwin.spec import load_spec
 from formtwin.study.metrics import normalised_rmse, normalisers, rmse
 from formtwin.study.report import write_report
 from formtwin.study.run import StudySettings, run_study
+from formtwin.tracker import TrackerConfig
 
 SPEC = load_spec()
 
@@ -46,7 +47,7 @@ def test_metrics_normalise_as_the_paper_says() -> None:
 def test_quick_study_end_to_end(metamodel: tuple[Metamodel, Path], tmp_path: Path) -> None:
     mm, mm_path = metamodel
     settings = StudySettings(n_products=100, window=50, n_realisations=2, n_repetitions=1,
-                             n_particles=200, workers=2, seed=5)
+                             tracker=TrackerConfig(n_particles=200), workers=2, seed=5)
     result = run_study(settings, tmp_path, mm, mm_path, AnalyticBending(SPEC))
     nrmse = result.nrmse
     assert nrmse.shape == (6, 2, 1, 20)
@@ -78,7 +79,7 @@ def test_study_is_reproducible_from_its_seed(metamodel: tuple[Metamodel, Path],
                                              tmp_path: Path) -> None:
     mm, mm_path = metamodel
     settings = StudySettings(n_products=40, window=20, n_realisations=1, n_repetitions=1,
-                             n_particles=100, series=(3,), workers=1, seed=9)
+                             tracker=TrackerConfig(n_particles=100), series=(3,), workers=1, seed=9)
     a = run_study(settings, tmp_path / "a", mm, mm_path, AnalyticBending(SPEC))
     b = run_study(settings, tmp_path / "b", mm, mm_path, AnalyticBending(SPEC))
     np.testing.assert_array_equal(a.nrmse[2], b.nrmse[2])

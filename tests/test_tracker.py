@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formtwin.evolution import simulate
-from formtwin.measurement import AnalyticModel, MeasurementModel
+from formtwin.defaults import AnalyticModel
+from formtwin.measurement import MeasurementModel
+from formtwin.production import draw_production_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker import Estimates, Tracker, TrackerConfig
 
@@ -18,14 +19,9 @@ from formtwin.tracker import Estimates, Tracker, TrackerConfig
 @pytest.fixture(scope="module")
 def series1(spec: ProcessSpec, model: AnalyticModel) -> dict[str, np.ndarray]:
     """Paper series 1 on the stand-in: data from the filter's own model, mu known."""
-    st, pa = spec.state, spec.params
-    rng = np.random.default_rng(11)
-    mu = st.mu_min + (st.mu_max - st.mu_min) * rng.random(len(st))
-    theta = pa.lo + (pa.hi - pa.lo) * rng.random(len(pa))
-    n = 150
-    x = simulate(n, mu, st.sigma, st.rho, rng, st.lo, st.hi)
-    X = np.hstack([x, np.tile(theta, (n, 1))])
-    return {"mu": mu, "X": X, "curves": model.predict_curves(X),
+    run = draw_production_run(spec, 150, np.random.default_rng(11), deviation=False)
+    X = run.inputs
+    return {"mu": run.mu, "X": X, "curves": model.predict_curves(X),
             "angles": model.predict_angles(X)}
 
 
@@ -224,7 +220,7 @@ def test_a_failing_model_leaves_the_tracker_untouched(
 
 def test_into_box_reflects_only_the_rows_that_left() -> None:
     from formtwin.evolution import reflect
-    from formtwin.tracker import _into_box
+    from formtwin.tracker.ssm import _into_box
 
     rng = np.random.default_rng(0)
     v = rng.uniform(-0.5, 1.5, (200, 3))

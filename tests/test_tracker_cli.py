@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from formtwin.cli import main
-from formtwin.measurement import AnalyticModel, MeasurementModel
+from formtwin.defaults import AnalyticModel
+from formtwin.measurement import MeasurementModel
 from formtwin.spec import load_spec
 
 
@@ -75,7 +76,7 @@ def test_track_reads_a_study_realisation_by_source(tmp_path: Path, curves: np.nd
 def test_track_reads_a_doe_dataset(tmp_path: Path) -> None:
     pytest.importorskip("h5py")
     from formtwin.cli.track import read_curves
-    from formtwin.metamodel.testing import analytic_dataset
+    from formtwin.defaults import analytic_dataset
 
     data = analytic_dataset(6, seed=0, failure_clearance=0.33)
     path = data.save(tmp_path / "doe.h5")

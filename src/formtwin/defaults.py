@@ -5,6 +5,14 @@
 given metamodel file or fits one from the DOE dataset bundled with the package for that
 model (``formtwin/data/doe_<name>.h5``, made by ``formtwin doe run``), caching the fit.
 The analytic model's DOE is cheap and is made on first use instead of being bundled.
+
+This is the one module (with the command line) that names physics modules; everything
+else reaches a process model through :class:`~formtwin.simulator.Simulator` or a model
+loaded by :func:`load_model`.
+
+>>> data = analytic_dataset(50, seed=0)
+>>> data.inputs.shape, data.curves.shape, int(data.ok.sum())
+((50, 10), (50, 101), 50)
 """
 
 from __future__ import annotations
@@ -13,9 +21,13 @@ import logging
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+from scipy.stats import qmc
+
 from formtwin.dataset import DoeDataset
+from formtwin.measurement import ProcessModel
 from formtwin.metamodel import Metamodel
-from formtwin.simulator import Simulator
+from formtwin.simulator import Simulator, SimulatorModel
 from formtwin.spec import ProcessSpec, load_spec
 
 log = logging.getLogger(__name__)
@@ -34,6 +46,50 @@ def physics_model(name: str, spec: ProcessSpec | None = None) -> Simulator:
 
         return AnalyticBending(spec)
     raise ValueError(f"physics model {name!r} unknown; known: {', '.join(PHYSICS)}")
+
+
+class AnalyticModel(SimulatorModel):
+    """The closed-form stand-in :class:`~formtwin.physics.analytic.AnalyticBending` as a
+    process model (for tests, benchmarks and development; not the metamodel)."""
+
+    def __init__(self, spec: ProcessSpec | None = None) -> None:
+        super().__init__(physics_model("analytic", spec))
+
+
+def analytic_model(spec: ProcessSpec | None = None) -> AnalyticModel:
+    """The analytic stand-in as a process model (default spec: the demonstrator)."""
+    return AnalyticModel(spec)
+
+
+def load_model(name: str | Path) -> ProcessModel:
+    """A process model by name: ``"analytic"`` (the stand-in) or a metamodel file."""
+    if str(name) == "analytic":
+        return analytic_model()
+    if not Path(name).exists():
+        raise ValueError(f"metamodel {name}: no such file")
+    return Metamodel.load(name)
+
+
+def analytic_dataset(n: int, seed: int = 0, spec: ProcessSpec | None = None,
+                     failure_clearance: float | None = None) -> DoeDataset:
+    """A seeded Latin hypercube of ``n`` points in the spec's box, run on the stand-in
+    (small DOE datasets for tests, doctests and benchmarks).
+
+    ``failure_clearance`` (mm) makes some runs fail (see
+    :class:`~formtwin.physics.analytic.AnalyticBending`); they are kept with ``ok=False``.
+    """
+    from formtwin.physics.analytic import AnalyticBending
+
+    spec = spec or load_spec()
+    sim = AnalyticBending(spec, failure_clearance=failure_clearance)
+    U = qmc.LatinHypercube(d=spec.n_inputs, rng=np.random.default_rng(seed)).random(n)
+    X = qmc.scale(U, spec.inputs.lo, spec.inputs.hi)
+    curves, angles = sim.run_batch(X)
+    ok = np.all(np.isfinite(curves), axis=1)
+    reason = np.array(["" if good else sim.failure_reason(x)
+                       for x, good in zip(X, ok, strict=True)])
+    return DoeDataset(spec=spec, inputs=X, curves=curves, angles=angles, ok=ok,
+                      reason=reason, model_version=sim.version)
 
 
 def bundled_doe(name: str) -> Path:

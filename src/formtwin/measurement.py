@@ -43,11 +43,11 @@ Student-t with the same scale matrix, whose log-density falls only logarithmical
 the Mahalanobis distance, so one outlier curve cannot wipe out the particle cloud.
 
 >>> import numpy as np
->>> from formtwin.spec import load_spec
->>> spec = load_spec()
->>> mm = MeasurementModel.from_monte_carlo(AnalyticModel(spec), spec, n=2000,
+>>> from formtwin.defaults import analytic_model
+>>> model = analytic_model(); spec = model.spec
+>>> mm = MeasurementModel.from_monte_carlo(model, spec, n=2000,
 ...                                        rng=np.random.default_rng(0))
->>> curves = AnalyticModel(spec).predict_curves(np.tile(spec.inputs.lo, (3, 1)))
+>>> curves = model.predict_curves(np.tile(spec.inputs.lo, (3, 1)))
 >>> mm.loglik(curves, curves[0]).shape
 (3,)
 """
@@ -90,35 +90,6 @@ class ProcessModel(Protocol):
     def predict_angles(self, X: FloatArray) -> FloatArray:
         """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10)."""
         ...
-
-
-@dataclass(frozen=True)
-class AnalyticModel:
-    """The closed-form stand-in :class:`~formtwin.physics.analytic.AnalyticBending` as a
-    :class:`ProcessModel` (for tests, benchmarks and development; not the metamodel)."""
-
-    spec: ProcessSpec
-    _last: list[tuple[FloatArray, FloatArray, FloatArray]] = field(
-        default_factory=list, init=False, repr=False, compare=False)
-
-    def _run(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
-        # curves and angles come from one run; remember the last batch so that asking for
-        # the angles of the particles whose curves were just computed costs nothing
-        from formtwin.physics.analytic import AnalyticBending
-
-        X = np.asarray(X, dtype=np.float64)
-        if self._last and self._last[0][0].shape == X.shape and \
-                np.array_equal(self._last[0][0], X):
-            return self._last[0][1], self._last[0][2]
-        curves, angles = AnalyticBending(self.spec).run_batch(X)
-        self._last[:] = [(X.copy(), curves, angles)]
-        return curves, angles
-
-    def predict_curves(self, X: FloatArray) -> FloatArray:
-        return self._run(X)[0]
-
-    def predict_angles(self, X: FloatArray) -> FloatArray:
-        return self._run(X)[1]
 
 
 def monte_carlo_inputs(spec: ProcessSpec, n: int, rng: np.random.Generator,

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import signal
 import threading
 from pathlib import Path
 from typing import Any
+
+from formtwin.cli.options import add_tracker_options, tracker_config
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
 
@@ -59,15 +60,7 @@ def register(sub: Any) -> None:
                    help="SQLite store (default: %(default)s)")
     p.add_argument("--sync", choices=("normal", "full"), default="normal",
                    help="SQLite synchronous: normal survives kills, full also power loss")
-    p.add_argument("--particles", type=int, default=500, help="N (default: %(default)s)")
-    p.add_argument("--alpha", type=float, default=0.01, help="parameter jitter (eq. 10)")
-    p.add_argument("--seed", type=int, default=0, help="tracker seed")
-    p.add_argument("--no-deviation", action="store_true",
-                   help="do not estimate the deviation parameters (theta_d = 0)")
-    p.add_argument("--n-mc", type=int, default=10_000,
-                   help="Monte-Carlo curves for the measurement model")
-    p.add_argument("--robust-nu", type=float, default=math.inf, metavar="NU",
-                   help="robust: Student-t likelihood with NU degrees of freedom")
+    add_tracker_options(p)
     p.add_argument("--gate", type=float, default=0.0, metavar="K",
                    help="robust: gate single outlier curves whose loglik is K robust std "
                    "below the recent median (0: off)")
@@ -94,9 +87,7 @@ def _serve(args: argparse.Namespace) -> int:
         raise ValueError(f"--metamodel {args.metamodel}: no such file")
     settings = ServiceSettings(
         model="analytic" if args.analytic else str(Path(args.metamodel).resolve()),
-        n_particles=args.particles, alpha=args.alpha,
-        estimate_deviation=not args.no_deviation, seed=args.seed, nu=args.robust_nu,
-        gate_k=args.gate, n_mc=args.n_mc, max_bytes=args.max_bytes,
+        tracker=tracker_config(args), gate_k=args.gate, max_bytes=args.max_bytes,
         min_force_N=args.min_force, max_force_N=args.max_force)
     from threadpoolctl import threadpool_limits
 

@@ -7,10 +7,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from formtwin.cli.options import add_tracker_options, tracker_config
 from formtwin.study.run import StudySettings
 
-QUICK = {"n_products": 120, "window": 60, "n_realisations": 2, "n_repetitions": 1,
-         "n_particles": 200}
+QUICK = {"n_products": 120, "window": 60, "n_realisations": 2, "n_repetitions": 1}
+#: the tracker settings of --quick
+QUICK_TRACKER = {"n_particles": 200}
+#: TrackerConfig fields each series sets itself (no flags)
+SERIES_FIELDS = ("estimate_deviation", "mu", "seed", "learn_mu")
 
 
 def register(sub: Any) -> None:
@@ -24,13 +28,13 @@ def register(sub: Any) -> None:
     p.add_argument("--products", type=int, help="products per realisation (paper: 1000)")
     p.add_argument("--realisations", type=int, help="dataset realisations (paper: 5)")
     p.add_argument("--repetitions", type=int, help="filter repetitions per dataset (paper: 5)")
-    p.add_argument("--particles", type=int, help="particles N (paper: 500)")
     p.add_argument("--window", type=int, help="products at the end scored (paper: 500)")
     p.add_argument("--series", help="comma-separated series numbers (default: the paper's "
                    "1,2,3,4,5,6; 7, 8: series 4, 6 with learned mu)")
     p.add_argument("--seed", type=int, default=0, help="master seed (default: %(default)s)")
     p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
+    add_tracker_options(p, exclude=SERIES_FIELDS)
     p.set_defaults(run=run)
 
 
@@ -47,16 +51,16 @@ def build_namespace(**given: Any) -> argparse.Namespace:
 def settings_from_args(args: argparse.Namespace) -> StudySettings:
     values: dict[str, Any] = dict(QUICK) if args.quick else {}
     for key, attr in (("n_products", "products"), ("n_realisations", "realisations"),
-                      ("n_repetitions", "repetitions"), ("n_particles", "particles"),
-                      ("window", "window")):
+                      ("n_repetitions", "repetitions"), ("window", "window")):
         if getattr(args, attr) is not None:
             values[key] = getattr(args, attr)
     if "n_products" in values and "window" not in values:
         values["window"] = min(500, values["n_products"] // 2)
     if args.series:
         values["series"] = tuple(int(s) for s in args.series.split(","))
+    tracker = tracker_config(args, QUICK_TRACKER if args.quick else None)
     return StudySettings(seed=args.seed, workers=args.workers, scheduler=args.scheduler,
-                         **values)
+                         tracker=tracker, **values)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     n_runs = len(settings.series) * settings.n_realisations * settings.n_repetitions
     print(f"study into {out}: {settings.n_realisations} datasets x {settings.n_products} "
           f"products ({args.physics} model runs, cached), then {n_runs} filter runs with "
-          f"N = {settings.n_particles} (progress bars on a terminal; -v logs the steps)",
+          f"N = {settings.tracker.n_particles} (progress bars on a terminal; -v logs the steps)",
           flush=True)
     result = run_study(settings, out, metamodel, mm_path, physics,
                        progress=sys.stderr.isatty())

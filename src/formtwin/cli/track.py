@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import csv
-import importlib
 import logging
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from formtwin.cli.options import add_tracker_options, tracker_config
 
 log = logging.getLogger(__name__)
 
@@ -36,30 +37,9 @@ def register(sub: Any) -> None:
                    "curves to track (MM, gMM, FE, gFE)")
     p.add_argument("--measurement", type=Path,
                    help="measurement-model .npz; default: built by Monte Carlo on the model")
-    p.add_argument("--n-mc", type=int, default=10_000,
-                   help="Monte-Carlo curves for K_MC (default: %(default)s)")
-    p.add_argument("--particles", type=int, default=500, help="N (default: %(default)s)")
-    p.add_argument("--alpha", type=float, default=0.01, help="parameter jitter (eq. 10)")
-    p.add_argument("--no-deviation", action="store_true",
-                   help="do not estimate the deviation parameters theta_d (g = identity)")
-    p.add_argument("--resampling", default="systematic",
-                   help="resampling scheme (systematic, multinomial, stratified, residual)")
-    p.add_argument("--nu", type=float, default=float("inf"),
-                   help="Student-t degrees of freedom of the likelihood (default: Gaussian)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    add_tracker_options(p)
     p.add_argument("--checkpoint", type=Path, help="write the tracker state here at the end")
     p.set_defaults(run=_track)
-
-
-def load_model(name: str) -> Any:
-    """``"analytic"`` -> the stand-in; otherwise a metamodel file."""
-    if name == "analytic":
-        from formtwin.measurement import AnalyticModel
-        from formtwin.spec import load_spec
-
-        return AnalyticModel(load_spec())
-    metamodel: Any = importlib.import_module("formtwin.metamodel")
-    return metamodel.Metamodel.load(name)
 
 
 def read_curves(path: Path, n_t: int, source: str | None = None) -> NDArray[np.float64]:
@@ -150,8 +130,9 @@ def write_table(columns: dict[str, NDArray[Any]], path: Path) -> None:
 
 def _track(args: argparse.Namespace) -> int:
     from formtwin._threads import single_blas_thread
+    from formtwin.defaults import load_model
     from formtwin.measurement import MeasurementModel
-    from formtwin.tracker import Tracker, TrackerConfig
+    from formtwin.tracker import build_tracker
 
     model = load_model(args.metamodel)
     spec = model.spec
@@ -159,15 +140,9 @@ def _track(args: argparse.Namespace) -> int:
     ok = np.all(np.isfinite(curves), axis=1)
     if not ok.all():
         print(f"skipping {int((~ok).sum())} curves with NaN/inf (failed runs)")
-    if args.measurement:
-        measurement = MeasurementModel.load(args.measurement)
-    else:
-        measurement = MeasurementModel.from_monte_carlo(
-            model, n=args.n_mc, rng=np.random.default_rng(args.seed), nu=args.nu)
-    config = TrackerConfig(n_particles=args.particles, alpha=args.alpha,
-                           estimate_deviation=not args.no_deviation,
-                           resampling=args.resampling, seed=args.seed)
-    tracker = Tracker(model, measurement, config)
+    config = tracker_config(args)
+    measurement = MeasurementModel.load(args.measurement) if args.measurement else None
+    tracker = build_tracker(model, config, measurement)
     with single_blas_thread():
         est = tracker.run(curves[ok], progress=True)
     cols = est.columns()

@@ -134,7 +134,7 @@ class Metamodel:
 
     Examples
     --------
-    >>> from formtwin.metamodel.testing import analytic_dataset
+    >>> from formtwin.defaults import analytic_dataset
     >>> data = analytic_dataset(300, seed=1)
     >>> mm = Metamodel(POD(n_modes=10), RBF(length_scales="box")).fit(data)
     >>> p = mm.predict(data.inputs[:5])

@@ -21,15 +21,11 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-import os
-import shutil
 import sqlite3
-import tempfile
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -49,8 +45,6 @@ log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-CHECKPOINT_NAME = "tracker-checkpoint.npz"
-
 
 class EstimateLike(Protocol):
     """What the processor reads from the tracker's ``Estimate``."""
@@ -64,13 +58,17 @@ class EstimateLike(Protocol):
 class TrackerLike(Protocol):
     """What the processor needs of :class:`formtwin.tracker.Tracker`."""
 
-    def step(self, curve: FloatArray) -> Any: ...
+    def step(self, curve: FloatArray) -> Any:
+        """Assimilate one curve; return its estimate (state untouched on ValueError)."""
+        ...
 
-    def checkpoint(self, path: str | Path) -> Any: ...
+    def state_bytes(self) -> bytes:
+        """The full state, bit for bit."""
+        ...
 
-
-#: rebuilds a tracker from a checkpoint file
-Restorer = Callable[[Path], TrackerLike]
+    def load_state_bytes(self, data: bytes) -> None:
+        """Continue from bytes made by :meth:`state_bytes`."""
+        ...
 
 
 @dataclass
@@ -145,9 +143,9 @@ class Processor:
     store : Store
         The durable store; its checkpoint (if any) must be the state of ``tracker``.
     tracker : TrackerLike
-        The tracker, already restored from the store's checkpoint when there is one.
-    restore : callable
-        ``restore(path) -> tracker``, used to undo a gated step.
+        The tracker, already restored from the store's checkpoint when there is one; its
+        in-memory state (``state_bytes``) is the checkpoint, and loading the last one back
+        undoes a gated or failed step.
     limits : Limits
         Message validation limits.
     gate : OutlierGate or None
@@ -156,27 +154,21 @@ class Processor:
         Called with every :class:`Outcome` (the live page listens here).
     """
 
-    def __init__(self, store: Store, tracker: TrackerLike, restore: Restorer, limits: Limits,
+    def __init__(self, store: Store, tracker: TrackerLike, limits: Limits,
                  gate: OutlierGate | None = None,
                  on_outcome: Callable[[Outcome], None] | None = None) -> None:
         self.store = store
         self.tracker = tracker
-        self._restore = restore
         self.limits = limits
         self.gate = gate
         self.on_outcome = on_outcome
         self._lock = threading.Lock()
-        # scratch for the checkpoint file: tmpfs when there is one (it is read back at once)
-        shm = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) \
-            else None
-        self._tmp = Path(tempfile.mkdtemp(prefix="formtwin-serve-", dir=shm))
-        self._ckpt_path = self._tmp / CHECKPOINT_NAME
         self._last_cycle = store.last_cycle()
         self._next_seq = store.next_seq()  # this processor is the store's only writer
         if gate is not None:
             gate.history = store.recent_logliks(gate.window)
             gate.last_gated = store.last_status() == "gated"
-        self._last_ckpt = self._checkpoint_bytes()
+        self._last_ckpt = self.tracker.state_bytes()
         self.redelivered = 0
 
     def tracker_names(self) -> tuple[str, ...]:
@@ -189,17 +181,11 @@ class Processor:
         return tuple(str(n) for n in names)
 
     def close(self) -> None:
-        """Remove the scratch folder (the store stays open; close it yourself)."""
-        shutil.rmtree(self._tmp, ignore_errors=True)
+        """Nothing to release (kept for callers; the store stays open: close it yourself)."""
 
     # ------------------------------------------------------------------ internals
-    def _checkpoint_bytes(self) -> bytes:
-        self.tracker.checkpoint(self._ckpt_path)
-        return self._ckpt_path.read_bytes()
-
     def _rollback(self) -> None:
-        self._ckpt_path.write_bytes(self._last_ckpt)
-        self.tracker = self._restore(self._ckpt_path)
+        self.tracker.load_state_bytes(self._last_ckpt)
 
     def _reject(self, err: MessageError, payload: bytes, topic: str, now: float) -> Outcome:
         digest = hashlib.sha256(payload).hexdigest()
@@ -303,7 +289,7 @@ class Processor:
                                "state not updated", stroke.part_id)
             log.warning("part %s gated as outlier: %s", stroke.part_id, err.detail)
             return Outcome("gated", error_message(err, topic, now), stroke.part_id, seq)
-        ckpt = self._checkpoint_bytes()
+        ckpt = self.tracker.state_bytes()
         flags = {"collapsed": bool(est.collapsed), "redelivered": False}
         msg = estimate_message(stroke, est.to_dict(), seq=-1, flags=flags)
         seq = self._next_seq

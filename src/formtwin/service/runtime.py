@@ -12,20 +12,16 @@ import dataclasses
 import hashlib
 import json
 import logging
-import math
-import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from formtwin.measurement import AnalyticModel, MeasurementModel, ProcessModel
+from formtwin.defaults import load_model
+from formtwin.measurement import MeasurementModel
 from formtwin.service.messages import Limits
-from formtwin.service.processor import CHECKPOINT_NAME, OutlierGate, Processor, TrackerLike
+from formtwin.service.processor import OutlierGate, Processor
 from formtwin.service.store import Store
-from formtwin.spec import load_spec
-from formtwin.tracker import Tracker, TrackerConfig
+from formtwin.tracker import TrackerConfig, build_measurement, build_tracker
 
 log = logging.getLogger(__name__)
 
@@ -38,60 +34,41 @@ class ServiceSettings:
     ----------
     model : str
         ``"analytic"`` (the closed-form stand-in) or the path of a metamodel file.
-    n_particles, alpha, estimate_deviation, seed : tracker settings
-        See :class:`formtwin.tracker.TrackerConfig`.
-    nu : float
-        Student-t degrees of freedom of the likelihood (``inf``: the paper's Gaussian); a
-        finite ``nu`` is the heavy-tailed robust option.
+    tracker : TrackerConfig
+        The tracker's settings (TOML section ``[tracker]``); its ``n_mc``, ``nu`` and
+        ``seed`` also make the measurement model.
     gate_k : float
         Outlier gate in robust standard deviations of loglik (0 disables the gate).
-    n_mc : int
-        Monte-Carlo curves for the measurement model's ``K_MC``.
     max_bytes, min_force_N, max_force_N : message limits (:class:`Limits`).
     """
 
     model: str = "analytic"
-    n_particles: int = 500
-    alpha: float = 0.01
-    estimate_deviation: bool = True
-    seed: int = 0
-    nu: float = math.inf
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
     gate_k: float = 0.0
-    n_mc: int = 10_000
     max_bytes: int = 65536
     min_force_N: float = -50.0
     max_force_N: float = 1.0e4
 
     def to_json(self) -> str:
+        """The settings as JSON (stored in the store's ``meta`` table)."""
         d = dataclasses.asdict(self)
-        d["nu"] = None if math.isinf(self.nu) else self.nu
+        d["tracker"] = self.tracker.to_dict()
         return json.dumps(d, sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str) -> ServiceSettings:
+        """Inverse of :meth:`to_json`; ``ValueError`` for settings of an older format."""
         d: dict[str, Any] = json.loads(text)
-        d["nu"] = math.inf if d.get("nu") is None else float(d["nu"])
+        if not isinstance(d.get("tracker"), dict):
+            raise ValueError("stored settings predate the nested [tracker] settings; use a "
+                             "new --store")
+        d["tracker"] = TrackerConfig.from_dict(d["tracker"])
         return cls(**d)
 
-    def tracker_config(self) -> TrackerConfig:
-        return TrackerConfig(n_particles=self.n_particles, alpha=self.alpha,
-                             estimate_deviation=self.estimate_deviation, seed=self.seed)
-
     def limits(self, n_t: int) -> Limits:
+        """The message limits for curves of ``n_t`` samples."""
         return Limits(n_t=n_t, max_bytes=self.max_bytes, min_force_N=self.min_force_N,
                       max_force_N=self.max_force_N)
-
-
-def load_model(name: str) -> ProcessModel:
-    """``"analytic"`` -> the stand-in; otherwise a metamodel file."""
-    if name == "analytic":
-        return AnalyticModel(load_spec())
-    import importlib
-
-    # imported by name: the metamodel package is optional for the analytic stand-in
-    metamodel: Any = importlib.import_module("formtwin.metamodel")
-    model: ProcessModel = metamodel.Metamodel.load(name)
-    return model
 
 
 def _file_digest(path: str) -> str:
@@ -116,12 +93,13 @@ def check_settings(store: Store, settings: ServiceSettings) -> ServiceSettings:
         store.set_meta("model_digest", model_digest)
         return settings
     old = ServiceSettings.from_json(stored)
-    for f in dataclasses.fields(ServiceSettings):
-        a, b = getattr(old, f.name), getattr(settings, f.name)
-        if f.name == "model":
-            continue
+    pairs = [(f.name, getattr(old, f.name), getattr(settings, f.name))
+             for f in dataclasses.fields(ServiceSettings) if f.name not in ("model", "tracker")]
+    pairs += [(f"tracker.{f.name}", getattr(old.tracker, f.name),
+               getattr(settings.tracker, f.name)) for f in dataclasses.fields(TrackerConfig)]
+    for name, a, b in pairs:
         if a != b:
-            raise ValueError(f"{store.path}: stored setting {f.name} = {a!r}, now {b!r}; "
+            raise ValueError(f"{store.path}: stored setting {name} = {a!r}, now {b!r}; "
                              "a store keeps the settings it was created with (use a new "
                              "--store for new settings)")
     if store.get_meta("model_digest") != model_digest:
@@ -160,30 +138,18 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
         model = load_model(settings.model)
         mpath = measurement_path(path)
         if not mpath.exists():
-            built = MeasurementModel.from_monte_carlo(
-                model, n=settings.n_mc, rng=np.random.default_rng(settings.seed),
-                nu=settings.nu)
+            built = build_measurement(model, settings.tracker)
             tmp = built.save(mpath.with_name(mpath.stem + ".tmp.npz"))
             tmp.replace(mpath)
         # always the saved file, so the first run and every restart use identical numbers
         measurement = MeasurementModel.load(mpath)
-        config = settings.tracker_config()
-
-        def restore(p: Path) -> TrackerLike:
-            return Tracker.restore(p, model, measurement)
-
+        tracker = build_tracker(model, settings.tracker, measurement)
         ck = store.checkpoint()
-        tracker: TrackerLike
-        if ck is None:
-            tracker = Tracker(model, measurement, config)
-        else:
-            with tempfile.TemporaryDirectory() as d:
-                p = Path(d) / CHECKPOINT_NAME
-                p.write_bytes(ck[1])
-                tracker = restore(p)
+        if ck is not None:
+            tracker.load_state_bytes(ck[1])
             log.info("restored tracker from checkpoint of product seq %d", ck[0])
         gate = OutlierGate(k=settings.gate_k) if settings.gate_k > 0 else None
-        return Processor(store, tracker, restore, settings.limits(model.spec.n_t), gate)
+        return Processor(store, tracker, settings.limits(model.spec.n_t), gate)
     except BaseException:
         store.close()
         raise

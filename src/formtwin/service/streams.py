@@ -10,9 +10,9 @@ A stream is a sequence of :class:`~formtwin.service.messages.Stroke`. It is read
 * ``.csv``: one product per row, columns ``part_id, cycle, f0 .. f{n_t-1}`` and optionally
   ``angle1, angle2``.
 
-:func:`make_stream` writes a synthetic stream from the analytic stand-in (state evolving
-by eq. 4-5, constant machine parameters and deviation, Gaussian sensor noise) for the demo,
-the tests and the benchmark.
+:func:`make_stream` writes a synthetic stream from a process model (default the analytic
+stand-in; state evolving by eq. 4-5, constant machine parameters and deviation, Gaussian
+sensor noise) for the demo, the tests and the benchmark.
 """
 
 from __future__ import annotations
@@ -25,8 +25,11 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.deviation import DeviationModel
+from formtwin.measurement import ProcessModel
+from formtwin.production import draw_production_run
 from formtwin.service.messages import Stroke, stroke_digest
-from formtwin.spec import ProcessSpec, load_spec
+from formtwin.spec import ProcessSpec
 
 FloatArray = NDArray[np.float64]
 
@@ -35,7 +38,7 @@ _T0 = datetime(2026, 1, 1, tzinfo=UTC)
 
 def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
                 spec: ProcessSpec | None = None, deviation: bool = True,
-                period_s: float = 0.5) -> Path:
+                period_s: float = 0.5, model: ProcessModel | None = None) -> Path:
     """Write ``n`` synthetic strokes to an ``.npz`` stream file and return its path.
 
     Parameters
@@ -49,27 +52,25 @@ def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
     noise_N : float
         Std of the Gaussian sensor noise added to each sample, N.
     spec : ProcessSpec, optional
-        Defaults to the bundled demonstrator.
+        Defaults to the bundled demonstrator (ignored when ``model`` is given).
     deviation : bool
         Distort the curves with a deviation ``theta_d`` drawn in its bounds.
     period_s : float
         Nominal time between strokes (for the timestamps), s.
+    model : ProcessModel, optional
+        The model making the curves and angles; default the analytic stand-in.
     """
-    from formtwin.deviation import DeviationModel
-    from formtwin.evolution import simulate
-    from formtwin.physics.analytic import AnalyticBending
-
     if n < 1:
         raise ValueError(f"n = {n}, expected >= 1")
-    spec = load_spec() if spec is None else spec
+    if model is None:
+        from formtwin.defaults import analytic_model
+
+        model = analytic_model(spec)
+    spec = model.spec
     rng = np.random.default_rng(np.random.SeedSequence([seed, 7]))
-    st, pa, dv = spec.state, spec.params, spec.deviation.group
-    mu = rng.uniform(st.mu_min, st.mu_max)
-    theta = rng.uniform(pa.lo, pa.hi)
-    x = simulate(n, mu, st.sigma, st.rho, rng, st.lo, st.hi)
-    X = np.hstack([x, np.tile(theta, (n, 1))])
-    curves, angles = AnalyticBending(spec).run_batch(X)
-    theta_d = rng.uniform(dv.lo, dv.hi) if deviation else np.zeros(len(dv))
+    run = draw_production_run(spec, n, rng, deviation=deviation)
+    X, theta_d = run.inputs, run.theta_d
+    curves, angles = model.predict_curves(X), model.predict_angles(X)
     if deviation:
         curves = DeviationModel.from_spec(spec).apply(curves, np.tile(theta_d, (n, 1)))
     curves = curves + noise_N * rng.standard_normal(curves.shape)

@@ -26,8 +26,8 @@ from numpy.typing import NDArray
 from formtwin.dataset import DoeDataset
 from formtwin.deviation import DeviationModel
 from formtwin.doe import run_design
-from formtwin.evolution import simulate
 from formtwin.measurement import ProcessModel
+from formtwin.production import draw_production_run
 from formtwin.simulator import ANGLE_NAMES, Simulator
 from formtwin.spec import ProcessSpec
 
@@ -102,17 +102,6 @@ class Realisation:
         )
 
 
-def draw_truth(spec: ProcessSpec, n: int, rng: np.random.Generator
-               ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """``mu (7,)``, ``theta (3,)``, ``theta_d (8,)`` and the state sequence ``x (n, 7)``."""
-    s, p, d = spec.state, spec.params, spec.deviation.group
-    mu = rng.uniform(s.mu_min, s.mu_max)
-    theta = rng.uniform(p.lo, p.hi)
-    theta_d = rng.uniform(d.lo, d.hi)
-    x = simulate(n, mu, s.sigma, s.rho, rng, s.lo, s.hi)
-    return mu, theta, theta_d, x
-
-
 def make_realisation(
     spec: ProcessSpec,
     index: int,
@@ -136,8 +125,8 @@ def make_realisation(
             return real
         log.info("%s holds %d products, %d wanted: regenerating", path, real.n, n)
     rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
-    mu, theta, theta_d, x = draw_truth(spec, n, rng)
-    inputs = np.hstack([x, np.tile(theta, (n, 1))])
+    run = draw_production_run(spec, n, rng)
+    mu, theta, theta_d, x, inputs = run.mu, run.theta, run.theta_d, run.x, run.inputs
     fe_path = folder / f"fe_{index}.nc"
     run_design(physics, inputs, fe_path, executor=executor, seed=seed)
     fe = DoeDataset.load(fe_path)

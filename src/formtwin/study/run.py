@@ -24,7 +24,15 @@ from formtwin.measurement import ProcessModel
 from formtwin.simulator import Simulator
 from formtwin.study.metrics import normalised_rmse
 from formtwin.study.pseudodata import Realisation, make_realisation
-from formtwin.study.series import PAPER_SERIES, SERIES, Task, run_task
+from formtwin.study.series import (
+    PAPER_SERIES,
+    SERIES,
+    Task,
+    make_measurement,
+    measurement_file,
+    run_task,
+)
+from formtwin.tracker import TrackerConfig
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -37,14 +45,14 @@ class StudySettings:
     n_products: int = 1000
     n_realisations: int = 5
     n_repetitions: int = 5
-    n_particles: int = 500
-    alpha: float = 0.01
     window: int = 500
     seed: int = 0
     series: tuple[int, ...] = PAPER_SERIES  # 7, 8 (learned mu) on request
     workers: int | None = None
     scheduler: str | None = None
-    filter: str = "sir"
+    #: the filters' settings; each series sets its own estimate_deviation, mu, learn_mu
+    #: and seed (see :func:`formtwin.study.series.series_config`)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
 
     def __post_init__(self) -> None:
         if not 0 < self.window <= self.n_products:
@@ -53,7 +61,7 @@ class StudySettings:
         bad = [s for s in self.series if s not in range(1, len(SERIES) + 1)]
         if bad:
             raise ValueError(f"series {bad} unknown, expected numbers 1..{len(SERIES)}")
-        for name in ("n_realisations", "n_repetitions", "n_particles"):
+        for name in ("n_realisations", "n_repetitions"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)}, expected >= 1")
 
@@ -72,7 +80,11 @@ class StudyResult:
     timings: dict[str, float] = field(default_factory=dict)
 
     def settings_dict(self) -> dict[str, object]:
-        return asdict(self.settings)
+        """The settings as a flat dict (the tracker's as ``tracker.NAME`` keys)."""
+        d = asdict(self.settings)
+        del d["tracker"]
+        d.update({f"tracker.{k}": v for k, v in self.settings.tracker.to_dict().items()})
+        return d
 
 
 def _executor_name(settings: StudySettings) -> str:
@@ -93,12 +105,18 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
     tasks = [Task(series=s, realisation=k, repetition=r,
                   metamodel_path=str(metamodel_path),
                   realisation_path=str(data_dir / f"realisation_{k}.nc"),
+                  measurement_path=str(measurement_file(folder, k, SERIES[s - 1].mu_known)),
                   out_path=str(folder / "runs" / f"series{s}_real{k}_rep{r}.npz"),
-                  n_particles=settings.n_particles, alpha=settings.alpha, seed=settings.seed,
-                  filter=settings.filter)
+                  tracker=settings.tracker, seed=settings.seed)
              for s in settings.series for k in range(settings.n_realisations)
              for r in range(settings.n_repetitions)]
     todo = [t for t in tasks if not Path(t.out_path).exists()]
+    # K_MC once per (realisation, mu known or assumed), here, not in every worker
+    for path, real_k, known in sorted({(t.measurement_path, t.realisation,
+                                        SERIES[t.series - 1].mu_known) for t in todo}):
+        if not Path(path).exists():
+            make_measurement(metamodel, realisations[real_k], known, settings.seed,
+                             settings.tracker, Path(path))
     log.info("%d filter runs, %d cached", len(tasks), len(tasks) - len(todo))
     t1 = time.perf_counter()
     if todo:

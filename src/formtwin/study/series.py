@@ -25,6 +25,7 @@ The measurement model's K_MC is computed with the mu the filter assumes (paper,
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,10 +36,10 @@ import xarray as xr
 from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
-from formtwin.measurement import MeasurementModel
+from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.metamodel import Metamodel
 from formtwin.study.pseudodata import Realisation
-from formtwin.tracker import Tracker, TrackerConfig
+from formtwin.tracker import TrackerConfig, build_measurement, build_tracker
 
 FloatArray = NDArray[np.float64]
 
@@ -92,11 +93,10 @@ class Task:
     repetition: int
     metamodel_path: str
     realisation_path: str
+    measurement_path: str
     out_path: str
-    n_particles: int
-    alpha: float
+    tracker: TrackerConfig
     seed: int
-    filter: str = "sir"
 
 
 @functools.lru_cache(maxsize=2)
@@ -111,12 +111,37 @@ def _realisation(path: str) -> Realisation:
 
 
 @functools.lru_cache(maxsize=16)
-def _measurement(metamodel_path: str, realisation_path: str, mu_known: bool,
-                 seed: int) -> MeasurementModel:
-    model = _metamodel(metamodel_path)
-    mu = _realisation(realisation_path).mu if mu_known else model.spec.state.mu_mid
+def _measurement(path: str) -> MeasurementModel:
+    return MeasurementModel.load(path)
+
+
+def measurement_file(folder: Path, realisation: int, mu_known: bool) -> Path:
+    """Where the study keeps the measurement model of a realisation (mu known or assumed)."""
+    kind = "known" if mu_known else "assumed"
+    return folder / "measurement" / f"real{realisation}_mu_{kind}.npz"
+
+
+def series_config(base: TrackerConfig, series: Series, mu: FloatArray,
+                  seed: int) -> TrackerConfig:
+    """The filter settings of ``series``: ``base`` with the series' deviation switch and
+    learned-mu switch, the assumed state means ``mu`` (7,) and the tracker ``seed``."""
+    return dataclasses.replace(base, estimate_deviation=series.deviation,
+                               mu=tuple(float(v) for v in mu), seed=seed,
+                               learn_mu=series.learn_mu)
+
+
+def make_measurement(model: Metamodel | ProcessModel, real: Realisation, mu_known: bool,
+                     seed: int, base: TrackerConfig, path: Path) -> Path:
+    """Build and save the measurement model of a realisation: ``K_MC`` about the mu the
+    filter assumes (the true mu when known, the mid-range otherwise; paper, "Simulation
+    runs"), from ``base.n_mc`` curves, seeded by the study ``seed``."""
+    mu = real.mu if mu_known else model.spec.state.mu_mid
+    config = dataclasses.replace(base, mu=tuple(float(v) for v in mu))
     rng = np.random.default_rng(np.random.SeedSequence([seed, 7919, int(mu_known)]))
-    return MeasurementModel.from_monte_carlo(model, mu=mu, rng=rng)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = build_measurement(model, config, rng).save(path.with_suffix(".tmp.npz"))
+    tmp.replace(path)
+    return path
 
 
 def run_task(task: Task) -> str:
@@ -138,14 +163,12 @@ def _run(task: Task, out: Path) -> None:
     model = _metamodel(task.metamodel_path)
     real = _realisation(task.realisation_path)
     spec = model.spec
-    measurement = _measurement(task.metamodel_path, task.realisation_path, series.mu_known,
-                               task.seed)
+    measurement = _measurement(task.measurement_path)
     ss = np.random.SeedSequence([task.seed, task.series, task.realisation, task.repetition])
-    config = TrackerConfig(
-        n_particles=task.n_particles, alpha=task.alpha, estimate_deviation=series.deviation,
-        mu=tuple(real.mu if series.mu_known else spec.state.mu_mid),
-        seed=int(ss.generate_state(1)[0]), learn_mu=series.learn_mu)
-    tracker = Tracker(model, measurement, config)
+    config = series_config(task.tracker, series,
+                           real.mu if series.mu_known else spec.state.mu_mid,
+                           int(ss.generate_state(1)[0]))
+    tracker = build_tracker(model, config, measurement)
     ok = real.ok[series.data]
     est = tracker.run(real.curves[series.data][ok])
     n, d = real.n, len(spec.augmented)

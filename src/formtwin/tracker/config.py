@@ -1,0 +1,134 @@
+"""The tracker's settings: one :class:`TrackerConfig`, nested by the study, the service and
+the command line (TOML section ``[tracker]``, flags generated from its fields by
+:mod:`formtwin._config`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+#: where the likelihood compares curves: "model" (paper eq. 12: g^-1(z, theta_d) against
+#: z~(x, theta)) or "measurement" (z against g(z~(x, theta), theta_d))
+COMPARE = ("model", "measurement")
+
+
+def _help(text: str, *flags: str) -> dict[str, Any]:
+    """Field metadata: help text and extra command-line flags."""
+    return {"help": text, "flags": flags}
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings of a :class:`~formtwin.tracker.Tracker` (immutable; change with
+    ``dataclasses.replace``).
+
+    Attributes
+    ----------
+    n_particles : N (paper: 500).
+    alpha : jitter of theta and theta_d as a fraction of their range (eq. 10).
+    estimate_deviation : estimate theta_d (series 3, 6) or fix it at 0 (series 1, 2, 4, 5).
+    mu, sigma, rho : (7,) assumed state statistics, internal units; ``None`` -> the spec's
+        ``mu_mid`` (series 4, 6), ``sigma`` and ``rho``. ``mu`` is also the mean of the
+        Monte-Carlo states behind ``K_MC`` (paper, "Simulation runs").
+    resampling : resampling scheme name (or callable, not checkpointable).
+    seed : seed of the tracker's ``numpy.random.default_rng`` (and of the Monte-Carlo
+        curves for ``K_MC`` when :func:`~formtwin.tracker.build_tracker` makes them).
+    filter : particle-filter name (:data:`formtwin.filters.FILTERS`).
+    ess_threshold : resample when ESS < ess_threshold N (1.0: every step, Algorithm 1).
+    compare : ``"model"`` (paper eq. 12) or ``"measurement"``, see :data:`COMPARE`.
+    angle_particles : predict the angles from this many particles drawn from the weighted
+        cloud by systematic resampling (cuts the cost of the angle models, adds Monte-Carlo
+        error of order ``std / sqrt(angle_particles)``); ``None`` (default): all particles
+        with their weights.
+    learn_mu : estimate the statistics mu as per-particle hyperparameters (prior
+        ``U(mu_min, mu_max)``); ``mu`` is then ignored. Default off (the paper's filter).
+    mu_alpha : jitter of the learned mu per product, as a fraction of ``mu_max - mu_min``.
+        0.02: with resampling every step the mu cloud collapses onto few ancestors and
+        only the jitter keeps it diverse; on the analytic stand-in (5 datasets, N = 500,
+        500 products) 0.005 left the mu posterior std at ~0.07 sigma with errors of
+        1-2 sigma, 0.02 gave the smallest mu and state errors of 0.005/0.01/0.02
+        (docs/improvements.md). The price: the filter forgets old products, mu is a
+        local level over roughly the last 50-100 products rather than a constant.
+    n_mc : Monte-Carlo curves for the measurement model's ``K_MC`` (paper: 10^4).
+    nu : Student-t degrees of freedom of the likelihood; ``inf`` is the paper's Gaussian,
+        a finite value the heavy-tailed robust option.
+    """
+
+    n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))
+    alpha: float = field(default=0.01, metadata=_help("parameter jitter (eq. 10)"))
+    estimate_deviation: bool = field(default=True, metadata=_help(
+        "estimate the deviation parameters theta_d (else g = identity)", "--deviation"))
+    mu: tuple[float, ...] | None = field(default=None, metadata=_help(
+        "assumed state means, 7 comma-separated values in internal units (default: "
+        "mid-range)"))
+    sigma: tuple[float, ...] | None = field(default=None, metadata=_help(
+        "state std, 7 values (default: the spec's)"))
+    rho: tuple[float, ...] | None = field(default=None, metadata=_help(
+        "state autocorrelation, 7 values (default: the spec's)"))
+    resampling: Any = field(default="systematic", metadata=_help(
+        "resampling scheme (systematic, multinomial, stratified, residual)"))
+    seed: int = field(default=0, metadata=_help("tracker seed"))
+    filter: str = field(default="sir", metadata=_help("particle filter (formtwin.filters)"))
+    ess_threshold: float = field(default=1.0, metadata=_help(
+        "resample when ESS < this fraction of N (1: every step)"))
+    compare: str = field(default="model", metadata=_help(
+        "compare curves in model space (eq. 12) or measurement space"))
+    angle_particles: int | None = field(default=None, metadata=_help(
+        "predict angles from this many resampled particles (default: all)"))
+    learn_mu: bool = field(default=False, metadata=_help(
+        "learn the statistics mu as hyperparameters"))
+    mu_alpha: float = field(default=0.02, metadata=_help(
+        "jitter of the learned mu, fraction of mu_max - mu_min"))
+    n_mc: int = field(default=10_000, metadata=_help("Monte-Carlo curves for K_MC"))
+    nu: float = field(default=math.inf, metadata=_help(
+        "Student-t degrees of freedom of the likelihood (inf: Gaussian)", "--robust-nu"))
+
+    def __post_init__(self) -> None:
+        if self.angle_particles is not None and self.angle_particles < 1:
+            raise ValueError(f"angle_particles = {self.angle_particles}, expected >= 1 or None")
+        if self.compare not in COMPARE:
+            raise ValueError(f"compare = {self.compare!r}; known: {', '.join(COMPARE)}")
+        for name in ("mu", "sigma", "rho"):
+            v = getattr(self, name)
+            if v is not None:  # store as a tuple of floats so the config stays hashable/JSON
+                object.__setattr__(self, name, tuple(float(a) for a in np.ravel(v)))
+        for name in ("n_particles", "n_mc"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)}, expected >= 1")
+        for name in ("alpha", "mu_alpha"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} = {getattr(self, name)}, expected >= 0")
+        if not self.nu > 0:
+            raise ValueError(f"nu = {self.nu}, expected > 0 (inf for Gaussian)")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings as JSON-ready values (``nu = inf`` as ``None``)."""
+        if not isinstance(self.resampling, str):
+            raise ValueError("a config with a callable resampling scheme cannot be saved")
+        d = dataclasses.asdict(self)
+        d["nu"] = None if math.isinf(self.nu) else self.nu
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrackerConfig:
+        """Inverse of :meth:`to_dict` (missing keys take their defaults)."""
+        d = dict(d)
+        if "nu" in d:
+            d["nu"] = math.inf if d["nu"] is None else float(d["nu"])
+        clean: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                 for k, v in d.items()}
+        return cls(**clean)
+
+    def to_json(self) -> str:
+        """:meth:`to_dict` as JSON text."""
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> TrackerConfig:
+        """Inverse of :meth:`to_json`."""
+        return cls.from_dict(json.loads(text))

@@ -1,0 +1,235 @@
+"""The online estimator: one particle-filter step per product (Algorithm 1 of the paper).
+
+Estimates (eq. 13-14) and the predicted angles (posterior predictive mean and std of the
+angle model over the weighted particles) are taken *before* resampling. With
+``estimate_deviation=False`` ``theta_d`` is reported with mean 0 and std 0 (an exact,
+NaN-free statement of the filter's assumption); with ``learn_mu=True`` the estimate adds
+``mu_mean``/``mu_std`` while ``names``/``mean``/``std`` stay the 18 augmented variables.
+
+Bad input: :meth:`Tracker.step` validates the curve first (1-D, numeric, length ``n_t``,
+finite) and raises ``ValueError`` naming the problem; the tracker's state, RNG included, is
+untouched. Weight collapse is handled by the filter (see :mod:`formtwin.filters.sir`): the
+step keeps the predictive particles, and the estimate says ``collapsed=True``.
+
+The state goes to bytes (:meth:`Tracker.state_bytes`) or to a checkpoint file
+(:meth:`Tracker.checkpoint`) and back, bit for bit (:mod:`formtwin.tracker.state`).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin._threads import single_blas_thread
+from formtwin.estimates import Estimate, Estimates
+from formtwin.filters import SIR, Step, make_filter
+from formtwin.filters.resampling import systematic
+from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.tracker import state as _state
+from formtwin.tracker.config import TrackerConfig
+from formtwin.tracker.ssm import BendingSSM
+
+FloatArray = NDArray[np.float64]
+
+log = logging.getLogger(__name__)
+
+
+def validate_curve(curve: Any, n_t: int) -> FloatArray:
+    """``curve`` as a float array (n_t,), or ``ValueError`` naming what is wrong."""
+    if isinstance(curve, (str, bytes)):
+        raise ValueError(f"curve is a {type(curve).__name__}, expected {n_t} numbers")
+    try:
+        arr = np.asarray(curve)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"curve cannot be read as an array: {exc}") from exc
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"curve has dtype {arr.dtype}, expected real numbers")
+    if arr.ndim != 1:
+        raise ValueError(f"curve has shape {arr.shape}, expected ({n_t},)")
+    if arr.size != n_t:
+        raise ValueError(f"curve has {arr.size} samples, expected {n_t}")
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        raise ValueError(f"curve has {int(bad.sum())} non-finite values (NaN/inf), first "
+                         f"at sample {int(np.argmax(bad))}")
+    return arr
+
+
+class Tracker:
+    """Online state, parameter and deviation estimation for a stream of products.
+
+    Parameters
+    ----------
+    model : the process model (metamodel) giving curves and angles.
+    measurement : the measurement model (likelihood).
+    config : settings; default :class:`TrackerConfig()`.
+
+    See :func:`formtwin.tracker.build_tracker` for building one from a config alone.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from formtwin.defaults import analytic_model
+    >>> model = analytic_model(); spec = model.spec
+    >>> mm = MeasurementModel.from_monte_carlo(model, n=2000)
+    >>> tr = Tracker(model, mm, TrackerConfig(n_particles=200, estimate_deviation=False))
+    >>> curve = model.predict_curves(np.tile(0.5 * (spec.inputs.lo + spec.inputs.hi), (1, 1)))[0]
+    >>> e = tr.step(curve)
+    >>> e.index, e.mean.shape, tr.n_steps
+    (0, (18,), 1)
+    >>> Tracker.from_state_bytes(tr.state_bytes(), model, mm).state_bytes() == tr.state_bytes()
+    True
+    """
+
+    def __init__(self, model: ProcessModel, measurement: MeasurementModel,
+                 config: TrackerConfig | None = None) -> None:
+        self.config = TrackerConfig() if config is None else config
+        self.model = model
+        self.measurement = measurement
+        self.ssm = BendingSSM(model, measurement, self.config)
+        self.spec = model.spec
+        self.names: tuple[str, ...] = self.spec.augmented.names
+        self.rng = np.random.default_rng(self.config.seed)
+        self.filter: SIR = make_filter(self.config.filter, self.ssm, self.config.n_particles,
+                                       self.rng, self.config.resampling,
+                                       self.config.ess_threshold)
+        self._config_dict: dict[str, Any] | None = None
+        self._fingerprint: str | None = None
+
+    @property
+    def n_steps(self) -> int:
+        """Number of products assimilated so far."""
+        return self.filter.t
+
+    @property
+    def particles(self) -> FloatArray | None:
+        """Current (resampled) particles (N, 18) (N, 25 with the learned mu last), or
+        ``None`` before the first step."""
+        return self.filter.x
+
+    def step(self, curve: Any) -> Estimate:
+        """Assimilate the force curve (n_t,) N of the next product; return its estimate.
+
+        Raises ``ValueError`` for a malformed curve. If anything fails during the step
+        (the curve check, or the model raising), the tracker is left exactly as before:
+        particles, weights, step count and RNG state.
+        """
+        y = validate_curve(curve, self.spec.n_t)
+        f = self.filter
+        saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
+        try:
+            s = f.step(y)
+            return self._estimate(s)
+        except BaseException:
+            f.x, f.logw, f.t = saved[0], saved[1], saved[2]
+            self.rng.bit_generator.state = saved[3]
+            raise
+
+    def _estimate(self, s: Step) -> Estimate:
+        m = self.config.angle_particles
+        if m is None or m >= s.x.shape[0]:
+            xa, wa = s.x, s.w
+        else:
+            xa, wa = s.x[systematic(s.w, self.rng, m)], np.full(m, 1.0 / m)
+        angles = self.ssm.predict_angles(xa)
+        ok = np.all(np.isfinite(angles), axis=1)
+        w = np.where(ok, wa, 0.0)
+        if w.sum() > 0:
+            w = w / w.sum()
+            a = np.where(ok[:, None], angles, 0.0)
+            am = w @ a
+            astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0))
+        else:
+            am = astd = np.full(2, np.nan)
+        mean, std, na = s.mean(), s.std(), len(self.names)
+        learned = self.config.learn_mu
+        return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
+                        std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
+                        collapsed=s.collapsed, loglik=s.loglik,
+                        mu_mean=mean[na:] if learned else None,
+                        mu_std=std[na:] if learned else None)
+
+    def run(self, curves: Iterable[Any], progress: bool = False) -> Estimates:
+        """Assimilate curves (n, n_t) one product at a time; return stacked estimates.
+
+        ``progress`` shows a tqdm bar (only on a terminal). BLAS is limited to one thread
+        for the run (:func:`formtwin._threads.single_blas_thread`); callers of :meth:`step`
+        in a loop should do the same around their loop.
+        """
+        items: list[Estimate] = []
+        it: Iterable[Any] = curves
+        if progress:
+            from tqdm import tqdm
+            it = tqdm(curves, desc="tracking", unit="product", disable=not sys.stderr.isatty())
+        with single_blas_thread():  # once per run: entering it costs ~0.25 ms
+            for c in it:
+                items.append(self.step(c))
+        return Estimates.stack(items, self.names)
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> _state.TrackerState:
+        """The full state (a copy-free view: do not modify its arrays)."""
+        if self._config_dict is None:
+            self._config_dict = self.config.to_dict()
+        if self._fingerprint is None:
+            self._fingerprint = _state.fingerprint(self.measurement)
+        f = self.filter
+        x = np.empty((0, self.ssm.n_aug)) if f.x is None else f.x
+        return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
+                                   t=f.t, rng=dict(self.rng.bit_generator.state),
+                                   config=self._config_dict, names=self.names,
+                                   measurement=self._fingerprint)
+
+    def set_state(self, s: _state.TrackerState, where: str = "state") -> None:
+        """Continue from ``s`` (made by a tracker with the same config and names)."""
+        if TrackerConfig.from_dict(s.config) != self.config:
+            raise ValueError(f"{where}: saved with config {s.config}, this tracker has "
+                             f"{self.config.to_dict()}")
+        if s.names != self.names:
+            raise ValueError(f"{where}: state names {s.names} differ from the model's "
+                             f"{self.names}")
+        if s.measurement != (self._fingerprint or _state.fingerprint(self.measurement)):
+            log.warning("%s: restoring with a different measurement model than saved", where)
+        self.rng.bit_generator.state = s.rng
+        self.filter.x = s.particles if s.t > 0 and s.particles.size else None
+        self.filter.logw = s.logw
+        self.filter.t = s.t
+
+    def state_bytes(self) -> bytes:
+        """The full state as bytes (:func:`formtwin.tracker.state.encode`)."""
+        return _state.encode(self.state())
+
+    def load_state_bytes(self, data: bytes) -> None:
+        """Continue from bytes made by :meth:`state_bytes` of a tracker like this one."""
+        self.set_state(_state.decode(data))
+
+    @classmethod
+    def from_state(cls, s: _state.TrackerState, model: ProcessModel,
+                   measurement: MeasurementModel, where: str = "state") -> Tracker:
+        """A tracker continuing exactly where the one that saved ``s`` stopped."""
+        tr = cls(model, measurement, TrackerConfig.from_dict(s.config))
+        tr.set_state(s, where)
+        return tr
+
+    @classmethod
+    def from_state_bytes(cls, data: bytes, model: ProcessModel,
+                         measurement: MeasurementModel) -> Tracker:
+        """A tracker continuing from bytes made by :meth:`state_bytes`."""
+        return cls.from_state(_state.decode(data), model, measurement)
+
+    def checkpoint(self, path: str | Path) -> Path:
+        """Save the full state to ``path`` (.npz, atomic replace); return the path."""
+        return _state.save_npz(self.state(), path)
+
+    @classmethod
+    def restore(cls, path: str | Path, model: ProcessModel,
+                measurement: MeasurementModel) -> Tracker:
+        """A tracker continuing exactly where the one that wrote ``path`` stopped."""
+        return cls.from_state(_state.load_npz(path), model, measurement, where=str(path))

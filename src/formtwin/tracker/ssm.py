@@ -1,0 +1,190 @@
+"""The augmented state-space model ``[x, theta, theta_d]`` that the generic filters see.
+
+:class:`BendingSSM` is the model, apart from the algorithm (as in ``particles``):
+
+* initial law: ``x ~ N(mu, sigma^2)`` per variable (its stationary law under eq. 4-5,
+  reflected into the design box), ``theta`` and ``theta_d`` uniform in their bounds;
+* transition: ``x`` by the AR(1) evolution (eq. 4-5), ``theta`` and ``theta_d`` by the
+  jitter of eq. 10 (``alpha`` times the range), all reflected into their bounds;
+* likelihood (eq. 12): ``g^-1(z, theta_d)`` against the model curve ``z~(x, theta)`` under
+  the :class:`~formtwin.measurement.MeasurementModel`;
+* :meth:`BendingSSM.simulate`: a production run as the model assumes it (constant theta and
+  theta_d, curves ``g(z~(x, theta), theta_d)``).
+
+With ``learn_mu=True`` (the paper's Discussion: the statistics as hyperparameters
+estimated with the rest) the particles carry 7 more columns, their own mu: initially
+``U(mu_min, mu_max)``, each particle's ``x`` evolves with its own mu, then mu takes a jitter
+step of std ``mu_alpha (mu_max - mu_min)`` reflected into ``[mu_min, mu_max]``.
+
+With ``estimate_deviation=False`` (paper series 1, 2, 4, 5) ``theta_d`` is fixed at 0
+(``g`` is the identity) and never jittered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.deviation import DeviationModel
+from formtwin.evolution import evolve, jitter, reflect, stationary
+from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.production import ProductionRun, draw_production_run
+from formtwin.spec import ProcessSpec
+from formtwin.tracker.config import TrackerConfig
+
+FloatArray = NDArray[np.float64]
+
+#: particles per block when evaluating the model: bounds peak memory at large N and keeps
+#: the RBF distance blocks in cache (N = 1e4 on the 7024-point metamodel: 0.7 s per step
+#: with 512, 1.9 s with 8192)
+CHUNK = 512
+
+
+@dataclass(frozen=True)
+class BendingSSM:
+    """The augmented state-space model ``[x, theta, theta_d]`` for the generic filters.
+
+    Parameters
+    ----------
+    model : the process model (metamodel) giving curves and angles.
+    measurement : the likelihood of a curve.
+    config : the tracker settings (statistics, jitter, deviation on/off, learned mu).
+    """
+
+    model: ProcessModel
+    measurement: MeasurementModel
+    config: TrackerConfig
+    spec: ProcessSpec = field(init=False)
+    deviation: DeviationModel = field(init=False)
+    _mu: FloatArray = field(init=False, repr=False)
+    _sigma: FloatArray = field(init=False, repr=False)
+    _rho: FloatArray = field(init=False, repr=False)
+    # bounds of the particle columns: (18,), or (25,) with [mu_min, mu_max] when learning mu
+    _lo: FloatArray = field(init=False, repr=False)
+    _hi: FloatArray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        spec = self.model.spec
+        object.__setattr__(self, "spec", spec)
+        # the spec builds these arrays on every access (~20 us): keep them
+        lo, hi = spec.augmented.lo, spec.augmented.hi
+        if self.config.learn_mu:
+            lo, hi = np.r_[lo, spec.state.mu_min], np.r_[hi, spec.state.mu_max]
+        object.__setattr__(self, "_lo", lo)
+        object.__setattr__(self, "_hi", hi)
+        object.__setattr__(self, "deviation", DeviationModel.from_spec(spec))
+        st, c = spec.state, self.config
+        for name, v in (("mu", c.mu), ("sigma", c.sigma), ("rho", c.rho)):
+            if v is not None and len(v) != len(st):
+                raise ValueError(f"config.{name} has {len(v)} values, expected {len(st)} "
+                                 f"({', '.join(st.names)})")
+        object.__setattr__(self, "_mu", st.mu_mid if c.mu is None else np.array(c.mu))
+        object.__setattr__(self, "_sigma", st.sigma if c.sigma is None else np.array(c.sigma))
+        object.__setattr__(self, "_rho", st.rho if c.rho is None else np.array(c.rho))
+        if self.measurement.n_t != spec.n_t:
+            raise ValueError(f"measurement model has {self.measurement.n_t} samples, "
+                             f"the spec's curves {spec.n_t}")
+
+    @property
+    def n_x(self) -> int:
+        """Number of state variables (7)."""
+        return len(self.spec.state)
+
+    @property
+    def n_in(self) -> int:
+        """Number of model inputs ``[x, theta]`` (10)."""
+        return self.spec.n_inputs
+
+    @property
+    def n_aug(self) -> int:
+        """Width of the augmented state ``[x, theta, theta_d]`` (18); the particles have
+        ``n_x`` more columns (their mu) when learning mu."""
+        return len(self.spec.augmented)
+
+    def sample_initial(self, n: int, rng: np.random.Generator) -> FloatArray:
+        """``n`` particles (n, 18) or (n, 25) from the initial law."""
+        lo, hi, nx = self._lo, self._hi, self.n_x
+        out = lo + (hi - lo) * rng.random((n, lo.size))
+        if self.config.learn_mu:  # x from the stationary law of each particle's own mu
+            mu = out[:, self.n_aug:]
+            out[:, :nx] = reflect(mu + self._sigma * rng.standard_normal((n, nx)),
+                                  lo[:nx], hi[:nx])
+        else:
+            out[:, :nx] = stationary(n, self._mu, self._sigma, rng, lo[:nx], hi[:nx])
+        if not self.config.estimate_deviation:
+            out[:, self.n_in:self.n_aug] = 0.0
+        return out
+
+    def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
+        """Particles (N, d) of the next product given those of this one (N, d)."""
+        lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
+        out = np.empty_like(x)
+        mu = x[:, na:] if self.config.learn_mu else self._mu
+        # eq. 4-5, then reflection of the few rows that left the box
+        out[:, :nx] = _into_box(evolve(x[:, :nx], mu, self._sigma, self._rho, rng),
+                                lo[:nx], hi[:nx])
+        stop = na if self.config.estimate_deviation else self.n_in
+        out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
+                                 self.config.alpha)
+        out[:, stop:na] = x[:, stop:na]
+        if self.config.learn_mu:
+            out[:, na:] = jitter(x[:, na:], lo[na:], hi[na:], rng, self.config.mu_alpha)
+        return out
+
+    def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        """Log-likelihood (N,) of the measured curve ``y`` (n_t,) N for particles ``x``."""
+        if x.shape[0] <= CHUNK:
+            return self._loglik(x, y)
+        # in blocks of particles: bounds the (N, n_t) temporaries of model and g^-1
+        return np.concatenate([self._loglik(x[i: i + CHUNK], y)
+                               for i in range(0, x.shape[0], CHUNK)])
+
+    def constrain(self, x: FloatArray) -> FloatArray:
+        """Reflect particles (N, 18) or (N, 25) into their bounds (used by kernel moves);
+        ``theta_d`` stays 0 when it is not estimated."""
+        out = reflect(x, self._lo, self._hi)
+        if not self.config.estimate_deviation:
+            out[:, self.n_in:self.n_aug] = 0.0
+        return out
+
+    def predict_angles(self, x: FloatArray) -> FloatArray:
+        """Angles (N, 2) of particles ``x`` (N, 18) or (N, 25), in blocks of particles."""
+        return np.concatenate([self.model.predict_angles(x[i: i + CHUNK, : self.n_in])
+                               for i in range(0, x.shape[0], CHUNK)])
+
+    def simulate(self, n: int, rng: np.random.Generator) -> tuple[ProductionRun, FloatArray]:
+        """A production run of ``n`` products as this model assumes it, and its curves.
+
+        mu is the config's (drawn uniform in ``[mu_min, mu_max]`` when learning mu), theta
+        and theta_d are drawn once and held constant (theta_d = 0 when the deviation is not
+        estimated), the states follow eq. 4-5 with the config's sigma and rho; the curves
+        (n, n_t) N are ``g(z~(x, theta), theta_d)``, without measurement noise.
+        """
+        run = draw_production_run(self.spec, n, rng,
+                                  mu=None if self.config.learn_mu else self._mu,
+                                  deviation=self.config.estimate_deviation,
+                                  sigma=self._sigma, rho=self._rho)
+        curves = self.model.predict_curves(run.inputs)
+        if self.config.estimate_deviation:
+            curves = self.deviation.apply(curves, np.tile(run.theta_d, (n, 1)))
+        return run, curves
+
+    def _loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        curves = self.model.predict_curves(x[:, : self.n_in])
+        if not self.config.estimate_deviation:
+            return self.measurement.loglik(curves, y)
+        td = x[:, self.n_in:self.n_aug]
+        if self.config.compare == "measurement":
+            return self.measurement.loglik(self.deviation.apply(curves, td), y)
+        return self.measurement.loglik(curves, self.deviation.invert(y, td))
+
+
+def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """:func:`~formtwin.evolution.reflect` applied to the rows (N, d) that left the box
+    (most rows stay inside, and ``reflect`` costs a float modulo per entry)."""
+    rows = np.any((v < lo) | (v > hi), axis=1)
+    if rows.any():
+        v[rows] = reflect(v[rows], lo, hi)
+    return v
