@@ -87,6 +87,51 @@ def test_checkpoint_restore_continues_bit_for_bit(
         Tracker.restore(tmp_path / "junk.npz", model, mm)
 
 
+def test_state_bytes_continue_bit_for_bit_in_place_and_new(
+        model: AnalyticModel, mm: MeasurementModel, series1: dict[str, np.ndarray]) -> None:
+    curves = series1["curves"][:10]
+    cfg = TrackerConfig(n_particles=80, seed=9)
+    a = Tracker(model, mm, cfg)
+    a.run(curves[:5])
+    saved = a.state_bytes()
+    want = a.run(curves[5:])
+    b = Tracker.from_state_bytes(saved, model, mm)  # a new tracker
+    a.load_state_bytes(saved)  # the same tracker, rewound in place
+    for tr in (a, b):
+        got = tr.run(curves[5:])
+        for f in ("mean", "std", "angles_mean", "ess", "loglik"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
+    assert a.state_bytes() == b.state_bytes()
+    with pytest.raises(ValueError, match="bad magic"):
+        Tracker.from_state_bytes(b"junk" * 10, model, mm)
+    with pytest.raises(ValueError, match="bytes, expected"):
+        a.load_state_bytes(saved[:-8])
+    other = Tracker(model, mm, TrackerConfig(n_particles=81, seed=9))
+    with pytest.raises(ValueError, match="saved with config"):
+        other.load_state_bytes(saved)
+
+
+def test_simulate_draws_the_run_the_model_assumes(model: AnalyticModel,
+                                                  mm: MeasurementModel) -> None:
+    cfg = TrackerConfig(mu=tuple(model.spec.state.mu_min), estimate_deviation=False)
+    tr = Tracker(model, mm, cfg)
+    run, curves = tr.ssm.simulate(400, np.random.default_rng(1))
+    st = model.spec.state
+    np.testing.assert_array_equal(run.mu, st.mu_min)
+    assert np.all(run.theta_d == 0) and run.truth.shape == (400, 18)
+    np.testing.assert_array_equal(curves, model.predict_curves(run.inputs))
+    # the states scatter about mu with the spec's sigma (AR(1) stationary law, reflected)
+    k = st.index["punch_end_distance"]
+    assert abs(run.x[:, k].mean() - st.mu_min[k]) < 0.5 * st.sigma[k]
+    # with the deviation estimated, the curves are g(model, theta_d)
+    tr2 = Tracker(model, mm, TrackerConfig())
+    run2, curves2 = tr2.ssm.simulate(5, np.random.default_rng(2))
+    assert np.any(run2.theta_d != 0)
+    np.testing.assert_allclose(
+        curves2, tr2.ssm.deviation.apply(model.predict_curves(run2.inputs),
+                                         np.tile(run2.theta_d, (5, 1))))
+
+
 @pytest.mark.parametrize("bad,message", [
     (np.zeros(50), "50 samples, expected 101"),
     (np.zeros((1, 101)), r"shape \(1, 101\)"),
