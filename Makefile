@@ -18,6 +18,12 @@ demo: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks examples
 	$(BIN)/mypy
+	$(BIN)/lint-imports
+	$(BIN)/interrogate -c pyproject.toml src/formtwin
+	@# small modules with one job: none in src over 400 lines
+	@find src -name '*.py' | xargs wc -l | \
+	    awk '$$2 != "total" && $$1 > 400 {print "over 400 lines: " $$2 " (" $$1 ")"; bad = 1} \
+	    END {exit bad}'
 
 test: $(STAMP) lint system-deps
 	OMP_NUM_THREADS=1 $(BIN)/pytest

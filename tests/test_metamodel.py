@@ -7,7 +7,7 @@ import pytest
 
 from formtwin.defaults import analytic_dataset
 from formtwin.metamodel import POD, RBF, Metamodel, loo_residuals
-from formtwin.metamodel.rbf import monomial_powers, polynomial
+from formtwin.metamodel.kernels import monomial_powers, polynomial
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from formtwin.cli import main
-from formtwin.spec import SpecError, format_table, load_spec, parse_spec
+from formtwin.cli.spec import format_table
+from formtwin.spec import SpecError, load_spec, parse_spec
 
 BUNDLED = (Path(__file__).parents[1] / "src/formtwin/specs/demonstrator.toml").read_text()
 

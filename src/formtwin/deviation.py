@@ -45,6 +45,7 @@ class DeviationModel:
 
     @classmethod
     def from_spec(cls, spec: ProcessSpec) -> DeviationModel:
+        """The deviation model of ``spec``: its knots on the spec's time grid."""
         return cls(spec.time, spec.deviation.knots)
 
     @property

@@ -81,7 +81,9 @@ class ProcessModel(Protocol):
     """
 
     @property
-    def spec(self) -> ProcessSpec: ...
+    def spec(self) -> ProcessSpec:
+        """The process definition whose inputs the model takes."""
+        ...
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
         """Stage-1 force curves (N, n_t), N, for inputs ``X`` (N, 10)."""
@@ -211,6 +213,7 @@ class MeasurementModel:
     # ------------------------------------------------------------------ evaluation
     @property
     def n_t(self) -> int:
+        """Samples per curve ``n_t``."""
         return int(self.basis.shape[0])
 
     @property

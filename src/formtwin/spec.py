@@ -120,6 +120,7 @@ class Group:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """Names of the variables, in order."""
         return tuple(v.name for v in self.variables)
 
     def _col(self, attr: str) -> FloatArray:
@@ -137,10 +138,12 @@ class Group:
 
     @property
     def mu_min(self) -> FloatArray:
+        """(d,) lower bounds of the statistics mu, internal units."""
         return self._col("mu_min")
 
     @property
     def mu_max(self) -> FloatArray:
+        """(d,) upper bounds of the statistics mu, internal units."""
         return self._col("mu_max")
 
     @property
@@ -150,10 +153,12 @@ class Group:
 
     @property
     def sigma(self) -> FloatArray:
+        """(d,) standard deviations of the state variables, internal units."""
         return self._col("sigma")
 
     @property
     def rho(self) -> FloatArray:
+        """(d,) autocorrelations of the state variables (eq. 4-5)."""
         return self._col("rho")
 
 
@@ -166,10 +171,12 @@ class Deviation:
 
     @property
     def n_knots(self) -> int:
+        """Number of deviation knots (the dimension of theta_d)."""
         return int(self.knots.size)
 
     @property
     def names(self) -> tuple[str, ...]:
+        """Names of the deviation parameters theta_d."""
         return self.group.names
 
 
@@ -203,10 +210,12 @@ class ProcessSpec:
 
     @property
     def n_inputs(self) -> int:
+        """Number of model inputs ``[x, theta]`` (10 for Table 1)."""
         return len(self.state) + len(self.params)
 
     @property
     def n_t(self) -> int:
+        """Samples per force curve on the time grid."""
         return int(self.time.size)
 
     @property
@@ -384,27 +393,3 @@ class _Reader:
                                    scale=scale, lo=lo * scale, hi=hi * scale)
                           for k in range(n)]
         return Deviation(group=Group(tuple(variables)), knots=np.linspace(t0, t1, n))
-
-
-def format_table(spec: ProcessSpec) -> str:
-    """Table 1 of a spec, in the spec file's units, as fixed-width text."""
-    head = f"{'group':<10}{'name':<22}{'unit':<12}{'min':>9}{'max':>9}" \
-           f"{'mu_min':>9}{'mu_max':>9}{'sigma':>8}{'rho':>6}"
-    lines = [f"{spec.name}: {spec.description}", head, "-" * len(head)]
-
-    def cell(value: float, scale: float, width: int) -> str:
-        return f"{'':>{width}}" if math.isnan(value) else f"{value / scale:>{width}.4g}"
-
-    for group, vars_ in (("x", spec.state), ("theta", spec.params),
-                         ("theta_d", spec.deviation.group)):
-        for v in vars_:
-            lines.append(f"{group:<10}{v.name:<22}{v.unit:<12}"
-                         f"{cell(v.lo, v.scale, 9)}{cell(v.hi, v.scale, 9)}"
-                         f"{cell(v.mu_min, v.scale, 9)}{cell(v.mu_max, v.scale, 9)}"
-                         f"{cell(v.sigma, v.scale, 8)}{cell(v.rho, 1.0, 6)}")
-    notes = [f"note ({v.name}): {v.note}" for v in spec.augmented if v.note]
-    t = spec.time
-    lines += ["", f"force curve: {t.size} samples on [{t[0] * 1e3:g}, {t[-1] * 1e3:g}] ms; "
-              f"deviation knots at {', '.join(f'{k * 1e3:.4g}' for k in spec.deviation.knots)}"
-              " ms"] + notes
-    return "\n".join(lines)

@@ -6,10 +6,12 @@ import argparse
 from typing import Any
 
 from formtwin.cli import study
-from formtwin.spec import format_table, load_spec
+from formtwin.cli.spec import format_table
+from formtwin.spec import load_spec
 
 
 def register(sub: Any) -> None:
+    """Add the ``demo`` command to the subparsers ``sub``."""
     p = sub.add_parser("demo", help="run the paper's study on the embedded default model "
                        "and write its report (the main job)")
     p.add_argument("--out", default="out/demo", help="output folder (default: %(default)s)")

@@ -14,6 +14,7 @@ from formtwin.spec import load_spec
 
 
 def register(sub: Any) -> None:
+    """Add the ``doe`` commands to the subparsers ``sub``."""
     p = sub.add_parser("doe", help="designs of experiments and DOE datasets")
     dsub = p.add_subparsers(dest="doe_command", required=True, metavar="ACTION")
     run = dsub.add_parser("run", help="run the paper's design (2^10 corners + Latin "

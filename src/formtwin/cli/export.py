@@ -7,6 +7,7 @@ from typing import Any
 
 
 def register(sub: Any) -> None:
+    """Add the ``export`` command to the subparsers ``sub``."""
     p = sub.add_parser("export", help="export a serve store to Parquet or CSV",
                        description="One row per stored product: part id, cycle, timestamp, "
                        "status, posterior mean and std of every estimated quantity, predicted "

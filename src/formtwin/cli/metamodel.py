@@ -9,6 +9,7 @@ from typing import Any
 
 
 def register(subparsers: Any) -> None:
+    """Add the ``metamodel`` commands to the subparsers ``sub``."""
     p = subparsers.add_parser("metamodel", help="fit or validate the POD + RBF metamodel",
                               description=__doc__)
     sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")

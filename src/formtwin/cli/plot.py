@@ -12,6 +12,7 @@ from formtwin.spec import load_spec
 
 
 def register(sub: Any) -> None:
+    """Add the ``plot`` commands to the subparsers ``sub``."""
     p = sub.add_parser("plot", help="draw figures of the model pieces")
     psub = p.add_subparsers(dest="plot_command", required=True, metavar="FIGURE")
     dev = psub.add_parser("deviation", help="effect of each deviation knot (paper Fig. 1)")

@@ -9,6 +9,7 @@ from formtwin.cli.serve import DEFAULT_TOPIC, add_broker_options, broker_config
 
 
 def register(sub: Any) -> None:
+    """Add the ``replay`` command to the subparsers ``sub``."""
     p = sub.add_parser("replay", help="publish a stream of force curves to MQTT as strokes",
                        description="Publish each product of FILE (.npz, .nc or .csv; see "
                        "formtwin.service.streams) as a formtwin.stroke/1 message, QoS 1.")

@@ -42,6 +42,7 @@ def broker_config(args: argparse.Namespace) -> Any:
 
 
 def register(sub: Any) -> None:
+    """Add the ``serve`` command to the subparsers ``sub``."""
     p = sub.add_parser("serve", help="track live strokes from MQTT; store, publish, live page",
                        description="Subscribe to force-curve strokes (QoS 1), run one tracker "
                        "step per product, commit product + estimate + checkpoint to SQLite, "

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import math
 from typing import Any
 
-from formtwin.spec import format_table, load_spec
+from formtwin.spec import ProcessSpec, load_spec
 
 
 def register(sub: Any) -> None:
+    """Add the ``spec`` commands to the subparsers ``sub``."""
     p = sub.add_parser("spec", help="show or check a process definition (TOML)")
     ssub = p.add_subparsers(dest="spec_command", required=True, metavar="ACTION")
     show = ssub.add_parser("show", help="print a spec as a table (default: the demonstrator)")
@@ -19,3 +21,27 @@ def register(sub: Any) -> None:
 def _show(args: argparse.Namespace) -> int:
     print(format_table(load_spec(args.path)))
     return 0
+
+
+def format_table(spec: ProcessSpec) -> str:
+    """Table 1 of a spec, in the spec file's units, as fixed-width text."""
+    head = f"{'group':<10}{'name':<22}{'unit':<12}{'min':>9}{'max':>9}" \
+           f"{'mu_min':>9}{'mu_max':>9}{'sigma':>8}{'rho':>6}"
+    lines = [f"{spec.name}: {spec.description}", head, "-" * len(head)]
+
+    def cell(value: float, scale: float, width: int) -> str:
+        return f"{'':>{width}}" if math.isnan(value) else f"{value / scale:>{width}.4g}"
+
+    for group, vars_ in (("x", spec.state), ("theta", spec.params),
+                         ("theta_d", spec.deviation.group)):
+        for v in vars_:
+            lines.append(f"{group:<10}{v.name:<22}{v.unit:<12}"
+                         f"{cell(v.lo, v.scale, 9)}{cell(v.hi, v.scale, 9)}"
+                         f"{cell(v.mu_min, v.scale, 9)}{cell(v.mu_max, v.scale, 9)}"
+                         f"{cell(v.sigma, v.scale, 8)}{cell(v.rho, 1.0, 6)}")
+    notes = [f"note ({v.name}): {v.note}" for v in spec.augmented if v.note]
+    t = spec.time
+    lines += ["", f"force curve: {t.size} samples on [{t[0] * 1e3:g}, {t[-1] * 1e3:g}] ms; "
+              f"deviation knots at {', '.join(f'{k * 1e3:.4g}' for k in spec.deviation.knots)}"
+              " ms"] + notes
+    return "\n".join(lines)

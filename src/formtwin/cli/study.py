@@ -18,6 +18,7 @@ SERIES_FIELDS = ("estimate_deviation", "mu", "seed", "learn_mu")
 
 
 def register(sub: Any) -> None:
+    """Add the ``study`` command to the subparsers ``sub``."""
     p = sub.add_parser("study", help="run the paper's study (6 series) and write a report")
     p.add_argument("--out", default="out/study", help="study folder (default: %(default)s)")
     p.add_argument("--quick", action="store_true",
@@ -49,6 +50,8 @@ def build_namespace(**given: Any) -> argparse.Namespace:
 
 
 def settings_from_args(args: argparse.Namespace) -> StudySettings:
+    """The :class:`StudySettings` of parsed ``formtwin study`` options (``--quick`` first, then
+    the sizes given, then the tracker's flags)."""
     values: dict[str, Any] = dict(QUICK) if args.quick else {}
     for key, attr in (("n_products", "products"), ("n_realisations", "realisations"),
                       ("n_repetitions", "repetitions"), ("window", "window")):
@@ -64,6 +67,7 @@ def settings_from_args(args: argparse.Namespace) -> StudySettings:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``formtwin study``: the metamodel, the study and its report; returns the exit code."""
     from formtwin.defaults import default_metamodel, physics_model
     from formtwin.study.report import write_report
     from formtwin.study.run import run_study

@@ -20,6 +20,7 @@ CURVE_KEYS = ("curves", "curve", "force", "z")
 
 
 def register(sub: Any) -> None:
+    """Add the ``track`` command to the subparsers ``sub``."""
     p = sub.add_parser(
         "track", help="estimate state, parameters and angles from a file of force curves",
         description="Run the particle-filter tracker over the curves of FILE, one product a "

@@ -48,6 +48,8 @@ class RegularisedSIR(SIR):
         self.bandwidth = float(bandwidth)
 
     def update(self, xp: FloatArray, ll: FloatArray) -> Step:
+        """Weight the predicted particles ``xp`` (N, d) by their log-likelihoods ``ll``
+        (N,) as SIR does, then move the resampled particles by the regularisation kernel."""
         step = super().update(xp, ll)
         if step.resampled and not step.collapsed and self.x is not None:
             h = self.bandwidth

@@ -27,13 +27,15 @@ column is an independent interpolant; columns share centres, kernel and scales.
 >>> rbf = RBF(length_scales="box", dtype=np.float64).fit(U, y)
 >>> float(np.abs(rbf.predict(U) - y).max()) < 1e-8
 True
+
+Kernels live in :mod:`formtwin.metamodel.kernels`, the leave-one-out criterion and its
+gradient in :mod:`formtwin.metamodel.loo`.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
-from itertools import combinations_with_replacement
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -42,194 +44,21 @@ from numpy.typing import DTypeLike, NDArray
 from scipy.optimize import minimize
 from scipy.spatial.distance import cdist
 
+from formtwin.metamodel.kernels import (
+    KERNELS,
+    SCALE_FREE,
+    kernel_function,
+    monomial_powers,
+    polynomial,
+)
+from formtwin.metamodel.loo import interpolation_matrix, loo_objective, loo_residuals
+
 FloatArray = NDArray[np.float64]
-Kernel = Callable[[np.ndarray], np.ndarray]
 
 log = logging.getLogger(__name__)
 
-
-def _tps(r2: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.log(np.maximum(r2, np.finfo(r2.dtype).tiny))
-    out *= r2
-    out *= 0.5
-    return out
-
-
-def _cubic(r2: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.sqrt(r2)
-    out *= r2
-    return out
-
-
-def _quintic(r2: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.sqrt(r2)
-    out *= r2
-    out *= -r2
-    return out
-
-
-def _linear(r2: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.sqrt(r2)
-    out *= -1.0
-    return out
-
-
-def _gaussian(r2: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.exp(-r2)
-    return out
-
-
-def _multiquadric(r2: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.sqrt(r2 + 1.0)
-    out *= -1.0
-    return out
-
-
-def _inverse_multiquadric(r2: np.ndarray) -> np.ndarray:
-    out: np.ndarray = np.sqrt(r2 + 1.0)
-    np.reciprocal(out, out=out)
-    return out
-
-
-#: kernel name -> (phi of the squared scaled distance, lowest polynomial degree it needs)
-KERNELS: dict[str, tuple[Kernel, int]] = {
-    "thin_plate_spline": (_tps, 1),
-    "cubic": (_cubic, 1),
-    "quintic": (_quintic, 2),
-    "linear": (_linear, 0),
-    "gaussian": (_gaussian, -1),
-    "multiquadric": (_multiquadric, 0),
-    "inverse_multiquadric": (_inverse_multiquadric, -1),
-}
-
-#: d phi / d(r^2) per kernel (its value at r = 0 is never used)
-KERNEL_SLOPES: dict[str, Kernel] = {
-    "thin_plate_spline": lambda r2: 0.5 * (np.log(np.maximum(r2, 1e-300)) + 1.0),
-    "cubic": lambda r2: 1.5 * np.sqrt(r2),
-    "quintic": lambda r2: -2.5 * r2 * np.sqrt(r2),
-    "linear": lambda r2: -0.5 / np.sqrt(np.maximum(r2, 1e-300)),
-    "gaussian": lambda r2: -np.exp(-r2),
-    "multiquadric": lambda r2: -0.5 / np.sqrt(1.0 + r2),
-    "inverse_multiquadric": lambda r2: -0.5 * (1.0 + r2) ** -1.5,
-}
-
 # range and start of the smoothing chosen by leave-one-out (kernel units)
 _SMOOTHING_MIN, _SMOOTHING_START, _SMOOTHING_MAX = 1e-10, 1e-4, 1e4
-
-#: kernels whose interpolant does not change when all length scales are multiplied
-SCALE_FREE = frozenset({"thin_plate_spline", "cubic", "quintic", "linear"})
-
-
-def _kernel(name: str) -> Kernel:
-    try:
-        return KERNELS[name][0]
-    except KeyError:
-        raise ValueError(f"unknown RBF kernel {name!r}; known: {', '.join(KERNELS)}") from None
-
-
-def monomial_powers(d: int, degree: int) -> NDArray[np.int64]:
-    """Exponents (q, d) of all monomials in d variables up to ``degree`` (none if < 0)."""
-    rows = [np.zeros(d, dtype=np.int64)] if degree >= 0 else []
-    for deg in range(1, degree + 1):
-        for combo in combinations_with_replacement(range(d), deg):
-            p = np.zeros(d, dtype=np.int64)
-            np.add.at(p, list(combo), 1)
-            rows.append(p)
-    return np.array(rows, dtype=np.int64).reshape(-1, d)
-
-
-def polynomial(U: FloatArray, powers: NDArray[np.int64]) -> FloatArray:
-    """Monomials (n, q) of ``2U - 1`` for unit-box inputs ``U`` (n, d)."""
-    V = 2.0 * U - 1.0
-    out = np.ones((U.shape[0], powers.shape[0]))
-    for j, p in enumerate(powers):
-        for i in np.flatnonzero(p):
-            out[:, j] *= V[:, i] ** p[i]
-    return out
-
-
-def _system(R2: FloatArray, P: FloatArray, kernel: str, smoothing: float) -> FloatArray:
-    """The symmetric interpolation matrix ``[[K + smoothing I, P], [P^T, 0]]`` for the
-    squared scaled distances ``R2`` (n, n) and the polynomial tail ``P`` (n, q)."""
-    n, q = P.shape
-    A = np.zeros((n + q, n + q))
-    A[:n, :n] = _kernel(kernel)(R2)
-    A[:n, :n][np.diag_indices(n)] += smoothing
-    A[:n, n:] = P
-    A[n:, :n] = P.T
-    return A
-
-
-def loo_residuals(Z: FloatArray, P: FloatArray, Y: FloatArray, kernel: str,
-                  smoothing: float = 0.0) -> FloatArray:
-    """Leave-one-out residuals (n, k) of the RBF interpolant by Rippa's closed form.
-
-    With ``A`` the interpolation matrix and ``[w; b] = A^{-1} [Y; 0]``, the residual at
-    point i of the interpolant fitted without point i is ``w_i / (A^{-1})_{ii}`` (Rippa
-    1999, "An algorithm for selecting a good value for the parameter c in radial basis
-    function interpolation"): one inverse of size n + q instead of n solves.
-
-    Parameters
-    ----------
-    Z : ndarray, shape (n, d)
-        Scaled inputs.
-    P : ndarray, shape (n, q)
-        Polynomial tail at the inputs.
-    Y : ndarray, shape (n, k)
-        Outputs.
-    kernel, smoothing
-        As in :class:`RBF`.
-
-    Returns
-    -------
-    ndarray, shape (n, k)
-        ``y_i - s_{-i}(z_i)`` for every point and output.
-    """
-    R2 = cdist(Z, Z, "sqeuclidean")
-    return _loo(R2, P, Y, kernel, smoothing)[0]
-
-
-def _loo(R2: FloatArray, P: FloatArray, Y: FloatArray, kernel: str, smoothing: float
-         ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Rippa's LOO residuals ``e`` plus ``B = A^{-1}``, coefficients ``w`` and ``diag(B)``."""
-    n = R2.shape[0]
-    B = scipy.linalg.inv(_system(R2, P, kernel, smoothing), check_finite=False)
-    Bn = B[:n, :n]
-    g = np.diag(Bn).copy()
-    w = Bn @ Y
-    return w / g[:, None], Bn, w, g
-
-
-def loo_objective(params: FloatArray, U: FloatArray, P: FloatArray, Y: FloatArray,
-                  kernel: str, smoothing: float = 0.0) -> tuple[float, FloatArray]:
-    """``log`` of the mean squared LOO residual and its gradient in ``params``.
-
-    ``params`` holds the log length scales (d,), or (d + 1,) with the log smoothing last
-    (then ``smoothing`` is ignored). The gradient is exact and costs about two more matrix
-    products of size n: with ``L = sum e^2``, ``e_i = w_i / g_i`` and ``dB = -B dA B``,
-    ``dL = sum_jl dA_jl (M - Q)_jl`` where ``Q = (B a) w^T``, ``a = 2 e / g`` and
-    ``M = B diag(2 sum_k e_ik^2 / g_i) B``; for a length scale ``dA`` is ``phi'(r^2)``
-    times ``2 s_d^2 (u_jd - u_ld)^2``, for the log smoothing it is ``smoothing * I``.
-    """
-    d = U.shape[1]
-    s2 = np.exp(2.0 * params[:d])
-    if params.size > d:
-        smoothing = float(np.exp(params[d]))
-    R2 = cdist(U * np.sqrt(s2), U * np.sqrt(s2), "sqeuclidean")
-    e, Bn, w, g = _loo(R2, P, Y, kernel, smoothing)
-    L = float(np.sum(e**2))
-    a = 2.0 * e / g[:, None]
-    M = (Bn * (2.0 * np.sum(e**2, axis=1) / g)) @ Bn
-    M -= (Bn @ a) @ w.T
-    d_smoothing = smoothing * float(np.trace(M))
-    M *= KERNEL_SLOPES[kernel](R2)
-    np.fill_diagonal(M, 0.0)
-    rows, cols = M.sum(axis=1), M.sum(axis=0)
-    quad = (U**2 * (rows + cols)[:, None]).sum(axis=0) - 2.0 * np.einsum("jd,jl,ld->d", U, M, U)
-    grad = 2.0 * s2 * quad
-    if params.size > d:
-        grad = np.append(grad, d_smoothing)
-    return float(np.log(L / e.size)), grad / L
 
 
 class RBF:
@@ -272,7 +101,7 @@ class RBF:
                  seed: int = 0, dtype: DTypeLike = np.float32) -> None:
         names = [kernel] if isinstance(kernel, str) else list(kernel)
         for name in names:
-            _kernel(name)
+            kernel_function(name)
             if degree < KERNELS[name][1]:
                 raise ValueError(f"RBF kernel {name!r} needs a polynomial degree >= "
                                  f"{KERNELS[name][1]}, got degree = {degree}")
@@ -371,7 +200,7 @@ class RBF:
         Z = U * self.scales
         P = polynomial(U, self.powers)
         rhs = np.vstack([Y, np.zeros((P.shape[1], Y.shape[1]))])
-        sol = scipy.linalg.solve(_system(cdist(Z, Z, "sqeuclidean"), P, self.kernel,
+        sol = scipy.linalg.solve(interpolation_matrix(cdist(Z, Z, "sqeuclidean"), P, self.kernel,
                                          self.smoothing), rhs,
                                  assume_a="sym", check_finite=False)
         self.centres, self.weights, self.poly_coef = U.copy(), sol[:n], sol[n:]
@@ -379,7 +208,7 @@ class RBF:
     def _least_squares(self, U: FloatArray, Y: FloatArray, centres: NDArray[np.intp]) -> None:
         """Least-squares fit to all points with the centres ``U[centres]``."""
         Z = U * self.scales
-        B = np.hstack([_kernel(self.kernel)(cdist(Z, Z[centres], "sqeuclidean")),
+        B = np.hstack([kernel_function(self.kernel)(cdist(Z, Z[centres], "sqeuclidean")),
                        polynomial(U, self.powers)])
         sol, *_ = scipy.linalg.lstsq(B, Y, check_finite=False, lapack_driver="gelsy")
         m = centres.size
@@ -403,7 +232,7 @@ class RBF:
         r2 += np.einsum("ij,ij->i", Z, Z)[:, None]
         r2 += cc[None, :]
         np.maximum(r2, 0.0, out=r2)
-        out: FloatArray = (_kernel(self.kernel)(r2) @ W).astype(np.float64)
+        out: FloatArray = (kernel_function(self.kernel)(r2) @ W).astype(np.float64)
         if self.powers.shape[0]:
             out += polynomial(U, self.powers) @ self.poly_coef
         return out
@@ -455,3 +284,6 @@ class RBF:
         rbf.powers = monomial_powers(rbf.centres.shape[1], rbf.degree)
         rbf.loo_rmse = float(arrays["loo_rmse"])
         return rbf
+
+
+__all__ = ["KERNELS", "RBF", "loo_objective", "loo_residuals"]

@@ -58,6 +58,7 @@ def _wait_line(log: Path, text: str, proc: subprocess.Popen[bytes], timeout: flo
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the live demo (broker, service, replay, page); returns the exit code."""
     ap = argparse.ArgumentParser(prog="formtwin-live-demo", description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="out/live-demo", help="folder (default: %(default)s)")
     ap.add_argument("--n", type=int, default=3000, help="products in the stream")

@@ -105,6 +105,8 @@ class Topics:
     @classmethod
     def from_input(cls, topic: str, results: str | None = None,
                    errors: str | None = None) -> Topics:
+        """Topics from the stroke topic and optional results/errors topics (default: siblings
+        ``estimate`` and ``errors``)."""
         if not topic or any(c in topic for c in "#+\x00"):
             raise ValueError(f"topic {topic!r}: expected a plain topic without wildcards")
         base = topic.rsplit("/", 1)[0] + "/" if "/" in topic else ""

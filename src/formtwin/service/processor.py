@@ -50,9 +50,13 @@ class EstimateLike(Protocol):
     """What the processor reads from the tracker's ``Estimate``."""
 
     @property
-    def loglik(self) -> float: ...
+    def loglik(self) -> float:
+        """Log-likelihood of the step's curve (for the outlier gate)."""
+        ...
 
-    def to_dict(self) -> dict[str, Any]: ...
+    def to_dict(self) -> dict[str, Any]:
+        """The estimate as JSON-ready values."""
+        ...
 
 
 class TrackerLike(Protocol):
@@ -132,6 +136,7 @@ class Outcome:
 
     @property
     def is_error(self) -> bool:
+        """Whether the message was rejected or gated."""
         return self.kind in ("rejected", "gated")
 
 

@@ -103,6 +103,7 @@ class LiveFeed:
             return self._n, [(k, e) for k, e in self._events if k > n]
 
     def snapshot(self) -> dict[str, Any]:
+        """The recent estimates as JSON-ready values (the page's first draw)."""
         with self._lock:
             points = [e for _, e in self._events if e.get("type") == "point"]
             return {"names": list(self.names), "units": self.units, "points": points,
@@ -140,6 +141,7 @@ def create_app(feed: LiveFeed, poll_s: float = 0.1) -> FastAPI:
 
     @app.get("/events")
     async def events(request: Request, last: int = -1, epoch: str = "") -> StreamingResponse:
+        """Server-sent events: one per new estimate."""
         async def stream() -> AsyncIterator[str]:
             header = request.headers.get("last-event-id", "")
             ep, _, num = header.partition(":")
@@ -216,9 +218,11 @@ class PageServer:
 
     @property
     def url(self) -> str:
+        """The page's address."""
         return f"http://{self.host}:{self.port}/"
 
     def stop(self) -> None:
+        """Stop the page server and wait for its thread."""
         self.app.state.closing = True
         self._server.should_exit = True
         self._thread.join(timeout=5.0)

@@ -57,6 +57,7 @@ class Realisation:
 
     @property
     def n(self) -> int:
+        """Number of products."""
         return int(self.x.shape[0])
 
     @property
@@ -69,6 +70,7 @@ class Realisation:
         return np.hstack([self.inputs, np.tile(self.theta_d, (self.n, 1))])
 
     def to_dataset(self, spec: ProcessSpec) -> xr.Dataset:
+        """The realisation as an xarray Dataset (written as NetCDF)."""
         return xr.Dataset(
             {
                 "mu": (("state",), self.mu),
@@ -91,6 +93,7 @@ class Realisation:
 
     @classmethod
     def from_dataset(cls, ds: xr.Dataset) -> Realisation:
+        """Inverse of :meth:`to_dataset`."""
         src = [str(s) for s in ds["source"].values]
         return cls(
             index=int(ds.attrs["realisation"]),

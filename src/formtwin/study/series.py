@@ -62,6 +62,7 @@ class Series:
 
     @property
     def label(self) -> str:
+        """A one-line description: number, data, filter model, statistics."""
         model = "g(MM)" if self.deviation else "MM"
         data = self.data_label
         stats = ("mu known" if self.mu_known else "mu learned" if self.learn_mu
