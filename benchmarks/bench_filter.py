@@ -1,6 +1,7 @@
 """Benchmark of the tracker (SIR particle filter) against the ``particles`` library.
 
-Run ``python benchmarks/bench_filter.py [--model paper|analytic|METAMODEL_FILE]``. One core, BLAS
+Run ``python benchmarks/bench_filter.py [--model physics|analytic|METAMODEL_FILE]`` (default
+``physics``: the metamodel of the bundled physics DOE, what a fresh clone gets). One core, BLAS
 single-threaded. Figures (``benchmarks/results/bench_filter.json``):
 
 * ``step_ms_n500``: median wall time per product at N = 500, everything included (curve
@@ -37,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from formtwin._bench import write_result
+from formtwin._bench import bundled_metamodel, write_result
 from formtwin._threads import single_blas_thread
 from formtwin.defaults import AnalyticModel
 from formtwin.deviation import DeviationModel
@@ -53,49 +54,20 @@ VENV = HERE / ".venv-particles"
 WORK = Path(tempfile.gettempdir())
 
 
-#: the paper-scale stand-in metamodel: 7024 Latin-hypercube runs of the analytic model
-#: (the paper fitted 6953 successful FE runs), POD 40 modes + RBF (formtwin defaults)
-PAPER_N = 7024
-
-
-def paper_metamodel() -> Path:
-    """Fit (once; cached in the temp directory, ~5-15 min) and return the path of the
-    paper-scale metamodel of the analytic stand-in; refit if the cached file no longer
-    loads (the metamodel file format changed)."""
-    import hashlib
-
-    from formtwin.defaults import analytic_dataset
-    from formtwin.metamodel import Metamodel
-
-    # the defaults are part of the cache key: a change of defaults fits a new metamodel
-    key = hashlib.sha256(repr(Metamodel()).encode()).hexdigest()[:10]
-    path = Path(tempfile.gettempdir()) / f"formtwin_bench_metamodel_analytic_{PAPER_N}_{key}"
-    if path.exists():
-        try:
-            Metamodel.load(path)
-            return path
-        except Exception as exc:  # a stale cache of an older format: refit
-            print(f"cached {path} does not load ({exc!r}); refitting", file=sys.stderr)
-    print(f"fitting the paper-scale metamodel ({PAPER_N} runs) -> {path}", file=sys.stderr)
-    saved = Metamodel().fit(analytic_dataset(PAPER_N, seed=0)).save(path)
-    if Path(saved) != path:
-        Path(saved).replace(path)
-    return path
-
-
-def load_model(name: str) -> tuple[ProcessModel, str, str]:
-    """(model, description, name for the child) for ``analytic``, ``paper`` or a file."""
+def load_model(name: str) -> tuple[ProcessModel, str, dict[str, Any]]:
+    """(model, path for the child, description) for ``physics`` (the metamodel of the
+    bundled physics DOE, cached), ``analytic`` or a metamodel file."""
+    if name == "physics":
+        model, path, info = bundled_metamodel()
+        return model, str(path), info
     if name == "analytic":
-        return AnalyticModel(load_spec()), "analytic stand-in (formtwin.physics.analytic)", name
+        return (AnalyticModel(load_spec()), name,
+                {"name": "analytic stand-in (formtwin.physics.analytic), not the product"})
     from formtwin.metamodel import Metamodel
 
-    desc = f"metamodel {name}"
-    if name == "paper":
-        name = str(paper_metamodel())
-        desc = (f"paper-scale metamodel: {Metamodel()!r} fitted to {PAPER_N} LHS runs of "
-                "the analytic stand-in")
-    model: ProcessModel = Metamodel.load(name)
-    return model, desc, name
+    mm = Metamodel.load(name)
+    return mm, name, {"name": f"metamodel file {name} (not the bundled default)",
+                      "physics_version": mm.model_version, "doe_sha256_16": None}
 
 
 def make_data(model: ProcessModel, n: int, seed: int) -> dict[str, Any]:
@@ -203,9 +175,10 @@ def nrmse(est_mean: np.ndarray, X: np.ndarray, col: int, scale: float) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="paper",
-                    help="'paper' (default: the paper-scale metamodel of the analytic "
-                         "stand-in, fitted once and cached), 'analytic', or a metamodel file")
+    ap.add_argument("--model", default="physics",
+                    help="'physics' (default: the metamodel of the bundled physics DOE, "
+                         "fitted once and cached in benchmarks/.cache), 'analytic', or a "
+                         "metamodel file")
     ap.add_argument("--products", type=int, default=1000)
     ap.add_argument("--no-particles", action="store_true", help="skip the particles peer")
     ap.add_argument("--no-scaling", action="store_true", help="skip N = 1e3..1e5")
@@ -213,9 +186,9 @@ def main() -> None:
     global WORK
     tmp = tempfile.TemporaryDirectory(prefix="bench_filter_")
     WORK = Path(tmp.name)
-    model, model_desc, child_model = load_model(args.model)
+    model, child_model, model_info = load_model(args.model)
     spec = model.spec
-    figures: dict[str, Any] = {"model": model_desc}
+    figures: dict[str, Any] = {"model": model_info["name"]}
     with single_blas_thread():
         data = make_data(model, args.products, seed=2024)
         mm = MeasurementModel.from_monte_carlo(model, mu=data["mu"], n=10_000,
@@ -236,8 +209,11 @@ def main() -> None:
         figures["step_ms_n500_p90"] = round(float(np.percentile(ts, 90) * 1e3), 3)
         figures["step_cpu_ms_n500"] = round(float(np.median(cpu) * 1e3), 3)
         figures.update(breakdown(tr, curves[-1]))
-        est = Tracker.restore(tr.checkpoint(WORK / "ck.npz"), model, mm)  # sanity: restorable
-        del est
+        t0 = time.perf_counter()
+        state = tr.state_bytes()
+        figures["state_bytes_ms"] = round((time.perf_counter() - t0) * 1e3, 3)
+        figures["state_kb"] = round(len(state) / 1024, 1)
+        assert Tracker.from_state_bytes(state, model, mm).state_bytes() == state
         tr2 = Tracker(model, mm, TrackerConfig(n_particles=500, mu=tuple(data["mu"]), seed=3,
                                                estimate_deviation=False))
         figures["step_cpu_ms_n500_nodev"] = round(float(np.median(
@@ -275,7 +251,7 @@ def main() -> None:
             figures["speedup_vs_particles_same_numpy"] = round(
                 res["step_cpu_ms"] / res["formtwin_step_cpu_ms_same_numpy"], 2)
     figures["load_average_1min_end"] = round(os.getloadavg()[0], 2)
-    write_result("filter", figures)
+    write_result("filter", figures, model=model_info)
     tmp.cleanup()
 
 

@@ -1,47 +1,143 @@
-"""Shared benchmark output: ``benchmarks/results/bench_NAME.json``.
+"""Shared benchmark plumbing: the model a fresh clone gets, and ``bench_NAME.json``.
 
 Every benchmark script prints a table and writes
-``{"figures": {...}, "machine": {...}, "date": ...}`` through :func:`write_result`.
+``{"figures": {...}, "model": {...}, "machine": {...}, "date": ...}`` through
+:func:`write_result`; ``machine`` records the package versions and the machine's load
+(other jobs share its cores). :func:`bundled_metamodel` is the metamodel of the physics DOE
+bundled with the package (``formtwin/data/doe_bending.h5``), fitted once and cached under
+``benchmarks/.cache`` by the DOE file's content hash and the metamodel's settings, so a
+benchmark measures the product a user gets and never a file from outside the repository.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import os
 import platform
+import subprocess
 from datetime import UTC, datetime
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 import formtwin
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[2]
+#: where benchmarks cache what they build (git-ignored)
+CACHE = ROOT / "benchmarks" / ".cache"
+#: distributions whose versions every result records
+PACKAGES = ("numpy", "scipy", "numba", "xarray", "h5py", "threadpoolctl", "paho-mqtt",
+            "fastapi", "uvicorn")
+
+
+def _git_commit() -> str | None:
+    """The repository's HEAD commit, or None outside a git checkout."""
+    try:
+        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                             capture_output=True, text=True, timeout=5, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
 
 
 def machine() -> dict[str, Any]:
-    """Facts about the machine a figure was measured on."""
+    """Facts about the machine a figure was measured on: platform, package versions, load."""
+    versions: dict[str, str | None] = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    load1, load5, load15 = os.getloadavg()
     return {
         "python": platform.python_version(),
-        "numpy": np.__version__,
         "formtwin": formtwin.__version__,
+        "commit": _git_commit(),
+        "packages": versions,
         "machine": platform.machine(),
         "processor": platform.processor() or platform.machine(),
         "cpus": os.cpu_count(),
         "system": platform.system(),
+        "load_avg_1_5_15min": [round(load1, 2), round(load5, 2), round(load15, 2)],
     }
 
 
-def write_result(name: str, figures: dict[str, Any], directory: str | Path | None = None) -> Path:
-    """Print ``figures`` as a table and save them as ``bench_<name>.json``; return the path."""
-    out_dir = Path(directory) if directory else Path(__file__).resolve().parents[2] / \
-        "benchmarks" / "results"
+def file_digest(path: str | Path) -> str:
+    """First 16 hex digits of the SHA-256 of a file's content."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
+    """The metamodel of the bundled physics DOE: ``(metamodel, file, description)``.
+
+    Fitted on first use (a few minutes) and cached in ``cache`` under a name made of the
+    DOE file's content hash and a hash of the metamodel settings, so a new DOE (a physics
+    change) or new metamodel defaults fit a new one. The description (for the result's
+    ``model`` entry) names the physics model and its version, the DOE file and its hash.
+    """
+    from formtwin.defaults import bundled_doe, default_doe
+    from formtwin.metamodel import Metamodel
+
+    doe = bundled_doe("bending")
+    digest = file_digest(doe)
+    settings = repr(Metamodel())
+    key = hashlib.sha256(settings.encode()).hexdigest()[:8]
+    path = cache / f"metamodel_bending_doe{digest}_mm{key}.npz"
+    if path.exists():
+        mm = Metamodel.load(path)
+        n_runs = None
+    else:
+        data = default_doe("bending", cache)  # checks the DOE against the physics version
+        log.warning("fitting the metamodel of %s (%d runs) -> %s", doe, data.n, path)
+        cache.mkdir(parents=True, exist_ok=True)
+        mm = Metamodel().fit(data)
+        tmp = Path(mm.save(cache / f"{path.stem}.tmp.npz"))
+        tmp.replace(path)
+        n_runs = int(data.n)
+    info: dict[str, Any] = {
+        "name": "metamodel of the bundled physics DOE",
+        "physics": "bending",
+        "physics_version": mm.model_version,
+        "doe": str(doe.relative_to(ROOT)) if doe.is_relative_to(ROOT) else doe.name,
+        "doe_sha256_16": digest,
+        "metamodel": settings,
+        "metamodel_file": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT)
+        else str(path),
+    }
+    if n_runs is not None:
+        info["doe_runs"] = n_runs
+    return mm, path, info
+
+
+def write_result(name: str, figures: dict[str, Any], directory: str | Path | None = None,
+                 model: dict[str, Any] | None = None) -> Path:
+    """Print ``figures`` as a table and save them as ``bench_<name>.json``; return the path.
+
+    ``model`` describes the model the figures were measured on (see
+    :func:`bundled_metamodel`); the machine's facts and load are added.
+    """
+    out_dir = Path(directory) if directory else ROOT / "benchmarks" / "results"
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"bench_{name}.json"
-    doc = {"figures": figures, "machine": machine(),
-           "date": datetime.now(UTC).isoformat(timespec="seconds")}
+    doc: dict[str, Any] = {"figures": figures}
+    if model is not None:
+        doc["model"] = model
+    doc["machine"] = machine()
+    doc["date"] = datetime.now(UTC).isoformat(timespec="seconds")
     path.write_text(json.dumps(doc, indent=2, default=float) + "\n", encoding="utf-8")
     width = max(len(k) for k in figures) if figures else 0
     lines = [f"bench_{name}"] + [f"  {k:<{width}}  {v}" for k, v in figures.items()]
+    if model is not None:
+        lines.append(f"  model: {model.get('name')} ({model.get('physics_version')}, DOE "
+                     f"{model.get('doe_sha256_16')})")
     print("\n".join(lines))  # benchmarks are run as scripts: printing is their job
     print(f"  -> {path}")
     return path

@@ -64,10 +64,14 @@ class BendingSSM:
     # bounds of the particle columns: (18,), or (25,) with [mu_min, mu_max] when learning mu
     _lo: FloatArray = field(init=False, repr=False)
     _hi: FloatArray = field(init=False, repr=False)
+    _sizes: tuple[int, int, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
         object.__setattr__(self, "spec", spec)
+        # (n_x, n_in, n_aug): the spec builds its groups on every access
+        object.__setattr__(self, "_sizes", (len(spec.state), spec.n_inputs,
+                                            len(spec.augmented)))
         # the spec builds these arrays on every access (~20 us): keep them
         lo, hi = spec.augmented.lo, spec.augmented.hi
         if self.config.learn_mu:
@@ -90,18 +94,18 @@ class BendingSSM:
     @property
     def n_x(self) -> int:
         """Number of state variables (7)."""
-        return len(self.spec.state)
+        return self._sizes[0]
 
     @property
     def n_in(self) -> int:
         """Number of model inputs ``[x, theta]`` (10)."""
-        return self.spec.n_inputs
+        return self._sizes[1]
 
     @property
     def n_aug(self) -> int:
         """Width of the augmented state ``[x, theta, theta_d]`` (18); the particles have
         ``n_x`` more columns (their mu) when learning mu."""
-        return len(self.spec.augmented)
+        return self._sizes[2]
 
     def sample_initial(self, n: int, rng: np.random.Generator) -> FloatArray:
         """``n`` particles (n, 18) or (n, 25) from the initial law."""
