@@ -1,0 +1,18 @@
+"""Monitoring of the estimates: EWMA and CUSUM control charts on the estimated state and the
+predicted angles, a model-mismatch chart on the filter's health, and alarms.
+
+Layer: above the tracker (it consumes :class:`~formtwin.estimates.Estimate`), below the
+study, the service and the command line. See ``docs/monitoring.md``.
+
+* :mod:`~formtwin.monitoring.charts`: the charts and their run-length design;
+* :mod:`~formtwin.monitoring.incontrol`: in-control AR models and health references;
+* :mod:`~formtwin.monitoring.monitor`: :class:`Monitor`, :class:`Alarm`;
+* :mod:`~formtwin.monitoring.calibrate`: a monitor from a simulated in-control run;
+* :mod:`~formtwin.monitoring.scenarios`: production runs with known changes.
+"""
+
+from formtwin.monitoring.charts import Cusum, Ewma
+from formtwin.monitoring.incontrol import InControl, Reference
+from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
+
+__all__ = ["Alarm", "Cusum", "Ewma", "InControl", "Monitor", "MonitorConfig", "Reference"]

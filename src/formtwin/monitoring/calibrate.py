@@ -1,0 +1,121 @@
+"""Set a monitor up: in-control models from a simulated in-control run of the tracker, and
+chart limits for a wanted in-control average run length.
+
+The in-control spread of a *posterior mean* is not the process sigma of the spec: the filter
+shrinks poorly observed variables towards their prior and adds its own Monte-Carlo noise,
+and the estimates are autocorrelated. So the in-control model of every quantity is fitted to
+estimates of a simulated in-control production (the same model, measurement model and
+tracker settings as the line, machine parameters drawn from their bounds): an AR(p) model
+about the spec's mean for state variables, about a Phase-I level for the angles (their
+level depends on the machine parameters); and the health statistics' reference is their
+distribution in that run.
+
+Limits: every chart is designed for the same in-control ARL of its standardised residual,
+``arl0_per_chart``. With ``c`` charts the whole monitor then raises about ``c / arl0`` false
+alarms per product, if the residuals are as Gaussian and independent as assumed; the
+benchmark (``benchmarks/bench_monitoring.py``) counts the real rate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin._threads import single_blas_thread
+from formtwin.estimates import Estimates
+from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.monitoring.charts import Cusum, Ewma, cusum_h, ewma_L
+from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
+from formtwin.monitoring.monitor import ANGLES, HEALTH, MonitorConfig
+from formtwin.monitoring.scenarios import production_run
+from formtwin.tracker import Tracker, TrackerConfig
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ChartDesign:
+    """Chart parameters; limits follow from ``arl0_per_chart``.
+
+    Attributes
+    ----------
+    lam : EWMA smoothing.
+    k : CUSUM reference value (sigma units of the residual: half the residual shift it is
+        tuned for).
+    k_mismatch : reference of the one-sided mismatch CUSUM on the health scores.
+    arl0_per_chart : in-control ARL of each chart (two-sided ones counted two-sided).
+    order : AR order of the in-control models.
+    warmup, phase1 : see :class:`~formtwin.monitoring.monitor.MonitorConfig`.
+    """
+
+    lam: float = 0.2
+    k: float = 1.0
+    k_mismatch: float = 0.5
+    arl0_per_chart: float = 2.0e5
+    order: int = 2
+    warmup: int = 50
+    phase1: int = 100
+
+    def charts(self) -> tuple[Ewma, Cusum, Cusum]:
+        """EWMA, CUSUM and mismatch CUSUM with their limits."""
+        a = self.arl0_per_chart
+        return (Ewma(self.lam, ewma_L(self.lam, a)), Cusum(self.k, cusum_h(self.k, a)),
+                Cusum(self.k_mismatch, cusum_h(self.k_mismatch, a, two_sided=False), "high"))
+
+
+def simulate_in_control(model: ProcessModel, measurement: MeasurementModel,
+                        config: TrackerConfig, mu: FloatArray, n: int, runs: int,
+                        seed: int) -> list[Estimates]:
+    """Estimates of ``runs`` simulated in-control runs of ``n`` products: states by eq. 4-5
+    about ``mu`` (7,), machine parameters uniform in their bounds, curves from ``model``
+    (no deviation), tracked with ``config`` (its seed varied per run)."""
+    from dataclasses import replace
+
+    out = []
+    for r, ss in enumerate(np.random.SeedSequence(seed).spawn(runs)):
+        rng = np.random.default_rng(ss)
+        theta, x = production_run(model.spec, n, mu, rng)
+        curves = model.predict_curves(np.hstack([x, np.tile(theta, (n, 1))]))
+        tracker = Tracker(model, measurement, replace(config, seed=config.seed + 1000 + r))
+        with single_blas_thread():
+            out.append(tracker.run(curves))
+    return out
+
+
+def series(est: Estimates) -> dict[str, FloatArray]:
+    """The monitored values of a run by name, each (n,)."""
+    out = {n: est.mean[:, j] for j, n in enumerate(est.names)}
+    out.update({a: est.angles_mean[:, j] for j, a in enumerate(ANGLES)})
+    out.update(loglik=est.loglik, ess=est.ess)
+    return out
+
+
+def calibrate(runs: Sequence[Estimates], state_names: Sequence[str], mu: FloatArray,
+              design: ChartDesign | None = None) -> MonitorConfig:
+    """A monitor for a line whose state means are ``mu`` (7,), from in-control ``runs``.
+
+    State variables get an AR model about ``mu`` (the in-control mean is the spec's or the
+    user's); the angles about a Phase-I level; the health statistics a reference from the
+    runs. The first ``design.warmup`` products of each run are left out.
+    """
+    d = ChartDesign() if design is None else design
+    if d.phase1 < 2:
+        raise ValueError(f"phase1 = {d.phase1}: the angles' level needs phase1 >= 2")
+    values = [{k: v[d.warmup:] for k, v in series(r).items()} for r in runs]
+    quantities: dict[str, InControl] = {}
+    for j, name in enumerate(state_names):
+        quantities[name] = fit_in_control([v[name] for v in values], d.order,
+                                          mean=float(mu[j]))
+    for name in ANGLES:
+        quantities[name] = fit_in_control([v[name] for v in values], d.order, mean=None,
+                                          keep_mean=False)
+    health = {name: Reference(tuple(np.concatenate([v[name] for v in values])), bad)
+              for name, bad in HEALTH.items()}
+    ewma, cusum, mismatch = d.charts()
+    return MonitorConfig(quantities, health, ewma, cusum, mismatch, d.warmup, d.phase1)
+
+
+__all__ = ["ChartDesign", "calibrate", "series", "simulate_in_control"]

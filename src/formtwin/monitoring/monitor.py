@@ -1,0 +1,240 @@
+"""Control charts on a stream of estimates: one EWMA and one CUSUM chart per quantity, and
+a model-mismatch chart on the filter's health; alarms as small immutable values.
+
+Quantities: the posterior means of the state variables (``spec.state.names``) and the
+predicted angles (``angle_stage1``, ``angle_stage2``), each standardised by its in-control
+AR model (:class:`~formtwin.monitoring.incontrol.InControl`) into a residual ``z`` that is
+N(0, 1) and independent in control. Health: the log-evidence increment ``loglik`` and the
+ESS of each step, as normal scores against their simulated in-control distribution
+(:class:`~formtwin.monitoring.incontrol.Reference`), each on a one-sided CUSUM that signals
+a worse fit only.
+
+Life of a monitor: the first ``warmup`` products are not charted (the filter is still
+converging from its prior); the next ``phase1`` products estimate the in-control mean of
+every quantity whose mean is not set (Phase I, Montgomery ch. 7.1: the angles' level
+depends on the machine parameters, known only once the line runs); charting starts after
+that. A chart that signals restarts from zero.
+
+The state is a JSON-safe dict (:meth:`Monitor.state`); ``Monitor(config, state)`` continues
+exactly where the saved one stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from formtwin.estimates import Estimate
+from formtwin.monitoring.charts import Cusum, CusumState, Ewma, EwmaState
+from formtwin.monitoring.incontrol import InControl, Reference
+
+#: names of the predicted angles as monitored quantities
+ANGLES = ("angle_stage1", "angle_stage2")
+#: health statistics of a step that the mismatch chart can watch, with their bad side
+HEALTH = {"loglik": "low", "ess": "low"}
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """One alarm.
+
+    Attributes
+    ----------
+    variable : the quantity (a state variable, an angle, or a health statistic).
+    chart : ``"ewma"``, ``"cusum"`` or ``"mismatch"``.
+    index : the estimate's product index (0-based, the tracker's step).
+    statistic : the chart statistic when it crossed (sigma units of the residual).
+    limit : the limit it crossed (same units).
+    side : ``"high"`` (above the in-control level) or ``"low"``.
+    """
+
+    variable: str
+    chart: str
+    index: int
+    statistic: float
+    limit: float
+    side: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"variable": self.variable, "chart": self.chart, "index": int(self.index),
+                "statistic": float(self.statistic), "limit": float(self.limit),
+                "side": self.side}
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    """What to watch and how (immutable; JSON with :meth:`to_json`).
+
+    Attributes
+    ----------
+    quantities : name -> in-control model, for state variables and angles.
+    health : name (a key of :data:`HEALTH`) -> in-control reference.
+    ewma, cusum : the charts on every quantity (design: :mod:`formtwin.monitoring.design`).
+    mismatch : the one-sided CUSUM on every health score.
+    warmup : products not charted at the start.
+    phase1 : products after the warm-up that estimate the means left ``None``.
+    """
+
+    quantities: Mapping[str, InControl]
+    health: Mapping[str, Reference] = field(default_factory=dict)
+    ewma: Ewma = Ewma()
+    cusum: Cusum = Cusum()
+    mismatch: Cusum = Cusum(sides="high")
+    warmup: int = 50
+    phase1: int = 100
+
+    def __post_init__(self) -> None:
+        bad = [n for n in self.health if n not in HEALTH]
+        if bad:
+            raise ValueError(f"health statistics {bad} unknown; known: {', '.join(HEALTH)}")
+        if self.warmup < 0 or self.phase1 < 0:
+            raise ValueError(f"warmup = {self.warmup}, phase1 = {self.phase1}: expected >= 0")
+        needs_phase1 = [n for n, q in self.quantities.items() if q.mean is None]
+        if needs_phase1 and self.phase1 < 2:
+            raise ValueError(f"quantities {needs_phase1} have no in-control mean and "
+                             f"phase1 = {self.phase1}: expected phase1 >= 2")
+        if self.mismatch.sides != "high":
+            raise ValueError("the mismatch chart is one-sided: expected Cusum(sides='high')")
+
+    def to_json(self) -> str:
+        return json.dumps({
+            "quantities": {n: q.to_dict() for n, q in self.quantities.items()},
+            "health": {n: {"sample": list(r.sample), "bad": r.bad}
+                       for n, r in self.health.items()},
+            "ewma": {"lam": self.ewma.lam, "L": self.ewma.L},
+            "cusum": {"k": self.cusum.k, "h": self.cusum.h},
+            "mismatch": {"k": self.mismatch.k, "h": self.mismatch.h},
+            "warmup": self.warmup, "phase1": self.phase1})
+
+    @classmethod
+    def from_json(cls, text: str) -> MonitorConfig:
+        d = json.loads(text)
+        return cls(quantities={n: InControl.from_dict(q) for n, q in d["quantities"].items()},
+                   health={n: Reference(tuple(r["sample"]), r["bad"])
+                           for n, r in d["health"].items()},
+                   ewma=Ewma(**d["ewma"]), cusum=Cusum(**d["cusum"]),
+                   mismatch=Cusum(**d["mismatch"], sides="high"),
+                   warmup=int(d["warmup"]), phase1=int(d["phase1"]))
+
+
+def observe(estimate: Estimate) -> dict[str, float]:
+    """The monitored values of one estimate: state posterior means, predicted angles and
+    the health statistics, by name."""
+    out = {n: float(v) for n, v in zip(estimate.names, estimate.mean, strict=True)}
+    out.update({n: float(v) for n, v in zip(ANGLES, estimate.angles_mean, strict=True)})
+    out.update(loglik=float(estimate.loglik), ess=float(estimate.ess))
+    return out
+
+
+class Monitor:
+    """EWMA, CUSUM and mismatch charts over a stream of estimates.
+
+    Parameters
+    ----------
+    config : what to watch.
+    state : a state from :meth:`state` to continue from; ``None``: a fresh start.
+
+    Examples
+    --------
+    >>> ic = {"thickness": InControl(mean=0.3, sigma=0.001)}
+    >>> mon = Monitor(MonitorConfig(ic, warmup=0, phase1=0, cusum=Cusum(k=0.5, h=4.0)))
+    >>> [a.chart for v in (0.3, 0.3, 0.305) for a in mon.update_values({"thickness": v})]
+    ['ewma', 'cusum']
+    """
+
+    def __init__(self, config: MonitorConfig, state: Mapping[str, Any] | None = None) -> None:
+        self.config = config
+        self.n = 0  # products seen
+        self.means = {n: q.mean for n, q in config.quantities.items()}
+        self.phase1_sums = {n: 0.0 for n, q in config.quantities.items() if q.mean is None}
+        self.history: dict[str, list[float]] = {n: [] for n in config.quantities}
+        self.ewma = {n: EwmaState() for n in config.quantities}
+        self.cusum = {n: CusumState() for n in config.quantities}
+        self.health = {n: CusumState() for n in config.health}
+        if state is not None:
+            self._load(state)
+
+    @property
+    def charting(self) -> bool:
+        """Whether the charts are running (warm-up and Phase I over)."""
+        return self.n >= self.config.warmup + self.config.phase1
+
+    def update(self, estimate: Estimate) -> tuple[Alarm, ...]:
+        """Chart one estimate; the alarms it raises (usually none)."""
+        return self.update_values(observe(estimate), estimate.index)
+
+    def update_values(self, values: Mapping[str, float], index: int | None = None
+                      ) -> tuple[Alarm, ...]:
+        """Chart one product given its monitored values by name (see :func:`observe`);
+        ``index`` defaults to the number of products seen before."""
+        c = self.config
+        idx = self.n if index is None else int(index)
+        missing = [n for n in (*c.quantities, *c.health) if n not in values]
+        if missing:
+            raise ValueError(f"values lack {missing}; expected {list(c.quantities)} and "
+                             f"{list(c.health)}")
+        self.n += 1
+        if self.n <= c.warmup:
+            return ()
+        if self.n <= c.warmup + c.phase1:
+            for n in self.phase1_sums:
+                self.phase1_sums[n] += float(values[n])
+            if self.n == c.warmup + c.phase1:
+                for n, total in self.phase1_sums.items():
+                    self.means[n] = total / c.phase1
+            self._remember(values)
+            return ()
+        alarms: list[Alarm] = []
+        for n, q in c.quantities.items():
+            y, hist, mean = float(values[n]), self.history[n], self.means[n]
+            if len(hist) < q.order or mean is None or not math.isfinite(y):
+                continue
+            z = q.score(y, hist, mean)
+            self.ewma[n], s = c.ewma.update(self.ewma[n], z)
+            if s.side:
+                alarms.append(Alarm(n, "ewma", idx, s.statistic, s.limit, s.side))
+            self.cusum[n], s = c.cusum.update(self.cusum[n], z)
+            if s.side:
+                alarms.append(Alarm(n, "cusum", idx, s.statistic, s.limit, s.side))
+        for n, ref in c.health.items():
+            self.health[n], s = c.mismatch.update(self.health[n],
+                                                   ref.normal_score(float(values[n])))
+            if s.side:
+                alarms.append(Alarm(n, "mismatch", idx, s.statistic, s.limit, s.side))
+        self._remember(values)
+        return tuple(alarms)
+
+    def _remember(self, values: Mapping[str, float]) -> None:
+        for n, q in self.config.quantities.items():
+            y = float(values[n])
+            if q.order and math.isfinite(y):
+                self.history[n] = [*self.history[n], y][-q.order:]
+
+    # ------------------------------------------------------------------ persistence
+    def state(self) -> dict[str, Any]:
+        """JSON-safe state (products seen, Phase-I sums and means, AR history, charts)."""
+        return {"n": self.n, "means": dict(self.means), "phase1_sums": dict(self.phase1_sums),
+                "history": {n: list(h) for n, h in self.history.items()},
+                "ewma": {n: [s.z, s.i] for n, s in self.ewma.items()},
+                "cusum": {n: [s.hi, s.lo] for n, s in self.cusum.items()},
+                "health": {n: [s.hi, s.lo] for n, s in self.health.items()}}
+
+    def _load(self, st: Mapping[str, Any]) -> None:
+        names, health = set(self.config.quantities), set(self.config.health)
+        if set(st["history"]) != names or set(st["health"]) != health:
+            raise ValueError(f"monitor state watches {sorted(st['history'])} and "
+                             f"{sorted(st['health'])}, the config {sorted(names)} and "
+                             f"{sorted(health)}")
+        self.n = int(st["n"])
+        self.means = {n: None if v is None else float(v) for n, v in st["means"].items()}
+        self.phase1_sums = {n: float(v) for n, v in st["phase1_sums"].items()}
+        self.history = {n: [float(v) for v in h] for n, h in st["history"].items()}
+        self.ewma = {n: EwmaState(float(z), int(i)) for n, (z, i) in st["ewma"].items()}
+        self.cusum = {n: CusumState(float(a), float(b)) for n, (a, b) in st["cusum"].items()}
+        self.health = {n: CusumState(float(a), float(b)) for n, (a, b) in st["health"].items()}
+
+
+__all__ = ["ANGLES", "HEALTH", "Alarm", "Monitor", "MonitorConfig", "observe"]

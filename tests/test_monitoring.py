@@ -1,0 +1,207 @@
+"""Monitoring: chart statistics against closed forms and published run lengths, in-control
+models, state restore, and a step in a state mean detected through the tracker."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from formtwin.measurement import AnalyticModel, MeasurementModel
+from formtwin.monitoring.calibrate import ChartDesign, calibrate, series, simulate_in_control
+from formtwin.monitoring.charts import (
+    Cusum,
+    CusumState,
+    Ewma,
+    EwmaState,
+    cusum_arl_siegmund,
+    cusum_arl_two_sided,
+    cusum_h,
+    ewma_arl,
+    ewma_L,
+    ewma_limit,
+)
+from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
+from formtwin.monitoring.monitor import Monitor, MonitorConfig
+from formtwin.monitoring.scenarios import Change, production_run
+from formtwin.spec import ProcessSpec
+from formtwin.tracker import Tracker, TrackerConfig
+
+
+# ----------------------------------------------------------------------------- EWMA
+def test_ewma_limits_are_the_closed_form_and_match_the_spread_of_the_statistic() -> None:
+    lam, reps, steps = 0.2, 4000, 25
+    chart = Ewma(lam, L=50.0)  # wide: never signals; limit / L = std of Z_i
+    rng = np.random.default_rng(11)
+    z = np.empty((reps, steps))
+    limits = np.empty(steps)
+    for r in range(reps):
+        s = EwmaState()
+        for i, x in enumerate(rng.standard_normal(steps)):
+            s, sig = chart.update(s, float(x))
+            z[r, i], limits[i] = sig.statistic, sig.limit / chart.L
+    i = np.arange(1, steps + 1)
+    closed = np.sqrt(lam / (2 - lam) * (1 - (1 - lam) ** (2 * i)))  # Montgomery eq. 9.25
+    np.testing.assert_allclose(limits, closed, rtol=1e-12)
+    assert limits[0] == pytest.approx(lam)  # first limit: L lam
+    assert ewma_limit(10_000, lam, 3.0) == pytest.approx(3 * math.sqrt(lam / (2 - lam)))
+    # empirical std of Z_i over 4000 replications (relative s.e. ~1.1 %): within 5 %
+    np.testing.assert_allclose(z.std(axis=0), closed, rtol=0.05)
+
+
+def test_ewma_arl_markov_chain_reproduces_lucas_saccucci() -> None:
+    # Lucas & Saccucci (1990), Table 3: lam = 0.10, L = 2.814 -> ARL 500 in control,
+    # 10.3 for a 1-sigma shift; lam = 0.05, L = 2.615 -> 500
+    assert ewma_arl(0.10, 2.814) == pytest.approx(500, rel=0.01)
+    assert ewma_arl(0.10, 2.814, shift=1.0) == pytest.approx(10.3, abs=0.1)
+    assert ewma_arl(0.05, 2.615) == pytest.approx(500, rel=0.01)
+    assert ewma_L(0.10, 500.0) == pytest.approx(2.814, abs=0.003)
+
+
+# ----------------------------------------------------------------------------- CUSUM
+def _run_lengths(chart: Cusum, n: int, rng: np.random.Generator, shift: float = 0.0
+                 ) -> np.ndarray:
+    out = np.empty(n)
+    for r in range(n):
+        s, t = CusumState(), 0
+        while True:
+            t += 1
+            s, sig = chart.update(s, shift + float(rng.standard_normal()))
+            if sig.side:
+                out[r] = t
+                break
+    return out
+
+
+def test_cusum_arl_on_iid_normal_data_matches_siegmund() -> None:
+    """One-sided CUSUM k = 0.5, h = 4: Siegmund's approximation 338.1 (Montgomery's table
+    of exact values: 336). 1500 run lengths (their std is about their mean, so the
+    estimate's relative s.e. is ~2.6 %); tolerance 10 % (about 4 s.e., plus the ~1 % error
+    of the approximation). Seeded."""
+    expected = cusum_arl_siegmund(0.5, 4.0)
+    assert expected == pytest.approx(338.1, abs=0.1)
+    rl = _run_lengths(Cusum(0.5, 4.0, sides="high"), 1500, np.random.default_rng(5))
+    assert rl.mean() == pytest.approx(expected, rel=0.10)
+    # a 1-sigma shift: Siegmund 8.38 (table: 8.38); run lengths vary little, 5 %
+    rl1 = _run_lengths(Cusum(0.5, 4.0, sides="high"), 1500, np.random.default_rng(6), 1.0)
+    assert rl1.mean() == pytest.approx(cusum_arl_siegmund(0.5, 4.0, 1.0), rel=0.05)
+
+
+def test_two_sided_cusum_halves_the_arl_and_h_inverts_it() -> None:
+    assert cusum_arl_two_sided(0.5, 5.0) == pytest.approx(cusum_arl_siegmund(0.5, 5.0) / 2)
+    assert cusum_arl_two_sided(0.5, 5.0) == pytest.approx(465, rel=0.02)  # Montgomery
+    h = cusum_h(1.0, 1e5)
+    assert cusum_arl_two_sided(1.0, h) == pytest.approx(1e5, rel=1e-6)
+    rl = _run_lengths(Cusum(0.5, 5.0), 400, np.random.default_rng(8))
+    assert rl.mean() == pytest.approx(469, rel=0.15)  # 400 runs: s.e. 5 %, 3 s.e.
+
+
+def test_chart_parameters_are_checked() -> None:
+    with pytest.raises(ValueError, match="lam"):
+        Ewma(lam=0.0)
+    with pytest.raises(ValueError, match="sides"):
+        Cusum(sides="up")
+    with pytest.raises(ValueError, match="sigma"):
+        InControl(mean=0.0, sigma=0.0)
+
+
+# ----------------------------------------------------------------- in-control models
+def test_ar2_fit_recovers_the_coefficients_and_whitens() -> None:
+    rng = np.random.default_rng(3)
+    e = rng.standard_normal(30_000)
+    y = np.zeros_like(e)
+    for i in range(2, e.size):
+        y[i] = 1.1 * y[i - 1] - 0.2 * y[i - 2] + 0.5 * e[i]
+    ic = fit_in_control([10.0 + y[:15_000], 10.0 + y[15_000:]], order=2, mean=10.0)
+    assert ic.phi == pytest.approx((1.1, -0.2), abs=0.02)
+    assert ic.sigma == pytest.approx(0.5, rel=0.02)
+    z = [ic.score(10.0 + y[i], list(10.0 + y[i - 2:i]), 10.0) for i in range(2, 2000)]
+    assert np.std(z) == pytest.approx(1.0, abs=0.05)
+    assert abs(np.corrcoef(z[1:], z[:-1])[0, 1]) < 0.06
+
+
+def test_reference_normal_scores() -> None:
+    ref = Reference(tuple(np.linspace(0.0, 1.0, 1001)), bad="low")
+    assert ref.normal_score(0.5) == pytest.approx(0.0, abs=0.01)
+    assert ref.normal_score(0.1) == pytest.approx(1.2816, abs=0.01)  # low is bad
+    worst = ref.normal_score(-5.0)
+    assert worst == ref.normal_score(float("nan")) == ref.normal_score(-math.inf)
+    assert worst == pytest.approx(3.29, abs=0.01)  # clipped at 1 - 1/(2n)
+    assert Reference(ref.sample, bad="high").normal_score(0.9) == pytest.approx(1.2816,
+                                                                               abs=0.01)
+
+
+# ------------------------------------------------------------------------ monitor
+def _toy_config() -> MonitorConfig:
+    q = {"a": InControl(mean=1.0, sigma=0.5, phi=(0.6,)), "b": InControl(mean=None, sigma=2.0)}
+    return MonitorConfig(q, {"ess": Reference(tuple(range(1, 101)), "low")},
+                         Ewma(0.2, 2.5), Cusum(0.5, 3.0), Cusum(0.5, 3.0, "high"),
+                         warmup=3, phase1=5)
+
+
+def _toy_values(n: int) -> list[dict[str, float]]:
+    rng = np.random.default_rng(1)
+    return [{"a": 1.0 + 0.8 * rng.standard_normal(), "b": 7.0 + 2.0 * rng.standard_normal(),
+             "ess": float(rng.integers(1, 100))} for _ in range(n)]
+
+
+def test_monitor_restored_from_its_json_state_continues_identically() -> None:
+    config, values = _toy_config(), _toy_values(300)
+    whole = Monitor(config)
+    a_whole = [a for i, v in enumerate(values) for a in whole.update_values(v, i)]
+    assert len(a_whole) > 3  # the toy stream is out of control for "a": alarms to compare
+    first = Monitor(config)
+    a_first = [a for i, v in enumerate(values[:137]) for a in first.update_values(v, i)]
+    config2 = MonitorConfig.from_json(config.to_json())
+    second = Monitor(config2, json.loads(json.dumps(first.state())))
+    a_second = [a for i, v in enumerate(values[137:], 137) for a in second.update_values(v, i)]
+    assert a_first + a_second == a_whole
+    assert second.state() == whole.state()
+    assert whole.means["b"] == pytest.approx(np.mean([v["b"] for v in values[3:8]]))
+
+
+def test_monitor_rejects_missing_values_and_foreign_state() -> None:
+    mon = Monitor(_toy_config())
+    with pytest.raises(ValueError, match="lack"):
+        mon.update_values({"a": 1.0})
+    st = mon.state()
+    st["history"] = {"zzz": []}
+    with pytest.raises(ValueError, match="watches"):
+        Monitor(_toy_config(), st)
+
+
+# ------------------------------------------------- step scenario through the tracker
+@pytest.fixture(scope="module")
+def line(spec: ProcessSpec) -> tuple[AnalyticModel, MeasurementModel, TrackerConfig]:
+    model = AnalyticModel(spec)
+    mm = MeasurementModel.from_monte_carlo(model, mu=spec.state.mu_mid, n=3000,
+                                           rng=np.random.default_rng(0))
+    cfg = TrackerConfig(n_particles=200, estimate_deviation=False,
+                        mu=tuple(spec.state.mu_mid), seed=1)
+    return model, mm, cfg
+
+
+def test_step_in_a_state_mean_is_detected(spec: ProcessSpec, line: tuple[
+        AnalyticModel, MeasurementModel, TrackerConfig]) -> None:
+    """Analytic stand-in, N = 200: a monitor calibrated on 2 simulated in-control runs
+    sees a 2-sigma step in the punch end distance (the best observed state) within 30
+    products, and raises no alarm on the same run before the step."""
+    model, mm, cfg = line
+    mu = spec.state.mu_mid
+    design = ChartDesign(warmup=30, phase1=50)
+    config = calibrate(simulate_in_control(model, mm, cfg, mu, 600, 2, seed=5),
+                       spec.state.names, mu, design)
+    at = 150
+    change = Change("step", ("punch_end_distance",), at=at, size=2.0)
+    theta, x = production_run(spec, at + 60, mu, np.random.default_rng(77), change)
+    est = Tracker(model, mm, cfg).run(model.predict_curves(
+        np.hstack([x, np.tile(theta, (len(x), 1))])))
+    mon, vals = Monitor(config), series(est)
+    alarms = [a for i in range(len(est))
+              for a in mon.update_values({k: float(v[i]) for k, v in vals.items()}, i)]
+    assert [a for a in alarms if a.index < at] == []
+    first = min(a.index for a in alarms)
+    assert first - at + 1 <= 30
+    assert any(a.variable == "punch_end_distance" and a.side == "high" for a in alarms)
