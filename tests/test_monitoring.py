@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from formtwin.measurement import AnalyticModel, MeasurementModel
+from formtwin.defaults import AnalyticModel
+from formtwin.measurement import MeasurementModel
 from formtwin.monitoring.calibrate import ChartDesign, calibrate, series, simulate_in_control
 from formtwin.monitoring.charts import (
     Cusum,
@@ -25,7 +26,7 @@ from formtwin.monitoring.charts import (
 )
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
 from formtwin.monitoring.monitor import Monitor, MonitorConfig
-from formtwin.monitoring.scenarios import Change, production_run
+from formtwin.monitoring.scenarios import Change, changed_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker import Tracker, TrackerConfig
 
@@ -174,8 +175,8 @@ def test_monitor_rejects_missing_values_and_foreign_state() -> None:
 
 # ------------------------------------------------- step scenario through the tracker
 @pytest.fixture(scope="module")
-def line(spec: ProcessSpec) -> tuple[AnalyticModel, MeasurementModel, TrackerConfig]:
-    model = AnalyticModel(spec)
+def line(spec: ProcessSpec, model: AnalyticModel
+         ) -> tuple[AnalyticModel, MeasurementModel, TrackerConfig]:
     mm = MeasurementModel.from_monte_carlo(model, mu=spec.state.mu_mid, n=3000,
                                            rng=np.random.default_rng(0))
     cfg = TrackerConfig(n_particles=200, estimate_deviation=False,
@@ -191,13 +192,12 @@ def test_step_in_a_state_mean_is_detected(spec: ProcessSpec, line: tuple[
     model, mm, cfg = line
     mu = spec.state.mu_mid
     design = ChartDesign(warmup=30, phase1=50)
-    config = calibrate(simulate_in_control(model, mm, cfg, mu, 600, 2, seed=5),
+    config = calibrate(simulate_in_control(model, mm, cfg, 600, 2, seed=5),
                        spec.state.names, mu, design)
     at = 150
     change = Change("step", ("punch_end_distance",), at=at, size=2.0)
-    theta, x = production_run(spec, at + 60, mu, np.random.default_rng(77), change)
-    est = Tracker(model, mm, cfg).run(model.predict_curves(
-        np.hstack([x, np.tile(theta, (len(x), 1))])))
+    run = changed_run(spec, at + 60, mu, np.random.default_rng(77), change)
+    est = Tracker(model, mm, cfg).run(model.predict_curves(run.inputs))
     mon, vals = Monitor(config), series(est)
     alarms = [a for i in range(len(est))
               for a in mon.update_values({k: float(v[i]) for k, v in vals.items()}, i)]

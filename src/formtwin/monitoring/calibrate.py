@@ -19,18 +19,16 @@ benchmark (``benchmarks/bench_monitoring.py``) counts the real rate.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin._threads import single_blas_thread
 from formtwin.estimates import Estimates
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.monitoring.charts import Cusum, Ewma, cusum_h, ewma_L
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
 from formtwin.monitoring.monitor import ANGLES, HEALTH, MonitorConfig
-from formtwin.monitoring.scenarios import production_run
 from formtwin.tracker import Tracker, TrackerConfig
 
 FloatArray = NDArray[np.float64]
@@ -67,21 +65,17 @@ class ChartDesign:
 
 
 def simulate_in_control(model: ProcessModel, measurement: MeasurementModel,
-                        config: TrackerConfig, mu: FloatArray, n: int, runs: int,
-                        seed: int) -> list[Estimates]:
-    """Estimates of ``runs`` simulated in-control runs of ``n`` products: states by eq. 4-5
-    about ``mu`` (7,), machine parameters uniform in their bounds, curves from ``model``
-    (no deviation), tracked with ``config`` (its seed varied per run)."""
-    from dataclasses import replace
-
+                        config: TrackerConfig, n: int, runs: int, seed: int
+                        ) -> list[Estimates]:
+    """Estimates of ``runs`` simulated in-control runs of ``n`` products, each drawn as the
+    tracker assumes the process (:meth:`~formtwin.tracker.BendingSSM.simulate`: the
+    config's mu, sigma, rho; machine parameters uniform in their bounds) and tracked with
+    ``config`` (its seed varied per run)."""
     out = []
     for r, ss in enumerate(np.random.SeedSequence(seed).spawn(runs)):
-        rng = np.random.default_rng(ss)
-        theta, x = production_run(model.spec, n, mu, rng)
-        curves = model.predict_curves(np.hstack([x, np.tile(theta, (n, 1))]))
         tracker = Tracker(model, measurement, replace(config, seed=config.seed + 1000 + r))
-        with single_blas_thread():
-            out.append(tracker.run(curves))
+        _, curves = tracker.ssm.simulate(n, np.random.default_rng(ss))
+        out.append(tracker.run(curves))
     return out
 
 

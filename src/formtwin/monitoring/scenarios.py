@@ -1,7 +1,8 @@
 """Production runs with a known change, to measure how fast the charts see it.
 
-A run's state sequence is drawn in control (eq. 4-5 about the line's means ``mu``), then a
-:class:`Change` adds an offset to some state variables from product ``at`` on:
+A run's state sequence is drawn in control (eq. 4-5 about the line's means ``mu``, by
+:func:`~formtwin.production.draw_production_run`), then a :class:`Change` adds an offset
+to some state variables from product ``at`` on:
 
 * ``step``: the mean of each named variable moves by ``size`` (its sigma units) at ``at``
   and stays there. This is the textbook mean shift of an autocorrelated process
@@ -26,12 +27,13 @@ array([0., 0., 2., 2.])
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin.evolution import reflect, simulate
+from formtwin.evolution import reflect
+from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
 
 FloatArray = NDArray[np.float64]
@@ -95,15 +97,13 @@ class Change:
         return reflect(x + self.offset(x.shape[0], spec), s.lo, s.hi)
 
 
-def production_run(spec: ProcessSpec, n: int, mu: FloatArray, rng: np.random.Generator,
-                   change: Change | None = None) -> tuple[FloatArray, FloatArray]:
-    """A run of ``n`` products of a line with state means ``mu`` (7,): machine parameters
-    ``theta`` (3,) uniform in their bounds, states ``x`` (n, 7) by eq. 4-5 in control, then
-    ``change`` applied. Returns ``(theta, x)``."""
-    s, p = spec.state, spec.params
-    theta = rng.uniform(p.lo, p.hi)
-    x = simulate(n, np.asarray(mu, dtype=np.float64), s.sigma, s.rho, rng, s.lo, s.hi)
-    return theta, (x if change is None else change.apply(x, spec))
+def changed_run(spec: ProcessSpec, n: int, mu: FloatArray, rng: np.random.Generator,
+                change: Change) -> ProductionRun:
+    """A production run of ``n`` products of a line with state means ``mu`` (7,) and no
+    deviation, drawn by :func:`~formtwin.production.draw_production_run` (machine
+    parameters uniform in their bounds, states by eq. 4-5), with ``change`` applied."""
+    run = draw_production_run(spec, n, rng, mu=mu, deviation=False)
+    return replace(run, x=change.apply(run.x, spec))
 
 
-__all__ = ["KINDS", "MATERIAL", "Change", "production_run"]
+__all__ = ["KINDS", "MATERIAL", "Change", "changed_run"]
