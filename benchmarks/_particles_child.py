@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import time
+from typing import Any
 
 
 def main() -> None:
@@ -32,11 +33,20 @@ def main() -> None:
     from particles import state_space_models as ssms
     from threadpoolctl import threadpool_limits
 
-    from formtwin.defaults import load_model
     from formtwin.measurement import MeasurementModel
     from formtwin.tracker import BendingSSM, TrackerConfig
 
-    model = load_model(args.model)
+    # this venv has no h5py/xarray: build the model without formtwin.defaults
+    if args.model == "analytic":
+        from formtwin.physics.analytic import AnalyticBending
+        from formtwin.simulator import SimulatorModel
+        from formtwin.spec import load_spec
+
+        model: Any = SimulatorModel(AnalyticBending(load_spec()))
+    else:
+        from formtwin.metamodel import Metamodel
+
+        model = Metamodel.load(args.model)
     mm = MeasurementModel.load(args.measurement)
     with np.load(args.data, allow_pickle=False) as z:
         curves, mu = z["curves"][: args.products], z["mu"]

@@ -106,21 +106,38 @@ class DeviationModel:
         """``t(tau)`` at the grid's model times and ``a`` there, both ``(N, n_t)``."""
         a, b = self._split(theta_d)
         base, tau_base, slope, curv = self._segments(b)
+        n_rows, n_t = b.shape[0], self.time.size
         # a is piecewise linear on the same segments: its value and slope at each base
-        zero = np.zeros((a.shape[0], 1))
+        zero = np.zeros((n_rows, 1))
         a_base = np.concatenate([a[:, :1], a], axis=1)
         a_slope = np.concatenate([zero, np.diff(a, axis=1) / np.diff(self.knots), zero], axis=1)
-        # segment of each model time: how many knots' tau lie at or below it
-        seg = np.zeros((b.shape[0], self.time.size), dtype=np.intp)
-        for j in range(1, tau_base.shape[1]):  # over the k knots, not over particles
-            seg += tau_base[:, j, None] <= self.time[None, :]
-        per_seg = np.stack([tau_base, slope, curv, a_base, a_slope])  # (5, N, k+1)
-        rows = np.arange(b.shape[0])[:, None] * per_seg.shape[2]
-        tau0, s1, s2, a0, da = per_seg.reshape(5, -1)[:, rows + seg]
+        # segment of each model time: how many knots' tau lie at or below it. tau is
+        # increasing, so per row the segments are runs of consecutive grid times: the run
+        # of segment j starts at the first time >= tau at knot j, and a segment's numbers
+        # are repeated over its run (the same values as gathering them point by point)
+        starts = np.searchsorted(self.time, tau_base[:, 1:], side="left")  # (N, k)
+        edges = np.concatenate([np.zeros((n_rows, 1), np.intp), starts,
+                                np.full((n_rows, 1), n_t, np.intp)], axis=1)
+        runs = np.diff(edges, axis=1).ravel()  # (N (k+1),) lengths, summing to n_t per row
+        per_seg = np.stack([tau_base, slope, curv, a_base, a_slope,
+                            np.broadcast_to(base, tau_base.shape)])  # (6, N, k+1)
+        tau0, s1, s2, a0, da, t0 = np.repeat(per_seg.reshape(6, -1), runs, axis=1).reshape(
+            6, n_rows, n_t)
+        # u solves tau0 + s1 u + s2 u^2 / 2 = time, in the cancellation-free form
         c = self.time[None, :] - tau0
-        u = 2.0 * c / (s1 + np.sqrt(np.maximum(s1**2 + 2.0 * s2 * c, 0.0)))
-        a_at = a0 + da * u
-        return base[seg] + u, a_at
+        root = s1**2
+        q = 2.0 * s2
+        q *= c
+        root += q
+        np.maximum(root, 0.0, out=root)
+        np.sqrt(root, out=root)
+        root += s1
+        u = 2.0 * c
+        u /= root
+        da *= u
+        a0 += da
+        t0 += u
+        return t0, a0
 
     def real_time(self, theta_d: FloatArray) -> FloatArray:
         """``t(tau)``, the inverse of ``tau``, at the grid's model times, ``(N, n_t)`` s."""
@@ -129,11 +146,16 @@ class DeviationModel:
     def _interp_rows(self, curves: FloatArray, tq: FloatArray) -> FloatArray:
         """Row-wise linear interpolation of curves (n_t,) or (N, n_t) at times tq (N, n_t)."""
         t0, dt, n = self.time[0], self.time[1] - self.time[0], self.time.size
-        pos = np.clip((tq - t0) / dt, 0.0, n - 1.0)
+        pos = tq - t0
+        pos /= dt
+        np.clip(pos, 0.0, n - 1.0, out=pos)
         i = np.minimum(pos.astype(np.intp), n - 2)
         w = pos - i
         if curves.ndim == 1:  # one curve for all rows: plain indexing
-            out1: FloatArray = curves[i] + w * (curves[i + 1] - curves[i])
+            step = np.diff(curves)  # curves[i + 1] - curves[i]
+            w *= step[i]
+            w += curves[i]
+            out1: FloatArray = w
             return out1
         curves = np.broadcast_to(curves, tq.shape)
         lo = np.take_along_axis(curves, i, axis=1)

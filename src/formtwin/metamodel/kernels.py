@@ -114,6 +114,11 @@ def monomial_powers(d: int, degree: int) -> NDArray[np.int64]:
 def polynomial(U: FloatArray, powers: NDArray[np.int64]) -> FloatArray:
     """Monomials (n, q) of ``2U - 1`` for unit-box inputs ``U`` (n, d)."""
     V = 2.0 * U - 1.0
+    degrees = powers.sum(axis=1)
+    if np.all(degrees <= 1):  # constant and linear terms: columns of V (the same numbers)
+        lin: FloatArray = V[:, powers.argmax(axis=1)]
+        lin[:, degrees == 0] = 1.0
+        return lin
     out = np.ones((U.shape[0], powers.shape[0]))
     for j, p in enumerate(powers):
         for i in np.flatnonzero(p):
