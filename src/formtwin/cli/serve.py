@@ -41,6 +41,44 @@ def broker_config(args: argparse.Namespace) -> Any:
                                  username=args.username, password=password)
 
 
+def add_monitor_options(p: argparse.ArgumentParser) -> None:
+    """Control charts and alarms (fixed with the store at its first start)."""
+    g = p.add_argument_group("monitoring (EWMA/CUSUM charts, model-mismatch alarm)")
+    g.add_argument("--no-monitor", action="store_true", help="no control charts or alarms")
+    g.add_argument("--monitor-config", metavar="FILE.json",
+                   help="chart configuration with user-set in-control means, sigmas and "
+                   "limits (MonitorConfig JSON); default: calibrated on simulated in-control "
+                   "runs with the spec's statistics")
+    g.add_argument("--monitor-runs", type=int, default=2,
+                   help="simulated in-control runs to calibrate on (default: %(default)s)")
+    g.add_argument("--monitor-products", type=int, default=600,
+                   help="products per calibration run (default: %(default)s)")
+    g.add_argument("--monitor-warmup", type=int, default=50,
+                   help="products not charted at the start (default: %(default)s)")
+    g.add_argument("--monitor-phase1", type=int, default=100,
+                   help="products after the warm-up that set the angles' in-control level "
+                   "(default: %(default)s)")
+    g.add_argument("--monitor-arl0", type=float, default=2.0e5,
+                   help="in-control average run length of each chart (default: %(default)g)")
+
+
+def _monitor(args: argparse.Namespace, proc: Any) -> Any:
+    """The service's charts (None with --no-monitor), attached to ``proc``."""
+    if args.no_monitor:
+        return None
+    from formtwin.monitoring.calibrate import ChartDesign
+    from formtwin.service.alarms import MonitorSource, ServiceMonitor, monitor_config
+
+    design = ChartDesign(warmup=args.monitor_warmup, phase1=args.monitor_phase1,
+                         arl0_per_chart=args.monitor_arl0)
+    source = MonitorSource(file=args.monitor_config, runs=args.monitor_runs,
+                           products=args.monitor_products, design=design,
+                           seed=proc.tracker.config.seed)
+    monitor = ServiceMonitor(proc.store, monitor_config(proc.store, proc.tracker, source))
+    proc.monitor = monitor
+    return monitor
+
+
 def register(sub: Any) -> None:
     """Add the ``serve`` command to the subparsers ``sub``."""
     p = sub.add_parser("serve", help="track live strokes from MQTT; store, publish, live page",
@@ -55,6 +93,7 @@ def register(sub: Any) -> None:
     p.add_argument("--topic", default=DEFAULT_TOPIC, help="stroke topic (default: %(default)s)")
     p.add_argument("--results-topic", help="default: sibling 'estimate' of --topic")
     p.add_argument("--errors-topic", help="default: sibling 'errors' of --topic")
+    p.add_argument("--alarms-topic", help="default: sibling 'alarms' of --topic")
     p.add_argument("--client-id", default="formtwin-serve",
                    help="persistent MQTT session id; keep it across restarts")
     p.add_argument("--store", default="formtwin-serve.sqlite",
@@ -71,6 +110,9 @@ def register(sub: Any) -> None:
     p.add_argument("--http-host", default="127.0.0.1", help="page bind address")
     p.add_argument("--http-port", type=int, default=8765, help="page port (0: any free)")
     p.add_argument("--no-page", action="store_true", help="do not serve the live page")
+    p.add_argument("--page-token", help="token that acknowledging alarms on the page needs "
+                   "(default: a random one, printed in the page's URL)")
+    add_monitor_options(p)
     p.add_argument("--status-every", type=float, default=60.0, metavar="S",
                    help="print a status line every S seconds (0: never)")
     p.add_argument("--connect-timeout", type=float, default=10.0,
@@ -83,7 +125,8 @@ def _serve(args: argparse.Namespace) -> int:
     from formtwin.service.runtime import ServiceSettings, open_processor
 
     broker = broker_config(args)
-    topics = Topics.from_input(args.topic, args.results_topic, args.errors_topic)
+    topics = Topics.from_input(args.topic, args.results_topic, args.errors_topic,
+                               args.alarms_topic)
     if args.metamodel and not Path(args.metamodel).exists():
         raise ValueError(f"--metamodel {args.metamodel}: no such file")
     settings = ServiceSettings(
@@ -98,8 +141,9 @@ def _serve(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    page = None
+    page = monitor = None
     try:
+        monitor = _monitor(args, proc)
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
@@ -112,13 +156,23 @@ def _serve(args: argparse.Namespace) -> int:
             feed.seed(proc.store)
             proc.on_outcome = feed.on_outcome
             page = PageServer(feed, args.http_host, args.http_port)
-            print(f"live page: {page.start()}", flush=True)
+            token = ""
+            if monitor is not None:
+                import secrets
+
+                from formtwin.service.alarm_api import add_alarm_routes
+
+                token = args.page_token or secrets.token_urlsafe(16)
+                add_alarm_routes(page.app, monitor, feed, token)
+            url = page.start()
+            print(f"live page: {url}" + (f"?token={token}" if token else ""), flush=True)
         service = MqttService(proc, broker, topics, client_id=args.client_id)
         if args.status_every > 0:
             threading.Thread(target=_status, args=(proc, service, stop, args.status_every),
                              daemon=True, name="formtwin-status").start()
         print(f"serving {topics.strokes} on {broker.host}:{broker.port} -> "
-              f"{topics.results}, errors -> {topics.errors}", flush=True)
+              f"{topics.results}, errors -> {topics.errors}"
+              + (f", alarms -> {topics.alarms}" if monitor is not None else ""), flush=True)
         service.run(stop, timeout=args.connect_timeout,
                     on_connected=lambda: print("connected and subscribed", flush=True))
         print(f"stopped after {service.handled} messages ({service.busy_s:.2f} s busy)",
@@ -126,6 +180,8 @@ def _serve(args: argparse.Namespace) -> int:
     finally:
         if page is not None:
             page.stop()
+        if monitor is not None:
+            monitor.close()
         proc.close()
         proc.store.close()
     return 0

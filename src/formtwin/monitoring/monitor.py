@@ -148,6 +148,10 @@ class Monitor:
     def __init__(self, config: MonitorConfig, state: Mapping[str, Any] | None = None) -> None:
         self.config = config
         self.n = 0  # products seen
+        #: the chart statistics and limits of the last charted product, by quantity and
+        #: chart (``{"thickness": {"ewma": (Z, limit), "cusum": (C, h)}, "ess":
+        #: {"mismatch": (C, h)}}``, sigma units); empty before charting starts
+        self.last: dict[str, dict[str, tuple[float, float]]] = {}
         self.means = {n: q.mean for n, q in config.quantities.items()}
         self.phase1_sums = {n: 0.0 for n, q in config.quantities.items() if q.mean is None}
         self.history: dict[str, list[float]] = {n: [] for n in config.quantities}
@@ -188,20 +192,25 @@ class Monitor:
             self._remember(values)
             return ()
         alarms: list[Alarm] = []
+        self.last = {}
         for n, q in c.quantities.items():
             y, hist, mean = float(values[n]), self.history[n], self.means[n]
             if len(hist) < q.order or mean is None or not math.isfinite(y):
                 continue
             z = q.score(y, hist, mean)
             self.ewma[n], s = c.ewma.update(self.ewma[n], z)
+            last = self.last.setdefault(n, {})
+            last["ewma"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "ewma", idx, s.statistic, s.limit, s.side))
             self.cusum[n], s = c.cusum.update(self.cusum[n], z)
+            last["cusum"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "cusum", idx, s.statistic, s.limit, s.side))
         for n, ref in c.health.items():
             self.health[n], s = c.mismatch.update(self.health[n],
                                                    ref.normal_score(float(values[n])))
+            self.last[n] = {"mismatch": (s.statistic, s.limit)}
             if s.side:
                 alarms.append(Alarm(n, "mismatch", idx, s.statistic, s.limit, s.side))
         self._remember(values)

@@ -92,25 +92,27 @@ def make_client(cfg: BrokerConfig, client_id: str, *, persistent: bool = False,
 
 @dataclass(frozen=True)
 class Topics:
-    """Input, results and errors topics; by default siblings of the input topic.
+    """Input, results, errors and alarms topics; by default siblings of the input topic.
 
-    >>> Topics.from_input("plant/line1/press1/stroke").results
-    'plant/line1/press1/estimate'
+    >>> Topics.from_input("plant/line1/press1/stroke").alarms
+    'plant/line1/press1/alarms'
     """
 
     strokes: str
     results: str
     errors: str
+    alarms: str = ""
 
     @classmethod
     def from_input(cls, topic: str, results: str | None = None,
-                   errors: str | None = None) -> Topics:
-        """Topics from the stroke topic and optional results/errors topics (default: siblings
-        ``estimate`` and ``errors``)."""
+                   errors: str | None = None, alarms: str | None = None) -> Topics:
+        """Topics from the stroke topic and optional results/errors/alarms topics (default:
+        siblings ``estimate``, ``errors`` and ``alarms``)."""
         if not topic or any(c in topic for c in "#+\x00"):
             raise ValueError(f"topic {topic!r}: expected a plain topic without wildcards")
         base = topic.rsplit("/", 1)[0] + "/" if "/" in topic else ""
-        return cls(topic, results or base + "estimate", errors or base + "errors")
+        return cls(topic, results or base + "estimate", errors or base + "errors",
+                   alarms or base + "alarms")
 
 
 class MqttService:
@@ -182,6 +184,8 @@ class MqttService:
         t0 = time.perf_counter()
         try:
             out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
+            for alarm in out.alarms:  # before the answer: acknowledged once it is in
+                client.publish(self.topics.alarms or self.topics.errors, dumps(alarm), qos=1)
             topic = self.topics.errors if out.is_error else self.topics.results
             info = client.publish(topic, dumps(out.message), qos=1)
         except Exception as exc:  # storage failure: never acknowledge, stop the service

@@ -59,6 +59,23 @@ class EstimateLike(Protocol):
         ...
 
 
+class MonitorLike(Protocol):
+    """What the processor needs of :class:`formtwin.service.alarms.ServiceMonitor`."""
+
+    def observe(self, message: dict[str, Any]) -> dict[str, Any]:
+        """Chart an estimate message before its commit; its ``"monitoring"`` entry."""
+        ...
+
+    def rollback(self) -> None:
+        """Undo the last observe (the product was not committed)."""
+        ...
+
+    def committed(self, seq: int, part_id: str, entry: dict[str, Any],
+                  now: float | None = None) -> list[dict[str, Any]]:
+        """Record the alarms of a committed product; return them."""
+        ...
+
+
 class TrackerLike(Protocol):
     """What the processor needs of :class:`formtwin.tracker.Tracker`."""
 
@@ -133,6 +150,7 @@ class Outcome:
     message: dict[str, Any]
     part_id: str | None = None
     seq: int | None = None
+    alarms: tuple[dict[str, Any], ...] = ()
 
     @property
     def is_error(self) -> bool:
@@ -157,12 +175,17 @@ class Processor:
         Robust option for single outlier curves; None disables it.
     on_outcome : callable, optional
         Called with every :class:`Outcome` (the live page listens here).
+    monitor : MonitorLike or None
+        Control charts on the accepted estimates (:mod:`formtwin.service.alarms`): their
+        statistics and alarms go into the estimate message before the commit.
     """
 
     def __init__(self, store: Store, tracker: TrackerLike, limits: Limits,
                  gate: OutlierGate | None = None,
-                 on_outcome: Callable[[Outcome], None] | None = None) -> None:
+                 on_outcome: Callable[[Outcome], None] | None = None,
+                 monitor: MonitorLike | None = None) -> None:
         self.store = store
+        self.monitor = monitor
         self.tracker = tracker
         self.limits = limits
         self.gate = gate
@@ -191,6 +214,8 @@ class Processor:
     # ------------------------------------------------------------------ internals
     def _rollback(self) -> None:
         self.tracker.load_state_bytes(self._last_ckpt)
+        if self.monitor is not None:
+            self.monitor.rollback()
 
     def _reject(self, err: MessageError, payload: bytes, topic: str, now: float) -> Outcome:
         digest = hashlib.sha256(payload).hexdigest()
@@ -299,6 +324,8 @@ class Processor:
         msg = estimate_message(stroke, est.to_dict(), seq=-1, flags=flags)
         seq = self._next_seq
         msg["seq"] = seq
+        if self.monitor is not None:
+            msg["monitoring"] = self.monitor.observe(msg)
         got = self.store.commit_product(
             part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
             status="accepted", digest=stroke.digest, curve=stroke.force_N,
@@ -311,5 +338,12 @@ class Processor:
         self._next_seq = seq + 1
         if self.gate is not None:
             self.gate.record(loglik, gated=False)
-        return Outcome("accepted", msg, stroke.part_id, seq)
+        alarms: tuple[dict[str, Any], ...] = ()
+        if self.monitor is not None:
+            try:  # the product is in: a failure here only delays the alarms' table rows
+                alarms = tuple(self.monitor.committed(seq, stroke.part_id, msg["monitoring"],
+                                                      now))
+            except Exception:  # rebuilt from the stored estimate at the next start
+                log.exception("recording the alarms of part %s failed", stroke.part_id)
+        return Outcome("accepted", msg, stroke.part_id, seq, alarms)
 

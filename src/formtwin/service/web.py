@@ -75,6 +75,10 @@ class LiveFeed:
             if r.estimate is not None:
                 self._push(_point(r.estimate))
 
+    def push(self, event: dict[str, Any]) -> None:
+        """Queue an event for the pages (e.g. an acknowledged alarm)."""
+        self._push(event)
+
     def _push(self, event: dict[str, Any]) -> None:
         with self._lock:
             self._n += 1
@@ -91,6 +95,8 @@ class LiveFeed:
                 self.reasons[reason] = self.reasons.get(reason, 0) + 1
         if out.kind == "accepted":
             self._push(_point(out.message))
+            if out.alarms:
+                self._push({"type": "alarms", "alarms": list(out.alarms)})
         elif out.is_error:
             self._push({"type": "rejected", "reason": out.message.get("reason"),
                         "detail": out.message.get("detail"), "part_id": out.part_id})
@@ -117,7 +123,7 @@ def _point(msg: dict[str, Any]) -> dict[str, Any]:
             "index": msg.get("index"), "mean": msg.get("mean"), "std": msg.get("std"),
             "angles_mean": msg.get("angles_mean"), "angles_std": msg.get("angles_std"),
             "measured_angles": msg.get("measured_angles_deg"), "ess": msg.get("ess"),
-            "collapsed": msg.get("collapsed")}
+            "collapsed": msg.get("collapsed"), "monitoring": msg.get("monitoring")}
 
 
 def create_app(feed: LiveFeed, poll_s: float = 0.1) -> FastAPI:

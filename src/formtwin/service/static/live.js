@@ -26,7 +26,7 @@
       axes: [{size: 24}, {size: 62}],
     }, opts.series.map(() => []).concat([[]]), box);
     const c = {key: key, plot: plot, data: [[]].concat(opts.series.map(() => [])),
-               extract: opts.extract, latest: latest};
+               extract: opts.extract, latest: latest, label: opts.label};
     charts.push(c);
     return c;
   }
@@ -78,13 +78,94 @@
     });
   }
 
+  // control charts: one per monitored quantity (EWMA of the standardised residual with its
+  // limits; the health statistics' mismatch CUSUM with its decision interval), alarms as
+  // red points
+  function buildMonitor(mon) {
+    if (!mon) return;
+    const charted = mon.quantities.map((n) => [n, "ewma"]).concat(
+      mon.health.map((n) => [n, "mismatch"]));
+    charted.forEach(([name, chart]) => {
+      const title = (chart === "ewma" ? "EWMA chart: " : "model-mismatch CUSUM: ") + name +
+        " (sigma units)";
+      makeChart(title, "chart:" + name, {
+        series: [
+          {label: "statistic", stroke: "#444", width: 1.2, points: {show: false}},
+          {label: "upper limit", stroke: "#c33", width: 1, dash: [4, 3], points: {show: false}},
+          {label: "lower limit", stroke: "#c33", width: 1, dash: [4, 3], points: {show: false}},
+          {label: "alarm", stroke: "#d00", width: 0, points: {show: true, size: 7, fill: "#d00"}},
+        ],
+        extract: (p) => {
+          const m = p.monitoring;
+          const c = m && m.charts && m.charts[name] ? m.charts[name][chart] : null;
+          if (!c) return [null, null, null, null];
+          const raised = (m.alarms || []).some((a) => a.variable === name);
+          return [c[0], c[1], chart === "ewma" ? -c[1] : null, raised ? c[0] : null];
+        },
+        label: (ys) => fmt(ys[0]) + " (limit " + fmt(ys[1]) + ")",
+      });
+    });
+  }
+
+  const alarmRows = new Map();
+  const token = new URLSearchParams(window.location.search).get("token") || "";
+  function showAlarm(a) {
+    let row = alarmRows.get(a.id);
+    if (!row) {
+      row = document.createElement("div");
+      row.className = "alarm";
+      row.dataset.id = String(a.id);
+      el("alarms").prepend(row);
+      alarmRows.set(a.id, row);
+    }
+    row.innerHTML = "";
+    const text = document.createElement("span");
+    text.textContent = "#" + a.id + " product " + a.seq + " (" + a.part_id + "): " +
+      a.variable + " " + a.chart + " " + a.side + ", " + fmt(a.statistic) + " beyond " +
+      fmt(a.limit);
+    row.appendChild(text);
+    if (a.acked_at) {
+      row.classList.add("acked");
+      const s = document.createElement("span");
+      s.textContent = "  acknowledged";
+      row.appendChild(s);
+    } else {
+      const b = document.createElement("button");
+      b.textContent = "acknowledge";
+      b.onclick = () => {
+        fetch("/api/alarms/" + a.id + "/ack", {method: "POST",
+          headers: {"X-Formtwin-Token": token, "Content-Type": "application/json"},
+          body: JSON.stringify({note: "acknowledged on the live page"})})
+          .then((r) => r.json().then((j) => {
+            if (r.ok) showAlarm(j); else el("alarm-error").textContent = j.error || r.status;
+          }));
+      };
+      row.appendChild(b);
+    }
+    let open = 0;
+    alarmRows.forEach((r) => { if (!r.classList.contains("acked")) open += 1; });
+    el("n-alarms").textContent = String(open);
+    document.body.dataset.alarms = String(alarmRows.size);
+    document.body.dataset.openAlarms = String(open);
+  }
+
+  function loadAlarms() {
+    return fetch("/api/alarms").then((r) => r.ok ? r.json() : []).then((list) => {
+      el("alarms").innerHTML = "";
+      alarmRows.clear();
+      list.forEach(showAlarm);
+    });
+  }
+
   function addPoint(p) {
     const x = p.seq !== null && p.seq !== undefined ? p.seq : nPoints;
     charts.forEach((c) => {
       const ys = c.extract(p);
       c.data[0].push(x);
       ys.forEach((y, i) => c.data[i + 1].push(y));
-      if (ys.length >= 3 && ys[1] !== null) {
+      if (c.label) {
+        if (ys[0] !== null) c.latest.textContent = "  " + c.label(ys);
+      } else if (ys.length >= 3 && ys[1] !== null) {
         c.latest.textContent = "  " + fmt(ys[1]) + " (std " + fmt((ys[2] - ys[1]) / 3) + ")";
       }
       if (c.data[0].length > WINDOW) c.data.forEach((col) => col.shift());
@@ -119,9 +200,12 @@
 
   let source = null;
   function start() {
-    fetch("/api/state").then((r) => r.json()).then((st) => {
+    Promise.all([fetch("/api/state").then((r) => r.json()),
+                 fetch("/api/monitor").then((r) => r.ok ? r.json() : null)]).then(([st, mon]) => {
       nPoints = 0;
       build(st.names, st.units);
+      buildMonitor(mon);
+      if (mon) loadAlarms();
       st.points.forEach(addPoint);
       redraw();
       showCounts(st.counts, st.reasons);
@@ -137,6 +221,8 @@
           return;
         }
         if (e.type === "point") { addPoint(e); schedule(); }
+        if (e.type === "alarms") e.alarms.forEach(showAlarm);
+        if (e.type === "ack") showAlarm(e.alarm);
         showCounts(e.counts, e.reasons);
       };
     }).catch(() => {

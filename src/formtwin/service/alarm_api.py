@@ -1,0 +1,60 @@
+"""The live page's alarm routes (added to the app of :mod:`formtwin.service.web`).
+
+* ``GET /api/monitor`` -- the charted quantities, chart settings and limits;
+* ``GET /api/alarms?unacked=1`` -- stored alarms, oldest first;
+* ``POST /api/alarms/{id}/ack`` -- acknowledge one; needs the page token (header
+  ``X-Formtwin-Token``, the ``token`` of the page's URL as printed by ``formtwin serve``):
+  reading is open on the page's address, acting is not. A wrong or missing token is 403, an
+  unknown id 404. The acknowledgement is stored and sent to every open page.
+"""
+
+from __future__ import annotations
+
+import hmac
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+
+from formtwin.service.alarms import ServiceMonitor
+from formtwin.service.web import LiveFeed
+
+#: the request header carrying the page token
+TOKEN_HEADER = "x-formtwin-token"
+
+
+def add_alarm_routes(app: FastAPI, monitor: ServiceMonitor, feed: LiveFeed,
+                     token: str) -> None:
+    """Add the alarm routes to ``app``; acknowledging needs ``token`` (non-empty)."""
+    if not token:
+        raise ValueError("the alarm routes need a non-empty page token")
+
+    @app.get("/api/monitor")
+    def limits() -> JSONResponse:
+        return JSONResponse(monitor.limits())
+
+    @app.get("/api/alarms")
+    def alarms(unacked: int = 0, since_seq: int = 0) -> JSONResponse:
+        return JSONResponse(monitor.alarms(since_seq=since_seq, unacked=bool(unacked)))
+
+    @app.post("/api/alarms/{alarm_id}/ack")
+    async def ack(alarm_id: int, request: Request) -> JSONResponse:
+        given = request.headers.get(TOKEN_HEADER, "")
+        if not hmac.compare_digest(given.encode(), token.encode()):
+            return JSONResponse({"error": "page token missing or wrong"}, status_code=403)
+        note = ""
+        if request.headers.get("content-type", "").startswith("application/json"):
+            try:
+                body: Any = await request.json()
+            except ValueError:
+                return JSONResponse({"error": "body is not JSON"}, status_code=400)
+            note = str(body.get("note", "")) if isinstance(body, dict) else ""
+        try:
+            alarm = monitor.acknowledge(alarm_id, note)
+        except KeyError:
+            return JSONResponse({"error": f"no alarm with id {alarm_id}"}, status_code=404)
+        feed.push({"type": "ack", "alarm": alarm})
+        return JSONResponse(alarm)
+
+
+__all__ = ["TOKEN_HEADER", "add_alarm_routes"]

@@ -1,0 +1,116 @@
+"""Monitoring on the live page, in a real headless Chromium against a running `formtwin
+serve` with user-set limits: a control chart per monitored variable with its limits, the
+alarms listed and marked, published on the alarms topic, and acknowledged on the page
+(with the page token; without it the service refuses)."""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+from service_fixtures import (
+    Collector,
+    Mosquitto,
+    free_port,
+    mosquitto,  # noqa: F401 - fixture
+    require_binary,
+    serve_cmd,
+    start_serve,
+    wait_for,
+    wait_serving,
+)
+
+from formtwin.monitoring.incontrol import InControl
+from formtwin.monitoring.monitor import MonitorConfig
+from formtwin.service.mqtt import BrokerConfig, publish_strokes
+from formtwin.service.streams import make_stream, read_stream
+
+TOPIC = "plant/line1/press1/stroke"
+ALARMS = "plant/line1/press1/alarms"
+
+
+def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # noqa: F811
+                                                       tmp_path: Path) -> None:
+    chromium = require_binary("chromium", ("/usr/bin/chromium",))
+    sync_api = pytest.importorskip("playwright.sync_api")
+    # user-set limits: thickness in control at 300 um with a residual sigma of 1 nm (the
+    # estimates are out of control), the stage-2 angle about its Phase-I level
+    config = MonitorConfig({"thickness": InControl(mean=300.0, sigma=1e-3),
+                            "angle_stage2": InControl(mean=None, sigma=1e-3)},
+                           warmup=2, phase1=3)
+    (tmp_path / "limits.json").write_text(config.to_json())
+    strokes = read_stream(make_stream(tmp_path / "s.npz", 20, seed=4))
+    port = free_port()
+    log = tmp_path / "serve.log"
+    cmd = serve_cmd(mosquitto, tmp_path / "a.sqlite", "--particles", "64", "--n-mc", "1000",
+                    "--http-port", str(port), "--monitor-config", str(tmp_path / "limits.json"),
+                    "--page-token", "tok-123")
+    proc = start_serve(cmd, log)
+    collector = Collector(mosquitto.url, [ALARMS])
+    try:
+        wait_serving(proc, log)
+        assert f"live page: http://127.0.0.1:{port}/?token=tok-123" in log.read_text()
+        assert f"alarms -> {ALARMS}" in log.read_text()
+        publish_strokes(strokes, BrokerConfig.from_url(mosquitto.url), TOPIC)
+        wait_for(lambda: len(collector.get(ALARMS)) >= 3, 30, "alarms on the alarms topic")
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=chromium, headless=True,
+                                         args=["--no-sandbox", "--disable-gpu",
+                                               "--disable-dev-shm-usage"])
+            try:
+                page = browser.new_page(viewport={"width": 1300, "height": 1400})
+                errors: list[str] = []
+                page.on("pageerror", lambda e: errors.append(str(e)))
+                page.goto(f"http://127.0.0.1:{port}/?token=tok-123", timeout=30_000)
+                page.wait_for_function("Number(document.body.dataset.points || 0) >= 20 && "
+                                       "Number(document.body.dataset.alarms || 0) >= 3",
+                                       timeout=30_000)
+                # one control chart per monitored variable, with its limits and alarms
+                keys = page.evaluate("window.formtwinLive.charts.map(c => c.key)")
+                assert "chart:thickness" in keys and "chart:angle_stage2" in keys
+                chart = page.evaluate(
+                    "window.formtwinLive.charts.find(c => c.key === 'chart:thickness')"
+                    ".plot.data")
+                seqs, stat, upper, lower, marks = chart
+                charted = [i for i, v in enumerate(upper) if v is not None]
+                assert len(charted) == 20 - 5  # after warm-up and Phase I
+                assert all(lower[i] == -upper[i] and stat[i] is not None for i in charted)
+                n_alarms = int(page.get_attribute("body", "data-alarms") or 0)
+                stored = _get(port, "api/alarms")
+                marked = {seqs[i] for i, v in enumerate(marks) if v is not None}
+                assert marked == {a["seq"] for a in stored if a["variable"] == "thickness"}
+                assert marked
+                assert n_alarms == len(stored) == len(collector.get(ALARMS))
+                assert page.inner_text("#n-alarms") == str(n_alarms)
+                # acknowledge the newest alarm on the page
+                newest = stored[-1]["id"]
+                page.click(f".alarm[data-id='{newest}'] button")
+                page.wait_for_function(
+                    f"document.querySelector(\".alarm[data-id='{newest}']\")"
+                    ".classList.contains('acked')", timeout=10_000)
+                assert page.inner_text("#n-alarms") == str(n_alarms - 1)
+                acked = [a for a in _get(port, "api/alarms") if a["acked_at"] is not None]
+                assert [a["id"] for a in acked] == [newest]
+                assert acked[0]["ack_note"] == "acknowledged on the live page"
+                assert not errors, errors
+                page.screenshot(path=str(tmp_path / "alarms.png"), full_page=True)
+            finally:
+                browser.close()
+        # without the token the service refuses to acknowledge
+        req = urllib.request.Request(f"http://127.0.0.1:{port}/api/alarms/"
+                                     f"{stored[0]['id']}/ack", method="POST", data=b"")
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(req, timeout=10)
+        assert err.value.code == 403
+    finally:
+        collector.stop()
+        proc.terminate()
+        proc.wait(20)
+
+
+def _get(port: int, path: str) -> list[dict[str, object]]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/{path}", timeout=10) as r:
+        return list(json.loads(r.read()))
