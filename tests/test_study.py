@@ -64,6 +64,7 @@ def test_quick_study_end_to_end(metamodel: tuple[Metamodel, Path], tmp_path: Pat
     report = write_report(result, SPEC, tmp_path, sources={"metamodel": str(mm_path)})
     text = (tmp_path / "report.md").read_text()
     assert "Comparison with the paper" in text and "0.11" in text and "series 6" in text
+    assert "| series | mean ESS | collapsed steps | fit ok | fit degraded | no fit |" in text
     assert report.read_text().startswith("<!DOCTYPE html>")
     for fig in ("fig4_nrmse.png", "fig5_series1.png", "fig6_series6.png"):
         assert (tmp_path / fig).stat().st_size > 10_000

@@ -38,6 +38,9 @@ def test_track_npz_to_csv_with_checkpoint(tmp_path: Path, curves: np.ndarray) ->
     rows = list(csv.DictReader(open(out, encoding="utf-8")))
     assert [int(r["index"]) for r in rows] == [0, 1, 2, 4, 5, 6, 7]
     assert float(rows[-1]["mean_press_stiffness"]) > 0 and "angle2_std" in rows[0]
+    # the absolute fit of every product: the model's own curves are explained
+    assert {r["health"] for r in rows} <= {"ok", "degraded"}
+    assert all(0 <= float(r["fit_quantile"]) < 0.999 for r in rows)
     assert (tmp_path / "ck.npz").exists()
 
 
@@ -50,6 +53,13 @@ def test_track_csv_input_and_errors(tmp_path: Path, curves: np.ndarray,
     assert main(["track", "--metamodel", "analytic", "--curves", str(src), "--out", str(out),
                  "--n-mc", "500", "--particles", "32"]) == 0
     assert len(list(csv.DictReader(open(out, encoding="utf-8")))) == 8
+    assert "fit (the model's own check" in capsys.readouterr().out
+    # curves of another process (3x the force): the command says the model does not fit
+    np.savetxt(src, 3.0 * curves + 100.0, delimiter=",")
+    assert main(["track", "--metamodel", "analytic", "--curves", str(src), "--out", str(out),
+                 "--n-mc", "500", "--particles", "32"]) == 0
+    assert "WARNING: the model does not explain 8 of 8 curves" in capsys.readouterr().out
+    assert {r["health"] for r in csv.DictReader(open(out, encoding="utf-8"))} == {"no_fit"}
     np.savetxt(src, curves[:, :50], delimiter=",")
     assert main(["track", "--metamodel", "analytic", "--curves", str(src), "--out",
                  str(out)]) == 2

@@ -1,5 +1,9 @@
 """The tracker's output: one :class:`Estimate` per product, :class:`Estimates` stacked.
 
+Every estimate carries its absolute goodness of fit (:class:`Fit`, computed by
+:mod:`formtwin.tracker.fit` from the measurement model itself) and a one-word ``health``
+(:data:`HEALTH`): an estimate that nothing supports never looks like one the data support.
+
 Both are re-exported by :mod:`formtwin.tracker`. ``names``/``mean``/``std`` always hold the
 18 augmented variables ``[x, theta, theta_d]``; a tracker that learns the statistics mu
 (``TrackerConfig(learn_mu=True)``) adds the posterior mean and std of mu in the optional
@@ -19,8 +23,44 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 
 
+#: health of one estimate, best first: the curve is explained / explained with a warning
+#: (fit in the tail, or few effective particles) / not explained (see formtwin.tracker.fit)
+HEALTH = ("ok", "degraded", "no_fit")
+
+
 def _jsonable(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class Fit:
+    """Absolute goodness of fit of one curve (see :mod:`formtwin.tracker.fit`).
+
+    Attributes
+    ----------
+    distance2 : posterior-weighted squared Mahalanobis distance of the curve from the
+        particles' model curves under the likelihood's covariance (``inf`` if collapsed).
+    dof : degrees of freedom of its reference distribution (``n_t``).
+    quantile : posterior predictive quantile of the distance in its reference
+        distribution (chi-square with ``dof`` for the Gaussian likelihood), in [0, 1].
+    log10_p : ``log10(1 - quantile)`` computed without rounding (readable when the
+        quantile rounds to 1).
+    ess_share : ESS / N of the step, in (0, 1].
+    health : one of :data:`HEALTH`.
+    """
+
+    distance2: float
+    dof: int
+    quantile: float
+    log10_p: float
+    ess_share: float
+    health: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (non-finite numbers become ``None``), without ``health``."""
+        return {"distance2": _jsonable(self.distance2), "dof": int(self.dof),
+                "quantile": _jsonable(self.quantile), "log10_p": _jsonable(self.log10_p),
+                "ess_share": _jsonable(self.ess_share)}
 
 
 @dataclass(frozen=True)
@@ -39,6 +79,7 @@ class Estimate:
     mu_mean, mu_std : (7,) posterior mean and std of the statistics mu of the state
         variables (``spec.state.names`` order, internal units) when the tracker learns mu;
         ``None`` otherwise.
+    fit : the absolute goodness of fit (``None`` only for estimates made without one).
     """
 
     index: int
@@ -52,14 +93,22 @@ class Estimate:
     loglik: float
     mu_mean: FloatArray | None = None
     mu_std: FloatArray | None = None
+    fit: Fit | None = None
 
     def __getitem__(self, name: str) -> float:
         """Posterior mean of the variable ``name``."""
         return float(self.mean[self.names.index(name)])
 
+    @property
+    def health(self) -> str:
+        """``fit.health``; ``"no_fit"`` for a collapsed step without a fit, else ``"ok"``."""
+        if self.fit is not None:
+            return self.fit.health
+        return "no_fit" if self.collapsed else "ok"
+
     def to_dict(self) -> dict[str, Any]:
-        """JSON-safe dict (non-finite numbers become ``None``); ``mu_mean``/``mu_std``
-        (lists of 7) only when mu is learned."""
+        """JSON-safe dict (non-finite numbers become ``None``) with ``health`` and ``fit``;
+        ``mu_mean``/``mu_std`` (lists of 7) only when mu is learned."""
         out: dict[str, Any] = {
             "index": int(self.index),
             "mean": {n: _jsonable(v) for n, v in zip(self.names, self.mean, strict=True)},
@@ -69,7 +118,10 @@ class Estimate:
             "ess": _jsonable(self.ess),
             "collapsed": bool(self.collapsed),
             "loglik": _jsonable(self.loglik),
+            "health": self.health,
         }
+        if self.fit is not None:
+            out["fit"] = self.fit.to_dict()
         if self.mu_mean is not None and self.mu_std is not None:
             out["mu_mean"] = [_jsonable(v) for v in self.mu_mean]
             out["mu_std"] = [_jsonable(v) for v in self.mu_std]
@@ -79,7 +131,8 @@ class Estimate:
 @dataclass(frozen=True)
 class Estimates:
     """Stacked estimates of ``n`` products: arrays with a leading axis ``n``
-    (``mu_mean``, ``mu_std``: (n, 7) when mu is learned, else ``None``)."""
+    (``mu_mean``, ``mu_std``: (n, 7) when mu is learned, else ``None``; ``fit_distance2``,
+    ``fit_quantile``, ``fit_log10_p``, ``ess_share`` NaN where an estimate has no fit)."""
 
     names: tuple[str, ...]
     index: NDArray[np.int64]
@@ -92,6 +145,11 @@ class Estimates:
     loglik: FloatArray
     mu_mean: FloatArray | None = None
     mu_std: FloatArray | None = None
+    health: NDArray[np.str_] | None = None
+    fit_distance2: FloatArray | None = None
+    fit_quantile: FloatArray | None = None
+    fit_log10_p: FloatArray | None = None
+    ess_share: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.index.size)
@@ -112,6 +170,11 @@ class Estimates:
             return np.array([getattr(e, attr) for e in items], dtype=np.float64)
 
         learned = bool(items) and all(e.mu_mean is not None for e in items)
+
+        def fit(attr: str) -> FloatArray:
+            return np.array([math.nan if e.fit is None else getattr(e.fit, attr)
+                             for e in items], dtype=np.float64)
+
         return cls(names=names, index=np.array([e.index for e in items], dtype=np.int64),
                    mean=arr("mean", d), std=arr("std", d), angles_mean=arr("angles_mean", 2),
                    angles_std=arr("angles_std", 2),
@@ -119,10 +182,14 @@ class Estimates:
                    collapsed=np.array([e.collapsed for e in items], dtype=bool),
                    loglik=np.array([e.loglik for e in items], dtype=np.float64),
                    mu_mean=arr("mu_mean", 0) if learned else None,
-                   mu_std=arr("mu_std", 0) if learned else None)
+                   mu_std=arr("mu_std", 0) if learned else None,
+                   health=np.array([e.health for e in items], dtype=np.str_),
+                   fit_distance2=fit("distance2"), fit_quantile=fit("quantile"),
+                   fit_log10_p=fit("log10_p"), ess_share=fit("ess_share"))
 
     def columns(self) -> dict[str, NDArray[Any]]:
-        """Flat table columns: index, mean_<name>, std_<name>, angles, ess, ... (each (n,));
+        """Flat table columns: index, mean_<name>, std_<name>, angles, ess, collapsed,
+        loglik, health, fit_distance2, fit_quantile, fit_log10_p, ess_share (each (n,));
         plus mu_mean_<state name>, mu_std_<state name> when mu is learned."""
         cols: dict[str, NDArray[Any]] = {"index": self.index}
         for j, n in enumerate(self.names):
@@ -133,6 +200,10 @@ class Estimates:
             cols[f"angle{j + 1}_mean"] = self.angles_mean[:, j]
             cols[f"angle{j + 1}_std"] = self.angles_std[:, j]
         cols.update(ess=self.ess, collapsed=self.collapsed, loglik=self.loglik)
+        for key in ("health", "fit_distance2", "fit_quantile", "fit_log10_p", "ess_share"):
+            v = getattr(self, key)
+            if v is not None:
+                cols[key] = v
         if self.mu_mean is not None and self.mu_std is not None:
             for j in range(self.mu_mean.shape[1]):  # the first 7 names are the state's
                 cols[f"mu_mean_{self.names[j]}"] = self.mu_mean[:, j]
@@ -140,4 +211,4 @@ class Estimates:
         return cols
 
 
-__all__ = ["Estimate", "Estimates"]
+__all__ = ["HEALTH", "Estimate", "Estimates", "Fit"]

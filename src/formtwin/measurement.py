@@ -221,6 +221,13 @@ class MeasurementModel:
         """Number of principal directions ``r``."""
         return int(self.basis.shape[1])
 
+    def covariance(self) -> FloatArray:
+        """The likelihood's covariance ``Sigma`` (n_t, n_t), N^2 (the scale matrix for
+        the Student-t): ``U diag(lam) U^T + s2 (I - U U^T)``."""
+        u = self.basis
+        out: FloatArray = (u * (self.lam - self.s2)) @ u.T + self.s2 * np.eye(self.n_t)
+        return out
+
     def mahalanobis2(self, curves_model: FloatArray, curves_obs: FloatArray) -> FloatArray:
         """Squared Mahalanobis distance ``d^T Sigma^-1 d`` (N,) of ``obs - model``."""
         obs = np.asarray(curves_obs, dtype=np.float64)

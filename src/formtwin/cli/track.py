@@ -25,7 +25,8 @@ def register(sub: Any) -> None:
         "track", help="estimate state, parameters and angles from a file of force curves",
         description="Run the particle-filter tracker over the curves of FILE, one product a "
                     "row, and write per-product estimates (mean and std of the 18 augmented "
-                    "variables in internal units, predicted angles, ESS).")
+                    "variables in internal units, predicted angles, ESS, and the absolute goodness "
+                    "of fit: health ok/degraded/no_fit, fit_distance2, fit_quantile).")
     p.add_argument("--metamodel", required=True,
                    help="metamodel file, or 'analytic' for the closed-form stand-in")
     p.add_argument("--curves", required=True, type=Path,
@@ -132,6 +133,7 @@ def write_table(columns: dict[str, NDArray[Any]], path: Path) -> None:
 def _track(args: argparse.Namespace) -> int:
     from formtwin._threads import single_blas_thread
     from formtwin.defaults import load_model
+    from formtwin.estimates import HEALTH
     from formtwin.measurement import MeasurementModel
     from formtwin.tracker import build_tracker
 
@@ -153,4 +155,13 @@ def _track(args: argparse.Namespace) -> int:
         tracker.checkpoint(args.checkpoint)
     print(f"tracked {len(est)} products ({int(est.collapsed.sum())} collapsed, "
           f"median ESS {float(np.median(est.ess)) if len(est) else 0:.0f}) -> {args.out}")
+    h = est.health if est.health is not None else np.zeros(0, dtype=str)
+    counts = {k: int(np.sum(h == k)) for k in HEALTH}
+    print("fit (the model's own check, columns health and fit_*): " +
+          ", ".join(f"{v} {k}" for k, v in counts.items()))
+    if len(est) and counts["no_fit"] > len(est) // 2:
+        print(f"WARNING: the model does not explain {counts['no_fit']} of {len(est)} curves "
+              "(distance beyond the 99.9 % quantile of the measurement model): the estimates "
+              "are not supported by the data. Likely causes: a metamodel of another press or "
+              "process, a faulty sensor, curves in other units.")
     return 0

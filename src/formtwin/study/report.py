@@ -97,9 +97,13 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
     ess = []
     for (s, _, _), p in sorted(result.run_paths.items()):
         with np.load(p, allow_pickle=False) as run:
-            ess.append((s, float(np.nanmean(run["ess"])), int(np.sum(run["collapsed"]))))
-    ess_rows = [[str(s), _fmt(float(np.mean([e for t, e, _ in ess if t == s]))),
-                 str(sum(c for t, _, c in ess if t == s))] for s in st.series]
+            h = run["health"] if "health" in run.files else np.zeros(0, np.int8)
+            ess.append((s, float(np.nanmean(run["ess"])), int(np.sum(run["collapsed"])),
+                        [int(np.sum(h == k)) for k in range(3)]))
+    ess_rows = [[str(s), _fmt(float(np.mean([e[1] for e in ess if e[0] == s]))),
+                 str(sum(e[2] for e in ess if e[0] == s))]
+                + [str(sum(e[3][k] for e in ess if e[0] == s)) for k in range(3)]
+                for s in st.series]
     failures = {r.index: int((~r.ok["FE"]).sum()) for r in result.realisations}
     blocks: list[Block] = [
         ("h1", "formtwin study: the six simulation series of Havinga et al."),
@@ -143,7 +147,13 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
         *[("img", p.name, f"Fig. {4 + (1 if s == 1 else 2)} analogue: series {s}")
           for s, p in figs],
         ("h2", "Filter health"),
-        ("table", ["series", "mean ESS", "collapsed steps"], ess_rows),
+        ("table", ["series", "mean ESS", "collapsed steps", "fit ok", "fit degraded",
+                   "no fit"], ess_rows),
+        ("p", "Fit: the absolute goodness of fit of every product (formtwin.tracker.fit): "
+              "the Mahalanobis distance of the curve from the filter's predictive under the "
+              "likelihood's covariance, against chi-square with n_t degrees of freedom; "
+              "'no fit' beyond its 99.9 % quantile, 'degraded' beyond 99 % or with ESS "
+              "below 1 % of N. Counted over all products of all runs of the series."),
         ("p", "Physics-model failures per realisation (products skipped in series 5 and 6): "
               + ", ".join(f"{k}: {v}" for k, v in failures.items()) + "."),
     ]

@@ -36,6 +36,7 @@ import xarray as xr
 from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
+from formtwin.estimates import HEALTH
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.metamodel import Metamodel
 from formtwin.study.pseudodata import Realisation
@@ -177,13 +178,19 @@ def _run(task: Task, out: Path) -> None:
     ang_mean, ang_std = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
     mean[ok], std[ok] = est.mean, est.std
     ang_mean[ok], ang_std[ok] = est.angles_mean, est.angles_std
-    ess = np.full(n, np.nan)
+    ess, d2 = np.full(n, np.nan), np.full(n, np.nan)
     ess[ok] = est.ess
+    if est.fit_distance2 is not None:
+        d2[ok] = est.fit_distance2
+    health = np.full(n, -1, dtype=np.int8)  # index into HEALTH; -1: product skipped
+    if est.health is not None:
+        health[ok] = [HEALTH.index(str(h)) for h in est.health]
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp.npz")
     arrays: dict[str, Any] = {"mean": mean, "std": std, "angles_mean": ang_mean,
                               "angles_std": ang_std, "ess": ess,
-                              "collapsed": np.asarray(est.collapsed)}
+                              "collapsed": np.asarray(est.collapsed),
+                              "fit_distance2": d2, "health": health}
     if est.mu_mean is not None and est.mu_std is not None:  # learned mu, (n, 7)
         for key, value in (("mu_mean", est.mu_mean), ("mu_std", est.mu_std)):
             full = np.full((n, len(spec.state)), np.nan)

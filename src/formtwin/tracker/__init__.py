@@ -4,17 +4,20 @@
 * :mod:`~formtwin.tracker.ssm`: :class:`BendingSSM`, the augmented state-space model
   (evolution, jitter, measurement, deviation; ``simulate`` draws a production run);
 * :mod:`~formtwin.tracker.core`: :class:`Tracker`, one filter step per product;
+* :mod:`~formtwin.tracker.fit`: the absolute goodness of fit and health of an estimate;
 * :mod:`~formtwin.tracker.state`: the state as bytes or checkpoint file, bit for bit;
 * :mod:`~formtwin.tracker.build`: :func:`build_tracker`, the one assembly path.
 """
 
-from formtwin.estimates import Estimate, Estimates
+from formtwin.estimates import HEALTH, Estimate, Estimates, Fit
 from formtwin.tracker.build import build_measurement, build_tracker
 from formtwin.tracker.config import COMPARE, TrackerConfig
 from formtwin.tracker.core import Tracker, validate_curve
+from formtwin.tracker.fit import FitRule
 from formtwin.tracker.ssm import CHUNK, BendingSSM
 from formtwin.tracker.state import TrackerState
 
-__all__ = ["BendingSSM", "CHUNK", "COMPARE", "Estimate", "Estimates", "Tracker",
+__all__ = ["BendingSSM", "CHUNK", "COMPARE", "HEALTH", "Estimate", "Estimates", "Fit",
+           "FitRule", "Tracker",
            "TrackerConfig", "TrackerState", "build_measurement", "build_tracker",
            "validate_curve"]

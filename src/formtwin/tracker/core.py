@@ -33,6 +33,7 @@ from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import TrackerConfig
+from formtwin.tracker.fit import FitRule, assess
 from formtwin.tracker.ssm import BendingSSM
 
 FloatArray = NDArray[np.float64]
@@ -70,6 +71,7 @@ class Tracker:
     model : the process model (metamodel) giving curves and angles.
     measurement : the measurement model (likelihood).
     config : settings; default :class:`TrackerConfig()`.
+    fit_rule : thresholds of the estimates' health (:mod:`formtwin.tracker.fit`).
 
     See :func:`formtwin.tracker.build_tracker` for building one from a config alone.
 
@@ -89,8 +91,10 @@ class Tracker:
     """
 
     def __init__(self, model: ProcessModel, measurement: MeasurementModel,
-                 config: TrackerConfig | None = None) -> None:
+                 config: TrackerConfig | None = None, fit_rule: FitRule | None = None
+                 ) -> None:
         self.config = TrackerConfig() if config is None else config
+        self.fit_rule = FitRule() if fit_rule is None else fit_rule
         self.model = model
         self.measurement = measurement
         self.ssm = BendingSSM(model, measurement, self.config)
@@ -126,13 +130,14 @@ class Tracker:
         saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
         try:
             s = f.step(y)
-            return self._estimate(s)
+            return self._estimate(s, np.exp(saved[1]))
         except BaseException:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
             self.rng.bit_generator.state = saved[3]
             raise
 
-    def _estimate(self, s: Step) -> Estimate:
+    def _estimate(self, s: Step, v: FloatArray) -> Estimate:
+        """The estimate of step ``s``; ``v`` (N,) the predictive weights of its particles."""
         m = self.config.angle_particles
         if m is None or m >= s.x.shape[0]:
             xa, wa = s.x, s.w
@@ -150,11 +155,13 @@ class Tracker:
             am = astd = np.full(2, np.nan)
         mean, std, na = s.mean(), s.std(), len(self.names)
         learned = self.config.learn_mu
+        fit = assess(self.ssm.last_residuals(), v, s.ess, self.measurement, s.collapsed,
+                     self.fit_rule)
         return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
                         std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
                         collapsed=s.collapsed, loglik=s.loglik,
                         mu_mean=mean[na:] if learned else None,
-                        mu_std=std[na:] if learned else None)
+                        mu_std=std[na:] if learned else None, fit=fit)
 
     def run(self, curves: Iterable[Any], progress: bool = False) -> Estimates:
         """Assimilate curves (n, n_t) one product at a time; return stacked estimates.

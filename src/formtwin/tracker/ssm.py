@@ -65,6 +65,8 @@ class BendingSSM:
     _lo: FloatArray = field(init=False, repr=False)
     _hi: FloatArray = field(init=False, repr=False)
     _sizes: tuple[int, int, int] = field(init=False, repr=False)
+    # residuals (N, n_t) of the last loglik call (see last_residuals)
+    _last: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
@@ -138,12 +140,24 @@ class BendingSSM:
         return out
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
-        """Log-likelihood (N,) of the measured curve ``y`` (n_t,) N for particles ``x``."""
-        if x.shape[0] <= CHUNK:
-            return self._loglik(x, y)
+        """Log-likelihood (N,) of the measured curve ``y`` (n_t,) N for particles ``x``.
+
+        Also keeps the residuals ``obs - model`` (:meth:`last_residuals`).
+        """
         # in blocks of particles: bounds the (N, n_t) temporaries of model and g^-1
-        return np.concatenate([self._loglik(x[i: i + CHUNK], y)
-                               for i in range(0, x.shape[0], CHUNK)])
+        parts = [self._loglik(x[i: i + CHUNK], y) for i in range(0, x.shape[0], CHUNK)]
+        if len(parts) == 1:
+            self._last["r"] = parts[0][1]
+            return parts[0][0]
+        self._last["r"] = np.concatenate([p[1] for p in parts])
+        return np.concatenate([p[0] for p in parts])
+
+    def last_residuals(self) -> FloatArray:
+        """Residuals (N, n_t) N of the curve of the last :meth:`loglik` call: ``obs - model``
+        as the likelihood compares them (the goodness of fit, :mod:`formtwin.tracker.fit`)."""
+        if "r" not in self._last:
+            raise RuntimeError("no likelihood evaluated yet")
+        return self._last["r"]
 
     def constrain(self, x: FloatArray) -> FloatArray:
         """Reflect particles (N, 18) or (N, 25) into their bounds (used by kernel moves);
@@ -175,14 +189,17 @@ class BendingSSM:
             curves = self.deviation.apply(curves, np.tile(run.theta_d, (n, 1)))
         return run, curves
 
-    def _loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
+    def _loglik(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Log-likelihoods (N,) of ``y`` for ``x`` and the residuals (N, n_t)."""
         curves = self.model.predict_curves(x[:, : self.n_in])
-        if not self.config.estimate_deviation:
-            return self.measurement.loglik(curves, y)
-        td = x[:, self.n_in:self.n_aug]
-        if self.config.compare == "measurement":
-            return self.measurement.loglik(self.deviation.apply(curves, td), y)
-        return self.measurement.loglik(curves, self.deviation.invert(y, td))
+        obs: FloatArray = y
+        if self.config.estimate_deviation:
+            td = x[:, self.n_in:self.n_aug]
+            if self.config.compare == "measurement":
+                curves = self.deviation.apply(curves, td)
+            else:
+                obs = self.deviation.invert(y, td)
+        return self.measurement.loglik(curves, obs), np.atleast_2d(obs - curves)
 
 
 def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:

@@ -1,0 +1,104 @@
+"""The absolute goodness of fit (formtwin.tracker.fit): its reference distribution, its
+calibration under the measurement model, and the health of tracker estimates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2, kstest
+from scipy.stats import f as fdist
+
+from formtwin.defaults import AnalyticModel
+from formtwin.measurement import MeasurementModel
+from formtwin.production import draw_production_run
+from formtwin.tracker import Estimates, FitRule, TrackerConfig, build_tracker
+from formtwin.tracker.fit import assess, distance_logsf
+
+
+def _mm(nu: float = math.inf) -> MeasurementModel:
+    q, _ = np.linalg.qr(np.random.default_rng(0).standard_normal((6, 3)))
+    return MeasurementModel(basis=q, lam=np.array([9.0, 4.0, 2.0]), s2=0.5, nu=nu)
+
+
+def test_covariance_is_the_one_mahalanobis2_uses() -> None:
+    mm = _mm()
+    d = np.random.default_rng(1).standard_normal((5, 6))
+    ref = np.einsum("ij,ij->i", d, np.linalg.solve(mm.covariance(), d.T).T)
+    assert np.allclose(mm.mahalanobis2(np.zeros((5, 6)), d), ref)
+
+
+def test_tail_matches_scipy_and_continues_beyond_its_underflow() -> None:
+    mm = MeasurementModel(basis=np.eye(101)[:, :3], lam=np.ones(3) * 2, s2=1.0)
+    x = np.array([50.0, 150.0, 900.0])
+    assert np.allclose(distance_logsf(x, mm), chi2.logsf(x, 101))
+    # beyond scipy's underflow: finite, decreasing, and continuous with the exact tail
+    far = distance_logsf(np.array([1e4, 1e5, 1e6]), mm)
+    assert np.all(np.isfinite(far)) and np.all(np.diff(far) < 0)
+    x0 = 1400.0  # still finite in scipy
+    exact = float(chi2.logsf(x0, 101))
+    a, h = 50.5, 0.5 * x0
+    approx = (a - 1) * math.log(h) - h - math.lgamma(a) - math.log1p(-(a - 1) / h)
+    assert abs(approx - exact) < 0.01 * abs(exact)
+    t = _mm(nu=5.0)
+    assert np.allclose(distance_logsf(np.array([3.0, 30.0]), t),
+                       fdist.logsf(np.array([3.0, 30.0]) / 6, 6, 5.0))
+
+
+def test_distance_is_chi2_when_the_curve_comes_from_the_predictive() -> None:
+    """Truth and particles from the same cloud, curve = truth + N(0, Sigma): the distance
+    of the curve from the predictive follows chi2(n_t) (KS test, 400 draws)."""
+    mm = _mm()
+    rng = np.random.default_rng(2)
+    ls = np.linalg.cholesky(mm.covariance())
+    spread = np.diag([3.0, 1.0, 0.5, 0.2, 2.0, 1.0])
+    d2 = []
+    for _ in range(400):
+        cloud = rng.standard_normal((1000, 6)) @ spread
+        truth = rng.standard_normal(6) @ spread
+        y = truth + ls @ rng.standard_normal(6)
+        fit = assess(y - cloud, np.full(1000, 1e-3), ess=500.0, measurement=mm)
+        d2.append(fit.distance2)
+    assert kstest(d2, chi2(6).cdf).pvalue > 0.01
+    assert 0.002 < np.mean(np.array(d2) > chi2.ppf(0.99, 6)) < 0.03
+
+
+def test_health_rules() -> None:
+    mm = _mm()
+    r = np.zeros((50, 6))
+    v = np.full(50, 0.02)
+    assert assess(r, v, 25.0, mm).health == "ok"
+    assert assess(r, v, 0.4, mm).health == "degraded"  # ESS share 0.008 < 0.01
+    assert assess(r + 100.0, v, 25.0, mm).health == "no_fit"
+    col = assess(r, v, 25.0, mm, collapsed=True)
+    assert col.health == "no_fit" and col.quantile == 1.0 and math.isinf(col.distance2)
+    # between the warning and the failure quantile
+    sig = np.linalg.cholesky(mm.covariance())
+    e = sig @ np.full(6, 1.0)
+    e *= math.sqrt(chi2.ppf(0.995, 6) / (e @ np.linalg.solve(mm.covariance(), e)))
+    mid = assess(r + e, v, 25.0, mm)
+    assert mid.health == "degraded" and mid.quantile == pytest.approx(0.995, abs=1e-6)
+    assert assess(r + e, v, 25.0, mm, rule=FitRule(p_fail=1e-2, p_warn=0.1)).health == "no_fit"
+    with pytest.raises(ValueError, match="p_fail"):
+        FitRule(p_fail=0.1, p_warn=0.01)
+
+
+def test_tracker_estimates_carry_fit_and_health(model: AnalyticModel) -> None:
+    spec = model.spec
+    run = draw_production_run(spec, 60, np.random.default_rng(3), deviation=False)
+    cfg = TrackerConfig(n_particles=200, estimate_deviation=False, mu=tuple(run.mu), n_mc=2000)
+    curves = model.predict_curves(run.inputs)
+    est = build_tracker(model, cfg).run(curves)
+    assert isinstance(est, Estimates)
+    assert "no_fit" not in set(est.health)  # degraded only by a low ESS share
+    assert np.all((est.health == "ok") | (est.ess_share < 0.01))
+    assert np.all(est.fit_quantile < 0.99) and np.all(est.fit_distance2 < chi2.ppf(0.99, 101))
+    cols = est.columns()
+    assert {"health", "fit_distance2", "fit_quantile", "fit_log10_p", "ess_share"} <= set(cols)
+    # a curve of another process (twice the force, shifted) is not explained
+    tr = build_tracker(model, cfg)
+    e = tr.step(2.0 * curves[0] + 50.0)
+    d = e.to_dict()
+    assert d["health"] == "no_fit" and d["fit"]["quantile"] == 1.0
+    assert d["fit"]["log10_p"] < -100 and d["fit"]["dof"] == 101
