@@ -1,0 +1,116 @@
+"""Control of the final angle: the feedforward choice against closed-form optima on synthetic
+plants (linear, multiplicative, curved), actuator limits and maximum step, the reported
+interval, and the run-to-run EWMA controller's fixed point."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from formtwin.control import Actuator, EwmaRunToRun, Feedforward, weighted_quantile
+
+T = 90.0
+
+
+def linear_plant(c: np.ndarray, b: float):  # type: ignore[no-untyped-def]
+    """Angles (N, n_u) = c_k + b u."""
+    return lambda u: c[:, None] + b * np.asarray(u)[None, :]
+
+
+def test_linear_plant_exact_optimum_and_cost() -> None:
+    rng = np.random.default_rng(0)
+    c, w = 88.0 + rng.normal(0, 0.4, 500), rng.uniform(0.1, 1.0, 500)
+    b = -0.05  # deg per um
+    ff = Feedforward(T, Actuator(-100.0, 100.0), grid=7)
+    s = ff.choose(linear_plant(c, b), w)
+    wn = w / w.sum()
+    u_star = (T - wn @ c) / b  # E[a(u)] = T; J(u*) = Var(c)
+    assert s.u == pytest.approx(u_star, abs=1e-9)
+    assert s.angle_mean == pytest.approx(T, abs=1e-9)
+    var = wn @ (c - wn @ c) ** 2
+    assert s.expected_sq_error == pytest.approx(var, rel=1e-9)
+    assert s.angle_std == pytest.approx(np.sqrt(var), rel=1e-9)
+    assert not s.limited
+    # no setting on a fine grid does better
+    dense = np.linspace(-100, 100, 20001)
+    assert s.expected_sq_error <= ff.cost(linear_plant(c, b)(dense), wn).min() + 1e-12
+
+
+def test_limits_and_maximum_step() -> None:
+    c = np.array([88.0, 88.5, 89.5])  # E = 88.667: u* = -26.67 um
+    plant = linear_plant(c, -0.05)
+    s = Feedforward(T, Actuator(-100.0, 100.0, max_step=5.0)).choose(plant, u_prev=0.0)
+    assert s.u == pytest.approx(-5.0) and s.limited
+    s = Feedforward(T, Actuator(-20.0, 100.0)).choose(plant)
+    assert s.u == pytest.approx(-20.0) and s.limited
+    s = Feedforward(T, Actuator(-100.0, 100.0, max_step=50.0)).choose(plant, u_prev=-10.0)
+    assert s.u == pytest.approx(-26.6666667) and not s.limited
+    assert Actuator(-100, 100, 5.0).feasible(98.0) == (93.0, 100.0)
+    with pytest.raises(ValueError, match="limits"):
+        Actuator(1.0, 1.0)
+    with pytest.raises(ValueError, match="shape"):
+        Feedforward(T, Actuator(-1, 1)).choose(lambda u: np.zeros((4, 2)))
+
+
+def test_posterior_expectation_not_plug_in() -> None:
+    """a(x, u) = x u: E[(x u - T)^2] is least at u = T E[x] / E[x^2], below the plug-in
+    T / E[x] by the factor 1 / (1 + cv^2)."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(1.0, 0.3, 4000)
+    ff = Feedforward(T, Actuator(0.0, 200.0), grid=5)
+    s = ff.choose(lambda u: x[:, None] * np.asarray(u)[None, :])
+    exact = T * x.mean() / np.mean(x * x)
+    assert s.u == pytest.approx(exact, rel=1e-9)  # J is quadratic in u: exact
+    assert s.u < T / x.mean() * 0.95
+
+
+def test_curved_plant_matches_brute_force() -> None:
+    rng = np.random.default_rng(2)
+    c, q = 88.0 + rng.normal(0, 0.3, 300), 1e-4 * (1 + rng.uniform(0, 1, 300))
+    plant = lambda u: (c[:, None] - 0.04 * np.asarray(u)[None, :]  # noqa: E731
+                       + q[:, None] * np.asarray(u)[None, :] ** 2)
+    ff = Feedforward(T, Actuator(-100.0, 100.0), grid=9)
+    s = ff.choose(plant)
+    dense = np.linspace(-100, 100, 40001)
+    j = ff.cost(plant(dense), np.full(300, 1 / 300))
+    assert abs(s.u - dense[np.argmin(j)]) < 0.5  # um, of a 200 um range
+    assert s.expected_sq_error <= j.min() * (1 + 1e-3)
+
+
+def test_interval_is_the_posterior_quantiles() -> None:
+    rng = np.random.default_rng(3)
+    c = 88.0 + rng.normal(0, 0.5, 20000)
+    s = Feedforward(T, Actuator(-100, 100), coverage=0.9).choose(linear_plant(c, -0.05))
+    half = 1.6449 * 0.5
+    assert s.interval[0] == pytest.approx(T - half, abs=0.03)
+    assert s.interval[1] == pytest.approx(T + half, abs=0.03)
+    v = np.arange(1.0, 5.0)
+    assert weighted_quantile(v, np.array([1.0, 1, 1, 5]), np.array([0.5]))[0] == \
+        pytest.approx(3.5)  # mid-point CDF: 0.3125 at 3, 0.6875 at 4
+
+
+def test_nonfinite_particle_angles_count_as_worst() -> None:
+    c = np.array([88.0, 88.0, np.nan])
+    s = Feedforward(T, Actuator(-100, 100)).choose(linear_plant(c, -0.05))
+    assert s.u == pytest.approx(-40.0)
+    assert s.angle_mean == pytest.approx(T)
+
+
+def test_ewma_run_to_run() -> None:
+    act = Actuator(-100.0, 100.0)
+    # exact gain, lam = 1: deadbeat
+    r = EwmaRunToRun(T, -0.05, 1.0, act)
+    assert r.update(88.0, 0.0) == pytest.approx(-40.0)
+    assert r.update(88.0 - 0.05 * -40.0, -40.0) == pytest.approx(-40.0)
+    # a constant offset with a wrong gain (b_model = 2 b): the EWMA still removes it
+    b, d = -0.05, 88.0
+    r = EwmaRunToRun(T, 2 * b, 0.3, act)
+    u = 0.0
+    for _ in range(200):
+        u = r.update(b * u + d, u)
+    assert b * u + d == pytest.approx(T, abs=1e-6)
+    # the maximum step limits each change
+    r = EwmaRunToRun(T, -0.05, 1.0, Actuator(-100, 100, max_step=10.0))
+    assert r.update(88.0, 0.0) == pytest.approx(-10.0)
+    with pytest.raises(ValueError, match="gain"):
+        EwmaRunToRun(T, 0.0, 0.5, act)
