@@ -205,3 +205,26 @@ def test_step_in_a_state_mean_is_detected(spec: ProcessSpec, line: tuple[
     first = min(a.index for a in alarms)
     assert first - at + 1 <= 30
     assert any(a.variable == "punch_end_distance" and a.side == "high" for a in alarms)
+
+
+def test_model_mismatch_raises_the_mismatch_alarm(spec: ProcessSpec, line: tuple[
+        AnalyticModel, MeasurementModel, TrackerConfig]) -> None:
+    """Curves 10 % stronger than any the model makes from product 150 on (a deviation the
+    tracker does not estimate): the health charts (log-evidence, ESS, absolute fit) raise a
+    mismatch alarm within 10 products, and none before."""
+    model, mm, cfg = line
+    mu = spec.state.mu_mid
+    config = calibrate(simulate_in_control(model, mm, cfg, 600, 2, seed=5),
+                       spec.state.names, mu, ChartDesign(warmup=30, phase1=50))
+    assert set(config.health) == {"loglik", "ess", "fit"}
+    at = 150
+    run = changed_run(spec, at + 30, mu, np.random.default_rng(78), Change("none"))
+    curves = model.predict_curves(run.inputs)
+    curves[at:] *= 1.10
+    est = Tracker(model, mm, cfg).run(curves)
+    mon, vals = Monitor(config), series(est)
+    alarms = [a for i in range(len(est))
+              for a in mon.update_values({k: float(v[i]) for k, v in vals.items()}, i)]
+    mismatch = [a for a in alarms if a.chart == "mismatch"]
+    assert [a for a in alarms if a.index < at] == []
+    assert mismatch and mismatch[0].index - at + 1 <= 10

@@ -147,7 +147,7 @@ def test_calibrated_charts_are_fixed_with_the_store(tmp_path: Path,
                                                                  design=design))
     spec = proc.tracker.spec  # type: ignore[attr-defined]
     assert set(cfg.quantities) == {*spec.state.names, "angle_stage1", "angle_stage2"}
-    assert set(cfg.health) == {"loglik", "ess"}
+    assert set(cfg.health) == {"loglik", "ess", "fit"}  # the fit: its log10 p-value
     np.testing.assert_allclose([cfg.quantities[n].mean for n in spec.state.names],
                                spec.state.mu_mid)
     assert (cfg.warmup, cfg.phase1) == (5, 10)
@@ -157,7 +157,7 @@ def test_calibrated_charts_are_fixed_with_the_store(tmp_path: Path,
     proc.monitor = mon
     outs = [proc.handle(p) for p in payloads]
     charts = outs[-1].message["monitoring"]["charts"]
-    assert set(charts) == set(cfg.quantities) | {"loglik", "ess"}
+    assert set(charts) == set(cfg.quantities) | {"loglik", "ess", "fit"}
     assert charts["ess"]["mismatch"][1] == pytest.approx(cfg.mismatch.h)
     close(proc, mon)
     with pytest.raises(ValueError, match="missing.json"):

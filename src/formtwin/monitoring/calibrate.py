@@ -84,6 +84,8 @@ def series(est: Estimates) -> dict[str, FloatArray]:
     out = {n: est.mean[:, j] for j, n in enumerate(est.names)}
     out.update({a: est.angles_mean[:, j] for j, a in enumerate(ANGLES)})
     out.update(loglik=est.loglik, ess=est.ess)
+    if est.fit_log10_p is not None:
+        out["fit"] = est.fit_log10_p
     return out
 
 
@@ -106,8 +108,10 @@ def calibrate(runs: Sequence[Estimates], state_names: Sequence[str], mu: FloatAr
     for name in ANGLES:
         quantities[name] = fit_in_control([v[name] for v in values], d.order, mean=None,
                                           keep_mean=False)
-    health = {name: Reference(tuple(np.concatenate([v[name] for v in values])), bad)
-              for name, bad in HEALTH.items()}
+    pooled = {name: np.concatenate([v[name] for v in values]) for name in HEALTH
+              if all(name in v for v in values)}
+    health = {name: Reference(tuple(pooled[name]), bad) for name, bad in HEALTH.items()
+              if name in pooled and np.isfinite(pooled[name]).sum() >= 20}
     ewma, cusum, mismatch = d.charts()
     return MonitorConfig(quantities, health, ewma, cusum, mismatch, d.warmup, d.phase1)
 

@@ -33,8 +33,10 @@ from formtwin.monitoring.incontrol import InControl, Reference
 
 #: names of the predicted angles as monitored quantities
 ANGLES = ("angle_stage1", "angle_stage2")
-#: health statistics of a step that the mismatch chart can watch, with their bad side
-HEALTH = {"loglik": "low", "ess": "low"}
+#: health statistics of a step that the mismatch chart can watch, with their bad side:
+#: the log-evidence increment, the ESS, and the absolute fit's log10 p-value
+#: (:mod:`formtwin.tracker.fit`; NaN where an estimate has none)
+HEALTH = {"loglik": "low", "ess": "low", "fit": "low"}
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,8 @@ def observe(estimate: Estimate) -> dict[str, float]:
     the health statistics, by name."""
     out = {n: float(v) for n, v in zip(estimate.names, estimate.mean, strict=True)}
     out.update({n: float(v) for n, v in zip(ANGLES, estimate.angles_mean, strict=True)})
-    out.update(loglik=float(estimate.loglik), ess=float(estimate.ess))
+    out.update(loglik=float(estimate.loglik), ess=float(estimate.ess),
+               fit=math.nan if estimate.fit is None else float(estimate.fit.log10_p))
     return out
 
 

@@ -112,7 +112,8 @@ def values_of(message: dict[str, Any], config: MonitorConfig) -> dict[str, float
     angles = message.get("angles_mean") or [None, None]
     raw: dict[str, Any] = {n: mean.get(n) for n in config.quantities if n not in ANGLES}
     raw.update({a: angles[k] for k, a in enumerate(ANGLES)})
-    raw.update(loglik=message.get("loglik"), ess=message.get("ess"))
+    raw.update(loglik=message.get("loglik"), ess=message.get("ess"),
+               fit=(message.get("fit") or {}).get("log10_p"))
     return {k: math.nan if v is None else float(v) for k, v in raw.items()}
 
 
