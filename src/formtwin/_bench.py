@@ -84,21 +84,21 @@ def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
     ``model`` entry) names the physics model and its version, the DOE file and its hash.
     """
     from formtwin.defaults import bundled_doe, default_doe
-    from formtwin.metamodel import Metamodel
+    from formtwin.metamodel import Metamodel, calibrate
 
     doe = bundled_doe("bending")
     digest = file_digest(doe)
     settings = repr(Metamodel())
     key = hashlib.sha256(settings.encode()).hexdigest()[:8]
     path = cache / f"metamodel_bending_doe{digest}_mm{key}.npz"
-    if path.exists():
-        mm = Metamodel.load(path)
-        n_runs = None
+    cached = Metamodel.load(path) if path.exists() else None
+    if cached is not None and cached.residuals is not None:  # else: from before the error model
+        mm, n_runs = cached, None
     else:
         data = default_doe("bending", cache)  # checks the DOE against the physics version
         log.warning("fitting the metamodel of %s (%d runs) -> %s", doe, data.n, path)
         cache.mkdir(parents=True, exist_ok=True)
-        mm = Metamodel().fit(data)
+        mm = calibrate(Metamodel().fit(data), data)
         tmp = Path(mm.save(cache / f"{path.stem}.tmp.npz"))
         tmp.replace(path)
         n_runs = int(data.n)

@@ -26,7 +26,7 @@ from scipy.stats import qmc
 
 from formtwin.dataset import DoeDataset
 from formtwin.measurement import ProcessModel
-from formtwin.metamodel import Metamodel
+from formtwin.metamodel import Metamodel, calibrate
 from formtwin.simulator import Simulator, SimulatorModel
 from formtwin.spec import ProcessSpec, load_spec
 
@@ -120,17 +120,23 @@ def default_doe(name: str, cache: Path) -> DoeDataset:
 
 def default_metamodel(cache: Path, physics: str = "bending",
                       path: str | Path | None = None) -> tuple[Metamodel, Path]:
-    """Load the metamodel at ``path``, or fit (once, cached in ``cache``) the default one."""
+    """Load the metamodel at ``path``, or fit (once, cached in ``cache``) the default one
+    with the statistics of its 5-fold held-out residuals (:func:`~formtwin.metamodel.calibrate`)."""
     if path is not None:
         return Metamodel.load(path), Path(path)
     data = default_doe(physics, cache)
     out = cache / f"metamodel_{physics}.npz"
     if out.exists():
         mm = Metamodel.load(out)
-        if mm.model_version == data.model_version:
+        if mm.model_version == data.model_version and mm.residuals is not None:
+            return mm, out
+        if mm.model_version == data.model_version:  # a file from before the error model
+            log.info("adding the k-fold residuals to %s", out)
+            calibrate(mm, data)
+            mm.save(out)
             return mm, out
     log.info("fitting the metamodel on %d runs of the %s model", data.n, physics)
     cache.mkdir(parents=True, exist_ok=True)
-    mm = Metamodel().fit(data)
+    mm = calibrate(Metamodel().fit(data), data)
     mm.save(out)
     return mm, out

@@ -1,5 +1,15 @@
 """Measurement model: likelihood of a force curve given particles (paper eq. 6, 12).
 
+Two likelihoods (``TrackerConfig.likelihood``):
+
+* ``"paper"``: eq. 12 below, ``Sigma = fraction^2 K_MC + sigma_n^2 I``;
+* ``"calibrated"`` (default): ``Sigma = fraction^2 K_MC + K_res + sigma_n^2 I``, where
+  ``K_res`` is the second moment of the metamodel's k-fold held-out residuals (physics
+  minus metamodel, :class:`formtwin.metamodel.ResidualModel`, stored with the metamodel):
+  the filter is told how far the metamodel's curve may be from the true one. Both are
+  built by :meth:`MeasurementModel.from_curves` (``extra_cov`` is ``K_res``) and stored in
+  the same PPCA form; :meth:`MeasurementModel.covariance` gives the dense ``Sigma``.
+
 The paper models the (deviation-corrected) measured curve as
 
     g^-1(z, theta_d) ~ N( z~(x, theta), fraction^2 K_MC ),    fraction = 1/2,   (eq. 12)
@@ -58,7 +68,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -92,6 +102,19 @@ class ProcessModel(Protocol):
     def predict_angles(self, X: FloatArray) -> FloatArray:
         """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10)."""
         ...
+
+
+def _check_cov(cov: FloatArray, n_t: int) -> FloatArray:
+    """``cov`` as a symmetric (n_t, n_t) float array, or ``ValueError``."""
+    c = np.asarray(cov, dtype=np.float64)
+    if c.shape != (n_t, n_t):
+        raise ValueError(f"extra_cov has shape {c.shape}, expected ({n_t}, {n_t})")
+    if not np.all(np.isfinite(c)):
+        raise ValueError("extra_cov has non-finite entries")
+    scale = max(float(np.abs(c).max()), 1e-300)
+    if float(np.abs(c - c.T).max()) > 1e-8 * scale:
+        raise ValueError("extra_cov is not symmetric")
+    return 0.5 * (c + c.T)
 
 
 def monte_carlo_inputs(spec: ProcessSpec, n: int, rng: np.random.Generator,
@@ -150,7 +173,8 @@ class MeasurementModel:
     @classmethod
     def from_curves(cls, curves: FloatArray, fraction: float = 0.5, rel_tol: float = 1e-10,
                     rel_floor: float = 1e-4, sensor_noise: float = 0.0,
-                    nu: float = math.inf) -> MeasurementModel:
+                    nu: float = math.inf,
+                    extra_cov: FloatArray | None = None) -> MeasurementModel:
         """Build from a Monte-Carlo set of curves ``(n, n_t)`` (their covariance is K_MC).
 
         Parameters
@@ -160,6 +184,9 @@ class MeasurementModel:
         rel_floor : ``sigma_n^2 >= rel_floor * lam_max`` (bounds the condition number).
         sensor_noise : std of the sensor, N: ``sigma_n >= sensor_noise``.
         nu : Student-t degrees of freedom; ``inf`` (default) is the paper's Gaussian.
+        extra_cov : (n_t, n_t) symmetric positive semi-definite covariance added to
+            ``fraction^2 K_MC`` before the decomposition, N^2: the metamodel's residual
+            covariance ``K_res`` of the calibrated likelihood. ``None``: the paper's.
         """
         z = np.asarray(curves, dtype=np.float64)
         if z.ndim != 2 or z.shape[0] < 2:
@@ -171,11 +198,17 @@ class MeasurementModel:
         if not 0 < fraction:
             raise ValueError(f"fraction = {fraction}, expected > 0")
         mean = z.mean(axis=0)
-        # eigenvalues of the sample covariance via SVD of the centred data
-        _, sv, vt = np.linalg.svd(z - mean, full_matrices=False)
-        eig = fraction**2 * sv**2 / (z.shape[0] - 1)
         n_t = z.shape[1]
         eig_all = np.zeros(n_t)
+        if extra_cov is None:
+            # eigenvalues of the sample covariance via SVD of the centred data
+            _, sv, vt = np.linalg.svd(z - mean, full_matrices=False)
+            eig = fraction**2 * sv**2 / (z.shape[0] - 1)
+        else:
+            extra = _check_cov(extra_cov, n_t)
+            d = z - mean
+            eig, vecs = np.linalg.eigh(fraction**2 * (d.T @ d) / (z.shape[0] - 1) + extra)
+            eig, vt = np.maximum(eig[::-1], 0.0), vecs[:, ::-1].T
         eig_all[: eig.size] = eig
         lam_max = float(eig_all[0])
         if lam_max <= 0:
@@ -192,7 +225,7 @@ class MeasurementModel:
     def from_monte_carlo(cls, model: ProcessModel, spec: ProcessSpec | None = None,
                          mu: FloatArray | None = None, n: int = 10_000,
                          fraction: float = 0.5, rng: np.random.Generator | None = None,
-                         **kwargs: float) -> MeasurementModel:
+                         **kwargs: Any) -> MeasurementModel:
         """``K_MC`` from ``n`` model curves (paper "Simulation runs"), then :meth:`from_curves`.
 
         Parameters
@@ -203,7 +236,8 @@ class MeasurementModel:
         n : number of Monte-Carlo curves (paper: 10^4).
         fraction : std of ``w`` relative to the Monte-Carlo std (paper: 1/2).
         rng : random source; default ``numpy.random.default_rng(0)``.
-        **kwargs : ``rel_tol``, ``rel_floor``, ``sensor_noise``, ``nu`` of :meth:`from_curves`.
+        **kwargs : ``rel_tol``, ``rel_floor``, ``sensor_noise``, ``nu``, ``extra_cov`` of
+            :meth:`from_curves`.
         """
         spec = model.spec if spec is None else spec
         rng = np.random.default_rng(0) if rng is None else rng
@@ -223,7 +257,8 @@ class MeasurementModel:
 
     def covariance(self) -> FloatArray:
         """The likelihood's covariance ``Sigma`` (n_t, n_t), N^2 (the scale matrix for
-        the Student-t): ``U diag(lam) U^T + s2 (I - U U^T)``."""
+        the Student-t): ``U diag(lam) U^T + s2 (I - U U^T)``; sensor noise and, for the
+        calibrated likelihood, the residual covariance ``K_res`` included."""
         u = self.basis
         out: FloatArray = (u * (self.lam - self.s2)) @ u.T + self.s2 * np.eye(self.n_t)
         return out

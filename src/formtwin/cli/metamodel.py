@@ -16,6 +16,10 @@ def register(subparsers: Any) -> None:
     fit = sub.add_parser("fit", help="fit a metamodel to a DOE dataset and save it")
     fit.add_argument("dataset", help="DOE dataset file (formtwin doe run / import)")
     fit.add_argument("--out", required=True, help="metamodel file to write (.npz)")
+    fit.add_argument("--cv-folds", type=int, default=5,
+                     help="folds of the cross-validation whose held-out residuals are stored "
+                          "with the metamodel for the calibrated likelihood (0: none; "
+                          "default: %(default)s)")
     _model_options(fit)
     fit.set_defaults(run=_fit)
     val = sub.add_parser("validate", help="k-fold error of the metamodel on a DOE dataset")
@@ -70,11 +74,16 @@ def _load(path: str) -> Any:
 
 
 def _fit(args: argparse.Namespace) -> int:
+    from formtwin.metamodel import calibrate
+
     data = _load(args.dataset)
     mm = _metamodel(args).fit(data)
-    out = mm.save(args.out)
     print(f"fitted {mm.n_modes} POD modes + RBF to {mm.n_train} of {len(data.ok)} runs "
-          f"in {mm.fit_seconds:.1f} s -> {out}")
+          f"in {mm.fit_seconds:.1f} s")
+    if args.cv_folds:
+        calibrate(mm, data, k=args.cv_folds)
+        print(f"stored the statistics of {args.cv_folds}-fold held-out residuals")
+    print(f"-> {mm.save(args.out)}")
     return 0
 
 

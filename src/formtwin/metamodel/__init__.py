@@ -1,7 +1,8 @@
 """POD + RBF metamodel of the process model (paper, section "Metamodel").
 
 ``Metamodel(reduction=POD(...), approximation=RBF(...)).fit(dataset).predict(X)``; see
-:mod:`formtwin.metamodel.model`. :func:`validate` reports k-fold errors.
+:mod:`formtwin.metamodel.model`. :func:`validate` reports k-fold errors,
+:func:`calibrate` stores the statistics of k-fold residuals with the metamodel.
 """
 
 from formtwin.metamodel.model import (
@@ -13,13 +14,15 @@ from formtwin.metamodel.model import (
 )
 from formtwin.metamodel.pod import POD
 from formtwin.metamodel.rbf import KERNELS, RBF, loo_objective, loo_residuals
+from formtwin.metamodel.residuals import ResidualModel
 from formtwin.metamodel.validate import (
     CrossValidation,
+    calibrate,
     cross_validate,
     plot_validation,
     validate,
 )
 
 __all__ = ["KERNELS", "POD", "RBF", "Approximation", "CrossValidation", "Dataset", "Metamodel",
-           "Prediction", "Reduction", "cross_validate", "loo_objective", "loo_residuals",
-           "plot_validation", "validate"]
+           "Prediction", "Reduction", "ResidualModel", "calibrate", "cross_validate",
+           "loo_objective", "loo_residuals", "plot_validation", "validate"]

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from formtwin._threads import single_blas_thread
 from formtwin.metamodel.pod import POD
 from formtwin.metamodel.rbf import RBF
+from formtwin.metamodel.residuals import ResidualModel
 from formtwin.spec import ProcessSpec, parse_spec
 
 FloatArray = NDArray[np.float64]
@@ -203,6 +204,8 @@ class Metamodel:
         self._model_version = ""
         self.n_train = 0
         self.fit_seconds = float("nan")
+        #: statistics of held-out residuals (:func:`~formtwin.metamodel.calibrate`), or None
+        self.residuals: ResidualModel | None = None
 
     def __repr__(self) -> str:
         return (f"Metamodel(reduction={self.reduction!r}, approximation={self.approximation!r},"
@@ -255,6 +258,7 @@ class Metamodel:
         self.angle_models = tuple(
             copy.deepcopy(self.angle_approximation).fit(U, angles[:, j:j + 1]) for j in range(2))
         self.n_train = X.shape[0]
+        self.residuals = None  # they described the previous fit
         self.fit_seconds = time.perf_counter() - t0
         log.info("Metamodel fitted to %d runs (%d excluded) in %.1f s, %d modes",
                  self.n_train, int((~ok).sum()), self.fit_seconds, self.n_modes)
@@ -326,6 +330,8 @@ class Metamodel:
         for j, m in enumerate(self.angle_models):
             arrays[f"angle{j}.kind"] = np.array(m.kind)
             arrays.update({f"angle{j}.{k}": v for k, v in m.state().items()})
+        if self.residuals is not None:
+            arrays.update({f"residuals.{k}": v for k, v in self.residuals.state().items()})
         p = Path(path)
         with open(p, "wb") as fh:
             np.savez_compressed(fh, **arrays)
@@ -366,6 +372,8 @@ class Metamodel:
             mm.hi = np.asarray(arrays["scaler_hi"], dtype=np.float64)
             mm.n_train = int(arrays["n_train"])
             source = str(arrays["spec_source"])
+            if "residuals.curve_cov" in arrays:
+                mm.residuals = ResidualModel.from_state(part("residuals"))
         except KeyError as exc:
             raise ValueError(f"{p}: incomplete metamodel file, no array {exc}") from None
         mm._spec = parse_spec(mm.spec_text, source)

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from formtwin.figures import pyplot
 from formtwin.metamodel.model import Dataset, Metamodel
+from formtwin.metamodel.residuals import ResidualModel
 from formtwin.spec import ProcessSpec
 
 FloatArray = NDArray[np.float64]
@@ -142,6 +143,30 @@ def cross_validate(model: Metamodel | Callable[[], Metamodel], dataset: Dataset,
         log.info("validate: fold %d of %d done (%.1f s fit)", j + 1, k, mm.fit_seconds)
     return CrossValidation(dataset.spec, X, curves, pc, angles, pa, fold.astype(np.int64),
                            float(np.mean(seconds)))
+
+
+def residual_model(cv: CrossValidation) -> ResidualModel:
+    """Statistics of the held-out residuals (truth minus prediction) of a cross-validation."""
+    return ResidualModel.from_residuals(cv.curves - cv.predicted_curves,
+                                        cv.angles - cv.predicted_angles,
+                                        k=int(cv.fold.max() + 1))
+
+
+def calibrate(metamodel: Metamodel, dataset: Dataset, k: int = 5,
+              seed: int = 0) -> Metamodel:
+    """Attach the statistics of k-fold held-out residuals to a fitted ``metamodel``.
+
+    The folds are fitted with ``metamodel``'s settings on ``dataset`` (the one it was
+    fitted to); the result goes to ``metamodel.residuals`` (saved with it). Costs ``k``
+    fits. Returns ``metamodel``.
+    """
+    if metamodel.curve_model is None:
+        raise RuntimeError("calibrate: the metamodel is not fitted")
+    metamodel.residuals = residual_model(cross_validate(metamodel, dataset, k, seed))
+    log.info("calibrate: %d-fold residuals of %d runs, curve rms %.3g N", k,
+             metamodel.residuals.n, float(np.sqrt(np.trace(metamodel.residuals.curve_cov)
+                                                  / metamodel.residuals.n_t)))
+    return metamodel
 
 
 def figures(cv: CrossValidation) -> dict[str, Any]:

@@ -11,13 +11,13 @@
 
 from formtwin.estimates import HEALTH, Estimate, Estimates, Fit
 from formtwin.tracker.build import build_measurement, build_tracker
-from formtwin.tracker.config import COMPARE, TrackerConfig
+from formtwin.tracker.config import COMPARE, LIKELIHOODS, TrackerConfig
 from formtwin.tracker.core import Tracker, validate_curve
 from formtwin.tracker.fit import FitRule
 from formtwin.tracker.ssm import CHUNK, BendingSSM
 from formtwin.tracker.state import TrackerState
 
-__all__ = ["BendingSSM", "CHUNK", "COMPARE", "HEALTH", "Estimate", "Estimates", "Fit",
-           "FitRule", "Tracker",
+__all__ = ["BendingSSM", "CHUNK", "COMPARE", "HEALTH", "LIKELIHOODS", "Estimate", "Estimates",
+           "Fit", "FitRule", "Tracker",
            "TrackerConfig", "TrackerState", "build_measurement", "build_tracker",
            "validate_curve"]

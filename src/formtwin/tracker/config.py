@@ -16,6 +16,10 @@ import numpy as np
 #: z~(x, theta)) or "measurement" (z against g(z~(x, theta), theta_d))
 COMPARE = ("model", "measurement")
 
+#: likelihoods (:mod:`formtwin.measurement`): "calibrated" adds the metamodel's k-fold
+#: residual covariance K_res to fraction^2 K_MC; "paper" is eq. 12 alone
+LIKELIHOODS = ("calibrated", "paper")
+
 
 def _help(text: str, *flags: str) -> dict[str, Any]:
     """Field metadata: help text and extra command-line flags."""
@@ -57,6 +61,14 @@ class TrackerConfig:
     n_mc : Monte-Carlo curves for the measurement model's ``K_MC`` (paper: 10^4).
     nu : Student-t degrees of freedom of the likelihood; ``inf`` is the paper's Gaussian,
         a finite value the heavy-tailed robust option.
+    likelihood : ``"calibrated"`` (default): covariance ``fraction^2 K_MC + K_res +
+        sigma_n^2 I`` with ``K_res`` the metamodel's held-out residual covariance, and the
+        predicted angles' std includes the metamodel's angle error; ``"paper"``: eq. 12,
+        ``fraction^2 K_MC + sigma_n^2 I``. See :data:`LIKELIHOODS`.
+    fraction : std of the measurement uncertainty as a fraction of the Monte-Carlo std
+        (paper: 1/2, i.e. ``K_MC / 4``).
+    sensor_noise : std of the force sensor, N (a floor of 1 % of the largest principal std
+        applies anyway, see :mod:`formtwin.measurement`).
     """
 
     n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))
@@ -87,12 +99,24 @@ class TrackerConfig:
     n_mc: int = field(default=10_000, metadata=_help("Monte-Carlo curves for K_MC"))
     nu: float = field(default=math.inf, metadata=_help(
         "Student-t degrees of freedom of the likelihood (inf: Gaussian)", "--robust-nu"))
+    likelihood: str = field(default="calibrated", metadata=_help(
+        "likelihood: calibrated (K_MC fraction + metamodel residual covariance) or paper"))
+    fraction: float = field(default=0.5, metadata=_help(
+        "measurement std as a fraction of the Monte-Carlo std (paper: 0.5)"))
+    sensor_noise: float = field(default=0.0, metadata=_help("force sensor std, N"))
 
     def __post_init__(self) -> None:
         if self.angle_particles is not None and self.angle_particles < 1:
             raise ValueError(f"angle_particles = {self.angle_particles}, expected >= 1 or None")
         if self.compare not in COMPARE:
             raise ValueError(f"compare = {self.compare!r}; known: {', '.join(COMPARE)}")
+        if self.likelihood not in LIKELIHOODS:
+            raise ValueError(f"likelihood = {self.likelihood!r}; known: "
+                             f"{', '.join(LIKELIHOODS)}")
+        if not self.fraction > 0:
+            raise ValueError(f"fraction = {self.fraction}, expected > 0")
+        if not self.sensor_noise >= 0:
+            raise ValueError(f"sensor_noise = {self.sensor_noise}, expected >= 0")
         for name in ("mu", "sigma", "rho"):
             v = getattr(self, name)
             if v is not None:  # store as a tuple of floats so the config stays hashable/JSON

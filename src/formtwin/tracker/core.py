@@ -1,7 +1,8 @@
 """The online estimator: one particle-filter step per product (Algorithm 1 of the paper).
 
 Estimates (eq. 13-14) and the predicted angles (posterior predictive mean and std of the
-angle model over the weighted particles) are taken *before* resampling. With
+angle model over the weighted particles; with the calibrated likelihood the std adds the
+metamodel's held-out angle error) are taken *before* resampling. With
 ``estimate_deviation=False`` ``theta_d`` is reported with mean 0 and std 0 (an exact,
 NaN-free statement of the filter's assumption); with ``learn_mu=True`` the estimate adds
 ``mu_mean``/``mu_std`` while ``names``/``mean``/``std`` stay the 18 augmented variables.
@@ -150,7 +151,7 @@ class Tracker:
             w = w / w.sum()
             a = np.where(ok[:, None], angles, 0.0)
             am = w @ a
-            astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0))
+            astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error_var)
         else:
             am = astd = np.full(2, np.nan)
         mean, std, na = s.mean(), s.std(), len(self.names)

@@ -65,6 +65,9 @@ class BendingSSM:
     _lo: FloatArray = field(init=False, repr=False)
     _hi: FloatArray = field(init=False, repr=False)
     _sizes: tuple[int, int, int] = field(init=False, repr=False)
+    #: (2,) deg^2 added to the predicted angles' variance: the metamodel's held-out angle
+    #: error (calibrated likelihood), zeros for the paper's
+    angle_error_var: FloatArray = field(init=False, repr=False)
     # residuals (N, n_t) of the last loglik call (see last_residuals)
     _last: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
 
@@ -89,6 +92,8 @@ class BendingSSM:
         object.__setattr__(self, "_mu", st.mu_mid if c.mu is None else np.array(c.mu))
         object.__setattr__(self, "_sigma", st.sigma if c.sigma is None else np.array(c.sigma))
         object.__setattr__(self, "_rho", st.rho if c.rho is None else np.array(c.rho))
+        var = angle_residual_variance(self.model) if c.likelihood == "calibrated" else None
+        object.__setattr__(self, "angle_error_var", np.zeros(2) if var is None else var)
         if self.measurement.n_t != spec.n_t:
             raise ValueError(f"measurement model has {self.measurement.n_t} samples, "
                              f"the spec's curves {spec.n_t}")
@@ -200,6 +205,19 @@ class BendingSSM:
             else:
                 obs = self.deviation.invert(y, td)
         return self.measurement.loglik(curves, obs), np.atleast_2d(obs - curves)
+
+
+def residual_covariance(model: ProcessModel) -> FloatArray | None:
+    """``K_res`` (n_t, n_t) of ``model``: the curve covariance of its k-fold held-out
+    residuals (:class:`formtwin.metamodel.ResidualModel`), or ``None`` if it has none."""
+    res = getattr(model, "residuals", None)
+    return None if res is None else np.asarray(res.curve_cov, dtype=np.float64)
+
+
+def angle_residual_variance(model: ProcessModel) -> FloatArray | None:
+    """Variance (2,) deg^2 of the metamodel's held-out angle residuals, or ``None``."""
+    res = getattr(model, "residuals", None)
+    return None if res is None else np.diag(np.asarray(res.angle_cov, dtype=np.float64))
 
 
 def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
