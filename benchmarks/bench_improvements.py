@@ -81,7 +81,7 @@ def main() -> None:
         "settings": {"products": args.products, "window": args.window,
                      "realisations": args.realisations, "repetitions": args.repetitions,
                      "particles": args.particles, "filter": "sir", "alpha": settings.tracker.alpha,
-                     "mu_alpha": TrackerConfig().mu_alpha, "metamodel": str(mm_path)},
+                     "learn_mu": "conjugate", "metamodel": str(mm_path)},
         "wall_s": round(wall, 1),
         "filter_runs_computed": int(result.timings.get("filter_runs_computed", 0)),
     }

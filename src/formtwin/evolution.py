@@ -112,3 +112,35 @@ def jitter(
     if alpha < 0:
         raise ValueError(f"alpha = {alpha}, expected alpha >= 0")
     return reflect(theta + rng.standard_normal(theta.shape) * (alpha * (hi - lo)), lo, hi)
+
+
+# ---------------------------------------------------------------- conjugate learning of mu
+# Given the states, eq. 4 is linear-Gaussian in mu: y_i = x_i - rho x_{i-1} = (1 - rho) mu + v
+# with v ~ N(0, (1 - rho^2) sigma^2). A Normal prior mu ~ N(m, P) stays Normal; (m, P) per
+# particle are the sufficient statistics of its path (Storvik 2002; Carvalho et al. 2010,
+# particle learning), and x can be drawn from the predictive with mu integrated out.
+
+
+def mu_predictive(m: FloatArray, P: FloatArray, x: FloatArray, sigma: FloatArray,
+                  rho: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean and variance ``(N, d)`` of ``x_i`` given ``x_{i-1} = x`` with ``mu ~ N(m, P)``:
+    ``(1 - rho) m + rho x`` and ``(1 - rho)^2 P + (1 - rho^2) sigma^2``."""
+    a = 1.0 - rho
+    return a * m + rho * x, a * a * P + (1.0 - rho**2) * sigma**2
+
+
+def mu_update(m: FloatArray, P: FloatArray, x_prev: FloatArray, x_new: FloatArray,
+              sigma: FloatArray, rho: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Posterior ``(m, P)`` of mu after the step ``x_prev -> x_new`` (conjugate Normal update).
+
+    >>> import numpy as np
+    >>> m, P = mu_update(np.array([0.0]), np.array([1.0]), np.array([0.0]), np.array([1.0]),
+    ...                  np.array([1.0]), np.array([0.0]))
+    >>> float(m[0]), float(P[0])   # rho = 0: one draw x = 1 of N(mu, 1), prior N(0, 1)
+    (0.5, 0.5)
+    """
+    a = 1.0 - rho
+    q = (1.0 - rho**2) * sigma**2
+    prec = 1.0 / P + a * a / q
+    P_new = 1.0 / prec
+    return P_new * (m / P + a * (x_new - rho * x_prev) / q), P_new

@@ -145,24 +145,37 @@ def cross_validate(model: Metamodel | Callable[[], Metamodel], dataset: Dataset,
                            float(np.mean(seconds)))
 
 
-def residual_model(cv: CrossValidation) -> ResidualModel:
-    """Statistics of the held-out residuals (truth minus prediction) of a cross-validation."""
-    return ResidualModel.from_residuals(cv.curves - cv.predicted_curves,
-                                        cv.angles - cv.predicted_angles,
+def residual_model(cv: CrossValidation, interior: bool = True) -> ResidualModel:
+    """Statistics of the held-out residuals (truth minus prediction) of a cross-validation.
+
+    ``interior``: only runs strictly inside the design box (no input on a bound). The
+    paper's design puts 2^d runs on the corners of the box; held out, each is predicted by
+    extrapolation, with errors far above those inside the box where a tracker works
+    (about mu, a few sigma wide). Falls back to all runs if fewer than ``2 n_t`` are inside.
+    """
+    rows = np.ones(cv.inputs.shape[0], dtype=bool)
+    if interior:
+        lo, hi = cv.spec.inputs.lo, cv.spec.inputs.hi
+        tol = 1e-9 * (hi - lo)
+        inside = np.all((cv.inputs > lo + tol) & (cv.inputs < hi - tol), axis=1)
+        if inside.sum() >= 2 * cv.curves.shape[1]:
+            rows = inside
+    return ResidualModel.from_residuals(cv.curves[rows] - cv.predicted_curves[rows],
+                                        cv.angles[rows] - cv.predicted_angles[rows],
                                         k=int(cv.fold.max() + 1))
 
 
-def calibrate(metamodel: Metamodel, dataset: Dataset, k: int = 5,
-              seed: int = 0) -> Metamodel:
+def calibrate(metamodel: Metamodel, dataset: Dataset, k: int = 5, seed: int = 0,
+              interior: bool = True) -> Metamodel:
     """Attach the statistics of k-fold held-out residuals to a fitted ``metamodel``.
 
     The folds are fitted with ``metamodel``'s settings on ``dataset`` (the one it was
-    fitted to); the result goes to ``metamodel.residuals`` (saved with it). Costs ``k``
-    fits. Returns ``metamodel``.
+    fitted to); the statistics (of the runs inside the box, see :func:`residual_model`) go
+    to ``metamodel.residuals`` (saved with it). Costs ``k`` fits. Returns ``metamodel``.
     """
     if metamodel.curve_model is None:
         raise RuntimeError("calibrate: the metamodel is not fitted")
-    metamodel.residuals = residual_model(cross_validate(metamodel, dataset, k, seed))
+    metamodel.residuals = residual_model(cross_validate(metamodel, dataset, k, seed), interior)
     log.info("calibrate: %d-fold residuals of %d runs, curve rms %.3g N", k,
              metamodel.residuals.n, float(np.sqrt(np.trace(metamodel.residuals.curve_cov)
                                                   / metamodel.residuals.n_t)))

@@ -49,15 +49,10 @@ class TrackerConfig:
         cloud by systematic resampling (cuts the cost of the angle models, adds Monte-Carlo
         error of order ``std / sqrt(angle_particles)``); ``None`` (default): all particles
         with their weights.
-    learn_mu : estimate the statistics mu as per-particle hyperparameters (prior
-        ``U(mu_min, mu_max)``); ``mu`` is then ignored. Default off (the paper's filter).
-    mu_alpha : jitter of the learned mu per product, as a fraction of ``mu_max - mu_min``.
-        0.02: with resampling every step the mu cloud collapses onto few ancestors and
-        only the jitter keeps it diverse; on the analytic stand-in (5 datasets, N = 500,
-        500 products) 0.005 left the mu posterior std at ~0.07 sigma with errors of
-        1-2 sigma, 0.02 gave the smallest mu and state errors of 0.005/0.01/0.02
-        (docs/improvements.md). The price: the filter forgets old products, mu is a
-        local level over roughly the last 50-100 products rather than a constant.
+    learn_mu : learn the statistics mu by conjugate Normal updates of per-particle
+        sufficient statistics (prior with the mean and variance of ``U(mu_min, mu_max)``,
+        see :mod:`formtwin.tracker.ssm`); ``mu`` is then ignored. Default off (the paper's
+        filter).
     n_mc : Monte-Carlo curves for the measurement model's ``K_MC`` (paper: 10^4).
     nu : Student-t degrees of freedom of the likelihood; ``inf`` is the paper's Gaussian,
         a finite value the heavy-tailed robust option.
@@ -94,8 +89,6 @@ class TrackerConfig:
         "predict angles from this many resampled particles (default: all)"))
     learn_mu: bool = field(default=False, metadata=_help(
         "learn the statistics mu as hyperparameters"))
-    mu_alpha: float = field(default=0.02, metadata=_help(
-        "jitter of the learned mu, fraction of mu_max - mu_min"))
     n_mc: int = field(default=10_000, metadata=_help("Monte-Carlo curves for K_MC"))
     nu: float = field(default=math.inf, metadata=_help(
         "Student-t degrees of freedom of the likelihood (inf: Gaussian)", "--robust-nu"))
@@ -124,9 +117,8 @@ class TrackerConfig:
         for name in ("n_particles", "n_mc"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)}, expected >= 1")
-        for name in ("alpha", "mu_alpha"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} = {getattr(self, name)}, expected >= 0")
+        if self.alpha < 0:
+            raise ValueError(f"alpha = {self.alpha}, expected >= 0")
         if not self.nu > 0:
             raise ValueError(f"nu = {self.nu}, expected > 0 (inf for Gaussian)")
 

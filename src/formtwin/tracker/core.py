@@ -115,7 +115,7 @@ class Tracker:
 
     @property
     def particles(self) -> FloatArray | None:
-        """Current (resampled) particles (N, 18) (N, 25 with the learned mu last), or
+        """Current (resampled) particles (N, 18) (N, 32 with the learned mu's ``m, P`` last), or
         ``None`` before the first step."""
         return self.filter.x
 
@@ -155,14 +155,14 @@ class Tracker:
         else:
             am = astd = np.full(2, np.nan)
         mean, std, na = s.mean(), s.std(), len(self.names)
-        learned = self.config.learn_mu
+        mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None
         fit = assess(self.ssm.last_residuals(), v, s.ess, self.measurement, s.collapsed,
                      self.fit_rule)
         return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
                         std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
                         collapsed=s.collapsed, loglik=s.loglik,
-                        mu_mean=mean[na:] if learned else None,
-                        mu_std=std[na:] if learned else None, fit=fit)
+                        mu_mean=mu[0] if mu else None,
+                        mu_std=mu[1] if mu else None, fit=fit)
 
     def run(self, curves: Iterable[Any], progress: bool = False) -> Estimates:
         """Assimilate curves (n, n_t) one product at a time; return stacked estimates.

@@ -12,9 +12,15 @@
   theta_d, curves ``g(z~(x, theta), theta_d)``).
 
 With ``learn_mu=True`` (the paper's Discussion: the statistics as hyperparameters
-estimated with the rest) the particles carry 7 more columns, their own mu: initially
-``U(mu_min, mu_max)``, each particle's ``x`` evolves with its own mu, then mu takes a jitter
-step of std ``mu_alpha (mu_max - mu_min)`` reflected into ``[mu_min, mu_max]``.
+estimated with the rest) mu is learned by conjugate updates (Storvik 2002; particle
+learning, Carvalho et al. 2010): given a particle's state path, eq. 4 is linear-Gaussian in
+mu, so a Normal prior ``mu ~ N(m0, P0)`` (``m0 = (mu_min + mu_max)/2``,
+``P0 = (mu_max - mu_min)^2 / 12``: the mean and variance of the paper's ``U(mu_min,
+mu_max)``) stays Normal. Each particle carries its sufficient statistics ``(m, P)`` in 14
+more columns (``[x, theta, theta_d, m, P]``, (N, 32)); ``x`` is drawn from the predictive
+with mu integrated out (:func:`~formtwin.evolution.mu_predictive`), then ``(m, P)`` take
+the exact update of that step (:func:`~formtwin.evolution.mu_update`). No jitter: nothing
+is forgotten, and the posterior of mu is the mixture of the particles' Normals.
 
 With ``estimate_deviation=False`` (paper series 1, 2, 4, 5) ``theta_d`` is fixed at 0
 (``g`` is the identity) and never jittered.
@@ -28,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.deviation import DeviationModel
-from formtwin.evolution import evolve, jitter, reflect, stationary
+from formtwin.evolution import evolve, jitter, mu_predictive, mu_update, reflect, stationary
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
@@ -79,8 +85,9 @@ class BendingSSM:
                                             len(spec.augmented)))
         # the spec builds these arrays on every access (~20 us): keep them
         lo, hi = spec.augmented.lo, spec.augmented.hi
-        if self.config.learn_mu:
-            lo, hi = np.r_[lo, spec.state.mu_min], np.r_[hi, spec.state.mu_max]
+        if self.config.learn_mu:  # bounds of m (the design box) and P (0, P0]
+            lo = np.r_[lo, spec.state.lo, np.full(len(spec.state), 1e-300)]
+            hi = np.r_[hi, spec.state.hi, self.mu_prior[1]]
         object.__setattr__(self, "_lo", lo)
         object.__setattr__(self, "_hi", hi)
         object.__setattr__(self, "deviation", DeviationModel.from_spec(spec))
@@ -99,6 +106,22 @@ class BendingSSM:
                              f"the spec's curves {spec.n_t}")
 
     @property
+    def mu_prior(self) -> tuple[FloatArray, FloatArray]:
+        """Mean and variance (7,) of the Normal prior of a learned mu: those of
+        ``U(mu_min, mu_max)``."""
+        st = self.model.spec.state
+        return 0.5 * (st.mu_min + st.mu_max), (st.mu_max - st.mu_min) ** 2 / 12.0
+
+    def mu_moments(self, x: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and std (7,) of a learned mu from particles ``x`` (N, 32) with
+        weights ``w`` (N,): the moments of the mixture of the particles' ``N(m, P)``."""
+        na, nx = self.n_aug, self.n_x
+        m, P = x[:, na:na + nx], x[:, na + nx:]
+        mean = w @ m
+        var = w @ P + w @ (m - mean) ** 2
+        return mean, np.sqrt(np.maximum(var, 0.0))
+
+    @property
     def n_x(self) -> int:
         """Number of state variables (7)."""
         return self._sizes[0]
@@ -111,17 +134,22 @@ class BendingSSM:
     @property
     def n_aug(self) -> int:
         """Width of the augmented state ``[x, theta, theta_d]`` (18); the particles have
-        ``n_x`` more columns (their mu) when learning mu."""
+        ``2 n_x`` more columns (the statistics ``m, P`` of their mu) when learning mu."""
         return self._sizes[2]
 
     def sample_initial(self, n: int, rng: np.random.Generator) -> FloatArray:
-        """``n`` particles (n, 18) or (n, 25) from the initial law."""
-        lo, hi, nx = self._lo, self._hi, self.n_x
-        out = lo + (hi - lo) * rng.random((n, lo.size))
-        if self.config.learn_mu:  # x from the stationary law of each particle's own mu
-            mu = out[:, self.n_aug:]
-            out[:, :nx] = reflect(mu + self._sigma * rng.standard_normal((n, nx)),
-                                  lo[:nx], hi[:nx])
+        """``n`` particles (n, 18) or (n, 32) from the initial law."""
+        lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
+        out = np.empty((n, lo.size))
+        out[:, nx:na] = lo[nx:na] + (hi[nx:na] - lo[nx:na]) * rng.random((n, na - nx))
+        if self.config.learn_mu:  # x_0 ~ N(m0, P0 + sigma^2), then the update by x_0
+            m0, P0 = self.mu_prior
+            x0 = reflect(m0 + np.sqrt(P0 + self._sigma**2) * rng.standard_normal((n, nx)),
+                         lo[:nx], hi[:nx])
+            out[:, :nx] = x0
+            P = np.broadcast_to(1.0 / (1.0 / P0 + 1.0 / self._sigma**2), (n, nx))
+            out[:, na:na + nx] = P * (m0 / P0 + x0 / self._sigma**2)
+            out[:, na + nx:] = P
         else:
             out[:, :nx] = stationary(n, self._mu, self._sigma, rng, lo[:nx], hi[:nx])
         if not self.config.estimate_deviation:
@@ -132,16 +160,20 @@ class BendingSSM:
         """Particles (N, d) of the next product given those of this one (N, d)."""
         lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
         out = np.empty_like(x)
-        mu = x[:, na:] if self.config.learn_mu else self._mu
-        # eq. 4-5, then reflection of the few rows that left the box
-        out[:, :nx] = _into_box(evolve(x[:, :nx], mu, self._sigma, self._rho, rng),
-                                lo[:nx], hi[:nx])
+        if self.config.learn_mu:  # the predictive with mu ~ N(m, P) integrated out
+            m, P = x[:, na:na + nx], x[:, na + nx:]
+            mean, var = mu_predictive(m, P, x[:, :nx], self._sigma, self._rho)
+            out[:, :nx] = _into_box(mean + np.sqrt(var) * rng.standard_normal(mean.shape),
+                                    lo[:nx], hi[:nx])
+            out[:, na:na + nx], out[:, na + nx:] = mu_update(m, P, x[:, :nx], out[:, :nx],
+                                                             self._sigma, self._rho)
+        else:  # eq. 4-5, then reflection of the few rows that left the box
+            out[:, :nx] = _into_box(evolve(x[:, :nx], self._mu, self._sigma, self._rho, rng),
+                                    lo[:nx], hi[:nx])
         stop = na if self.config.estimate_deviation else self.n_in
         out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                  self.config.alpha)
         out[:, stop:na] = x[:, stop:na]
-        if self.config.learn_mu:
-            out[:, na:] = jitter(x[:, na:], lo[na:], hi[na:], rng, self.config.mu_alpha)
         return out
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
@@ -165,7 +197,7 @@ class BendingSSM:
         return self._last["r"]
 
     def constrain(self, x: FloatArray) -> FloatArray:
-        """Reflect particles (N, 18) or (N, 25) into their bounds (used by kernel moves);
+        """Reflect particles (N, 18) or (N, 32) into their bounds (used by kernel moves);
         ``theta_d`` stays 0 when it is not estimated."""
         out = reflect(x, self._lo, self._hi)
         if not self.config.estimate_deviation:
@@ -173,7 +205,7 @@ class BendingSSM:
         return out
 
     def predict_angles(self, x: FloatArray) -> FloatArray:
-        """Angles (N, 2) of particles ``x`` (N, 18) or (N, 25), in blocks of particles."""
+        """Angles (N, 2) of particles ``x`` (N, 18) or (N, 32), in blocks of particles."""
         return np.concatenate([self.model.predict_angles(x[i: i + CHUNK, : self.n_in])
                                for i in range(0, x.shape[0], CHUNK)])
 
