@@ -66,8 +66,17 @@ def test_quick_study_end_to_end(metamodel: tuple[Metamodel, Path], tmp_path: Pat
     assert "Comparison with the paper" in text and "0.11" in text and "series 6" in text
     assert "| series | mean ESS | collapsed steps | fit ok | fit degraded | no fit |" in text
     assert report.read_text().startswith("<!DOCTYPE html>")
-    for fig in ("fig4_nrmse.png", "fig5_series1.png", "fig6_series6.png"):
+    for fig in ("fig4_nrmse.png", "fig5_series1.png", "fig6_series6.png",
+                "fig_skill_coverage.png"):
         assert (tmp_path / fig).stat().st_size > 10_000
+    # honest metrics for the calibrated default and the paper's likelihood on the same data
+    assert result.skill.shape == result.coverage.shape == nrmse.shape
+    assert result.ess.shape == result.log_evidence.shape == (6, 2, 1)
+    assert np.all((result.coverage[:, :, :, :10] >= 0) & (result.coverage[:, :, :, :10] <= 1))
+    assert np.all(np.isfinite(result.log_evidence)) and np.all(result.ess >= 1)
+    assert result.paper["nrmse"].shape == (6, 2, 1, 20)
+    assert "| 1 | paper |" in text and "| 1 | calibrated |" in text
+    assert not np.array_equal(result.paper["nrmse"], nrmse)
     assert (tmp_path / "nrmse.csv").read_text().count("\n") == 1 + 6 * 2
     # a second run reuses every cached piece and gives the same numbers
     again = run_study(settings, tmp_path, mm, mm_path, AnalyticBending(SPEC))

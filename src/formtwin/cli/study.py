@@ -30,6 +30,9 @@ def register(sub: Any) -> None:
     p.add_argument("--realisations", type=int, help="dataset realisations (paper: 5)")
     p.add_argument("--repetitions", type=int, help="filter repetitions per dataset (paper: 5)")
     p.add_argument("--window", type=int, help="products at the end scored (paper: 500)")
+    p.add_argument("--paper-repetitions", type=int,
+                   help="repetitions per dataset with the paper's likelihood beside the "
+                        "tracker's, on the same data (default 1; 0: none)")
     p.add_argument("--series", help="comma-separated series numbers (default: the paper's "
                    "1,2,3,4,5,6; 7, 8: series 4, 6 with learned mu)")
     p.add_argument("--seed", type=int, default=0, help="master seed (default: %(default)s)")
@@ -54,7 +57,8 @@ def settings_from_args(args: argparse.Namespace) -> StudySettings:
     the sizes given, then the tracker's flags)."""
     values: dict[str, Any] = dict(QUICK) if args.quick else {}
     for key, attr in (("n_products", "products"), ("n_realisations", "realisations"),
-                      ("n_repetitions", "repetitions"), ("window", "window")):
+                      ("n_repetitions", "repetitions"), ("window", "window"),
+                      ("paper_repetitions", "paper_repetitions")):
         if getattr(args, attr) is not None:
             values[key] = getattr(args, attr)
     if "n_products" in values and "window" not in values:

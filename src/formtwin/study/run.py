@@ -8,6 +8,7 @@ single-threaded.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -20,9 +21,10 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from formtwin.doe import make_executor
-from formtwin.measurement import ProcessModel
+from formtwin.measurement import ProcessModel, monte_carlo_inputs
 from formtwin.simulator import Simulator
-from formtwin.study.metrics import normalised_rmse
+from formtwin.spec import ProcessSpec
+from formtwin.study.metrics import run_scores
 from formtwin.study.pseudodata import Realisation, make_realisation
 from formtwin.study.series import (
     PAPER_SERIES,
@@ -48,6 +50,9 @@ class StudySettings:
     window: int = 500
     seed: int = 0
     series: tuple[int, ...] = PAPER_SERIES  # 7, 8 (learned mu) on request
+    #: repetitions per dataset of every series with the paper's likelihood (eq. 12) beside
+    #: the tracker's (calibrated by default), on the same data; 0: none
+    paper_repetitions: int = 1
     workers: int | None = None
     scheduler: str | None = None
     #: the filters' settings; each series sets its own estimate_deviation, mu, learn_mu
@@ -64,6 +69,13 @@ class StudySettings:
         for name in ("n_realisations", "n_repetitions"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)}, expected >= 1")
+        if self.paper_repetitions < 0:
+            raise ValueError(f"paper_repetitions = {self.paper_repetitions}, expected >= 0")
+
+    @property
+    def compares_paper(self) -> bool:
+        """Whether the study also runs the paper's likelihood (the tracker's is another)."""
+        return self.paper_repetitions > 0 and self.tracker.likelihood != "paper"
 
 
 @dataclass
@@ -71,13 +83,25 @@ class StudyResult:
     """Normalised RMSE ``nrmse[series - 1, realisation, repetition, component]`` (20
     components: 18 augmented, 2 angles; rows for series 1..6, or up to the largest series
     run, NaN for series not run) and the paths of every run. ``timings`` are those of the run
-    that computed the filter runs (``cached`` = 1 when this call only re-reported)."""
+    that computed the filter runs (``cached`` = 1 when this call only re-reported).
+
+    ``skill`` and ``coverage`` have the shape of ``nrmse`` (:mod:`formtwin.study.metrics`);
+    ``ess`` and ``log_evidence`` are ``(series, realisation, repetition)``: mean ESS and
+    cumulative log-evidence ``sum_i log p(z_i | z_1..i-1)`` of each run. ``paper`` holds
+    the same five arrays for the runs with the paper's likelihood (``paper_repetitions``
+    per dataset), or is empty.
+    """
 
     settings: StudySettings
     nrmse: FloatArray
     run_paths: dict[tuple[int, int, int], Path]
     realisations: list[Realisation]
     timings: dict[str, float] = field(default_factory=dict)
+    skill: FloatArray = field(default_factory=lambda: np.zeros(0))
+    coverage: FloatArray = field(default_factory=lambda: np.zeros(0))
+    ess: FloatArray = field(default_factory=lambda: np.zeros(0))
+    log_evidence: FloatArray = field(default_factory=lambda: np.zeros(0))
+    paper: dict[str, FloatArray] = field(default_factory=dict)
 
     def settings_dict(self) -> dict[str, object]:
         """The settings as a flat dict (the tracker's as ``tracker.NAME`` keys)."""
@@ -102,21 +126,15 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
                                      physics, data_dir, executor=_executor_name(settings))
                     for k in range(settings.n_realisations)]
     t_data = time.perf_counter() - t0
-    tasks = [Task(series=s, realisation=k, repetition=r,
-                  metamodel_path=str(metamodel_path),
-                  realisation_path=str(data_dir / f"realisation_{k}.nc"),
-                  measurement_path=str(measurement_file(folder, k, SERIES[s - 1].mu_known)),
-                  out_path=str(folder / "runs" / f"series{s}_real{k}_rep{r}.npz"),
-                  tracker=settings.tracker, seed=settings.seed)
-             for s in settings.series for k in range(settings.n_realisations)
-             for r in range(settings.n_repetitions)]
+    tasks = _tasks(settings, folder, metamodel_path, data_dir)
     todo = [t for t in tasks if not Path(t.out_path).exists()]
-    # K_MC once per (realisation, mu known or assumed), here, not in every worker
-    for path, real_k, known in sorted({(t.measurement_path, t.realisation,
-                                        SERIES[t.series - 1].mu_known) for t in todo}):
+    # K_MC once per (realisation, mu known or assumed, likelihood), here, not in every worker
+    for path, real_k, known, tracker in sorted(
+            {(t.measurement_path, t.realisation, SERIES[t.series - 1].mu_known, t.tracker)
+             for t in todo}, key=lambda a: a[0]):
         if not Path(path).exists():
-            make_measurement(metamodel, realisations[real_k], known, settings.seed,
-                             settings.tracker, Path(path))
+            make_measurement(metamodel, realisations[real_k], known, settings.seed, tracker,
+                             Path(path))
     log.info("%d filter runs, %d cached", len(tasks), len(tasks) - len(todo))
     t1 = time.perf_counter()
     if todo:
@@ -126,23 +144,10 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
                             disable=not progress):
                 fut.result()
     t_filters = time.perf_counter() - t1
-    n_comp = len(spec.augmented) + 2
-    n_series = max(len(PAPER_SERIES), *settings.series)  # the paper's 6 unless 7, 8 asked
-    nrmse = np.full((n_series, settings.n_realisations, settings.n_repetitions, n_comp),
-                    np.nan)
-    paths: dict[tuple[int, int, int], Path] = {}
-    for task in tasks:
-        real = realisations[task.realisation]
-        data = SERIES[task.series - 1].data
-        with np.load(task.out_path, allow_pickle=False) as run:
-            nrmse[task.series - 1, task.realisation, task.repetition] = normalised_rmse(
-                spec, run["mean"], real.truth(), run["angles_mean"],
-                np.where(real.ok[data][:, None], real.angles[data], np.nan),
-                settings.window)
-        if not SERIES[task.series - 1].deviation:
-            nrmse[task.series - 1, task.realisation, task.repetition,
-                  len(spec.inputs):len(spec.augmented)] = np.nan
-        paths[(task.series, task.realisation, task.repetition)] = Path(task.out_path)
+    prior_angles = _prior_angles(metamodel, realisations, settings.seed)
+    arrays, paths = _score(spec, settings, tasks, realisations, prior_angles, paper=False)
+    paper = _score(spec, settings, tasks, realisations, prior_angles, paper=True)[0] \
+        if settings.compares_paper else {}
     timings = {"pseudo_data_s": t_data, "filter_runs_s": t_filters,
                "filter_runs_computed": float(len(todo)),
                "total_s": time.perf_counter() - t0}
@@ -151,4 +156,71 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
         record.write_text(json.dumps(timings, indent=2), encoding="utf-8")
     else:
         timings = {**json.loads(record.read_text(encoding="utf-8")), "cached": 1.0}
-    return StudyResult(settings, nrmse, paths, realisations, timings)
+    return StudyResult(settings, arrays["nrmse"], paths, realisations, timings,
+                       skill=arrays["skill"], coverage=arrays["coverage"], ess=arrays["ess"],
+                       log_evidence=arrays["log_evidence"], paper=paper)
+
+
+def _tasks(settings: StudySettings, folder: Path, metamodel_path: Path,
+           data_dir: Path) -> list[Task]:
+    """Every filter run of the study: the tracker's likelihood, then the paper's."""
+    runs = [(settings.tracker, settings.n_repetitions, "")]
+    if settings.compares_paper:
+        runs.append((dataclasses.replace(settings.tracker, likelihood="paper"),
+                     settings.paper_repetitions, "_paper"))
+    return [Task(series=s, realisation=k, repetition=r, metamodel_path=str(metamodel_path),
+                 realisation_path=str(data_dir / f"realisation_{k}.nc"),
+                 measurement_path=str(measurement_file(folder, k, SERIES[s - 1].mu_known,
+                                                       tracker.likelihood)),
+                 out_path=str(folder / "runs" / f"series{s}_real{k}_rep{r}{tag}.npz"),
+                 tracker=tracker, seed=settings.seed)
+            for tracker, reps, tag in runs for s in settings.series
+            for k in range(settings.n_realisations) for r in range(reps)]
+
+
+def _prior_angles(model: ProcessModel, realisations: list[Realisation],
+                  seed: int) -> dict[tuple[int, bool], FloatArray]:
+    """Prior-only angle prediction (2,) per (realisation, mu known): the mean angle of the
+    model over 2000 draws of the filter's initial law (x about the assumed mu, theta
+    uniform)."""
+    spec = model.spec
+    out = {}
+    for real in realisations:
+        for known in (True, False):
+            rng = np.random.default_rng(np.random.SeedSequence([seed, 104729, real.index]))
+            X = monte_carlo_inputs(spec, 2000, rng, real.mu if known else spec.state.mu_mid)
+            out[(real.index, known)] = np.nanmean(model.predict_angles(X), axis=0)
+    return out
+
+
+def _score(spec: ProcessSpec, settings: StudySettings, tasks: list[Task],
+           realisations: list[Realisation], prior_angles: dict[tuple[int, bool], FloatArray],
+           paper: bool) -> tuple[dict[str, FloatArray], dict[tuple[int, int, int], Path]]:
+    """nRMSE, skill, coverage (series, realisation, repetition, 20), mean ESS and
+    log-evidence (series, realisation, repetition) of the tracker's or the paper's runs."""
+    chosen = [t for t in tasks if (t.tracker.likelihood == "paper") == paper
+              and (t.tracker.likelihood == settings.tracker.likelihood or paper)]
+    reps = settings.paper_repetitions if paper and settings.compares_paper \
+        else settings.n_repetitions
+    n_series = max(len(PAPER_SERIES), *settings.series)  # the paper's 6 unless 7, 8 asked
+    shape = (n_series, settings.n_realisations, reps)
+    n_comp = len(spec.augmented) + 2
+    out = {name: np.full(shape + (n_comp,), np.nan) for name in ("nrmse", "skill", "coverage")}
+    out.update({name: np.full(shape, np.nan) for name in ("ess", "log_evidence")})
+    paths: dict[tuple[int, int, int], Path] = {}
+    for task in chosen:
+        series = SERIES[task.series - 1]
+        real = realisations[task.realisation]
+        key = (task.series - 1, task.realisation, task.repetition)
+        with np.load(task.out_path, allow_pickle=False) as f:
+            run = {k: f[k] for k in f.files}
+        data = series.data
+        scores = run_scores(spec, run, real.truth(),
+                            np.where(real.ok[data][:, None], real.angles[data], np.nan),
+                            real.mu if series.mu_known else spec.state.mu_mid,
+                            prior_angles[(real.index, series.mu_known)], series.deviation,
+                            settings.window)
+        for name, value in scores.items():
+            out[name][key] = value
+        paths[(task.series, task.realisation, task.repetition)] = Path(task.out_path)
+    return out, paths

@@ -20,7 +20,9 @@ series 4 and 6 (mid-range mu), so the pairs differ only in the filter. The defau
 (``StudySettings.series``) stays the paper's six.
 
 The measurement model's K_MC is computed with the mu the filter assumes (paper,
-"Simulation runs"): the realisation's true mu when known, the mid-range otherwise.
+"Simulation runs"): the realisation's true mu when known, the mid-range otherwise. Its
+likelihood is the tracker config's (``"calibrated"`` by default; the study also runs the
+paper's, ``StudySettings.paper_repetitions``). Series 7 and 8 learn mu by conjugate updates.
 """
 
 from __future__ import annotations
@@ -117,10 +119,13 @@ def _measurement(path: str) -> MeasurementModel:
     return MeasurementModel.load(path)
 
 
-def measurement_file(folder: Path, realisation: int, mu_known: bool) -> Path:
-    """Where the study keeps the measurement model of a realisation (mu known or assumed)."""
+def measurement_file(folder: Path, realisation: int, mu_known: bool,
+                     likelihood: str = "calibrated") -> Path:
+    """Where the study keeps the measurement model of a realisation (mu known or assumed,
+    calibrated or paper likelihood)."""
     kind = "known" if mu_known else "assumed"
-    return folder / "measurement" / f"real{realisation}_mu_{kind}.npz"
+    tail = "" if likelihood == "calibrated" else f"_{likelihood}"
+    return folder / "measurement" / f"real{realisation}_mu_{kind}{tail}.npz"
 
 
 def series_config(base: TrackerConfig, series: Series, mu: FloatArray,
@@ -178,8 +183,8 @@ def _run(task: Task, out: Path) -> None:
     ang_mean, ang_std = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
     mean[ok], std[ok] = est.mean, est.std
     ang_mean[ok], ang_std[ok] = est.angles_mean, est.angles_std
-    ess, d2 = np.full(n, np.nan), np.full(n, np.nan)
-    ess[ok] = est.ess
+    ess, d2, loglik = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    ess[ok], loglik[ok] = est.ess, est.loglik
     if est.fit_distance2 is not None:
         d2[ok] = est.fit_distance2
     health = np.full(n, -1, dtype=np.int8)  # index into HEALTH; -1: product skipped
@@ -189,7 +194,7 @@ def _run(task: Task, out: Path) -> None:
     tmp = out.with_suffix(".tmp.npz")
     arrays: dict[str, Any] = {"mean": mean, "std": std, "angles_mean": ang_mean,
                               "angles_std": ang_std, "ess": ess,
-                              "collapsed": np.asarray(est.collapsed),
+                              "loglik": loglik, "collapsed": np.asarray(est.collapsed),
                               "fit_distance2": d2, "health": health}
     if est.mu_mean is not None and est.mu_std is not None:  # learned mu, (n, 7)
         for key, value in (("mu_mean", est.mu_mean), ("mu_std", est.mu_std)):
