@@ -72,6 +72,9 @@ CASES: list[tuple[str, bytes]] = [
     ("bad_field", dumps(good(cycle=-1))),
     ("bad_field", dumps(good(cycle=True))),
     ("bad_field", dumps(good(cycle="7"))),
+    ("bad_field", dumps(good(cycle=10**30))),  # beyond the store's 64-bit integers
+    ("bad_field", dumps(good(cycle=2**63))),
+    ("bad_field", dumps(good(timestamp=10**400))),
     ("bad_field", dumps(good(timestamp=None))),
     ("bad_field", dumps(good(timestamp="yesterday"))),
     ("bad_field", dumps(good(timestamp=-1))),
@@ -116,7 +119,8 @@ def test_invalid_part_id_is_not_attached_to_errors() -> None:
 def test_every_reason_is_covered() -> None:
     parse_level = {r for r, _ in CASES}
     processor_level = {"duplicate_part_id", "out_of_order", "tracker_rejected", "outlier_gated"}
-    assert parse_level | processor_level == set(REASONS)
+    plausibility_level = {"no_stroke", "clipped_sensor", "peak_outside_window"}  # own tests
+    assert parse_level | processor_level | plausibility_level == set(REASONS)
 
 
 @settings(max_examples=300, deadline=None)

@@ -15,8 +15,18 @@ def register(sub: Any) -> None:
                        "formtwin.service.streams) as a formtwin.stroke/1 message, QoS 1.")
     p.add_argument("file", nargs="?", help="stream file (omit with --synthetic N)")
     p.add_argument("--synthetic", type=int, metavar="N",
-                   help="make a synthetic stream of N products from the analytic stand-in "
-                   "(written to --write, then published)")
+                   help="make a synthetic stream of N products (written to --write, then "
+                   "published) from the model the service runs: give the same --metamodel "
+                   "FILE or --analytic as to formtwin serve")
+    model = p.add_mutually_exclusive_group()
+    model.add_argument("--metamodel", help="with --synthetic: the metamodel file the service "
+                       "runs (serve --metamodel)")
+    model.add_argument("--analytic", action="store_true", help="with --synthetic: the "
+                       "closed-form stand-in (serve --analytic)")
+    p.add_argument("--draw-from", choices=("model", "physics"), default="model",
+                   help="with --synthetic: draw the curves from the model itself, or from the "
+                   "physics model the metamodel was fitted on (refused if the installed "
+                   "physics has another version) (default: %(default)s)")
     p.add_argument("--write", default="out/stream.npz",
                    help="where --synthetic writes its stream (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of --synthetic")
@@ -33,6 +43,41 @@ def register(sub: Any) -> None:
     p.set_defaults(run=_replay)
 
 
+def synthetic_model(metamodel: str | None, analytic: bool, draw_from: str) -> tuple[Any, str]:
+    """The process model a synthetic stream is drawn from, and its description.
+
+    The stream must come from the model the service runs (``serve --metamodel FILE`` or
+    ``--analytic``), or from the physics that model was fitted on; any other pairing gives
+    curves that no particle explains, so it is refused with the reason.
+    """
+    from formtwin.defaults import PHYSICS, analytic_model, load_model, physics_model
+    from formtwin.simulator import SimulatorModel
+
+    if analytic:
+        return analytic_model(), "the analytic stand-in (serve --analytic)"
+    if metamodel is None:
+        raise ValueError("--synthetic needs the model the service runs: --metamodel FILE (the "
+                         "file given to formtwin serve --metamodel) or --analytic (serve "
+                         "--analytic); a stream from another model is one the service "
+                         "cannot explain")
+    mm = load_model(metamodel)
+    if draw_from == "model":
+        return mm, f"the metamodel {metamodel}"
+    version = str(getattr(mm, "model_version", ""))
+    name = version.split("-")[0]
+    if name not in PHYSICS:
+        raise ValueError(f"--draw-from physics: the metamodel {metamodel} was fitted on "
+                         f"physics {version!r}, which formtwin does not have (known: "
+                         f"{', '.join(PHYSICS)}); draw from the metamodel instead")
+    sim = physics_model(name, mm.spec)
+    if sim.version != version:
+        raise ValueError(f"--draw-from physics: the metamodel {metamodel} was fitted on "
+                         f"{version!r}, the installed {name} physics is {sim.version!r}: its "
+                         "curves would not be the ones the metamodel learnt; refit the "
+                         "metamodel on a DOE of this physics or draw from the metamodel")
+    return SimulatorModel(sim), f"the {sim.version} physics (metamodel {metamodel})"
+
+
 def _replay(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -40,9 +85,14 @@ def _replay(args: argparse.Namespace) -> int:
     from formtwin.service.streams import make_stream, read_stream
 
     if args.synthetic is not None:
-        path = make_stream(args.write, args.synthetic, seed=args.seed)
+        model, what = synthetic_model(args.metamodel, args.analytic, args.draw_from)
+        print(f"drawing {args.synthetic} products from {what}", flush=True)
+        path = make_stream(args.write, args.synthetic, seed=args.seed, model=model)
         print(f"synthetic stream of {args.synthetic} products -> {path}")
     elif args.file:
+        if args.metamodel or args.analytic:
+            raise ValueError("--metamodel/--analytic choose the model of --synthetic; a "
+                             "stream FILE is replayed as it is")
         path = args.file
     else:
         raise ValueError("give a stream FILE or --synthetic N")

@@ -79,6 +79,80 @@ def _monitor(args: argparse.Namespace, proc: Any) -> Any:
     return monitor
 
 
+def add_check_options(p: argparse.ArgumentParser) -> None:
+    """Plausibility limits, model-health rule and ``--check`` (docs/service.md)."""
+    g = p.add_argument_group("plausibility of a stroke and model health (default limits "
+                             "derived from the spec's ranges through the model)")
+    g.add_argument("--min-peak", type=float, metavar="N",
+                   help="lowest peak force of a stroke, N (default: half the smallest peak "
+                   "the model gives over the spec's ranges): below it, no_stroke")
+    g.add_argument("--clip-samples", type=int, default=5, metavar="K",
+                   help="K consecutive samples at the maximum are a clipped sensor "
+                   "(default: %(default)s)")
+    g.add_argument("--peak-window", metavar="LO,HI",
+                   help="accepted times of the peak force, ms (default: the model's range "
+                   "over the spec's ranges, widened by 5 samples)")
+    g.add_argument("--mismatch-k", type=int, default=5, metavar="K",
+                   help="model_mismatch when K of the last M products are not explained "
+                   "(default: %(default)s)")
+    g.add_argument("--mismatch-m", type=int, default=10, metavar="M",
+                   help="window of the mismatch rule, products (default: %(default)s)")
+    g.add_argument("--check", type=int, metavar="N",
+                   help="process the first N products, then exit: 0 if the model explains "
+                   "them, 1 with the model_mismatch message if it does not")
+
+
+def _window(text: str | None) -> tuple[float, float] | None:
+    """``--peak-window LO,HI`` as two floats (ms)."""
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--peak-window {text!r}: expected LO,HI in ms, e.g. -50,5") from None
+    return lo, hi
+
+
+def _page_token(args: argparse.Namespace) -> str:
+    """The configured page token ('' when none: the page is read-only)."""
+    if args.page_token_file:
+        return Path(args.page_token_file).read_text(encoding="utf-8").strip()
+    return str(args.page_token or os.environ.get("FORMTWIN_PAGE_TOKEN", "")).strip()
+
+
+class _Check:
+    """``--check N``: stop after N accepted products, or at the first model mismatch."""
+
+    def __init__(self, proc: Any, n: int, stop: threading.Event) -> None:
+        self.proc, self.n, self.stop = proc, n, stop
+        self.accepted = 0
+        self.mismatch: dict[str, Any] | None = None
+        self.listener: Any = None
+
+    def __call__(self, out: Any) -> None:
+        if self.listener is not None:
+            self.listener(out)
+        for note in out.notices:
+            if note.get("reason") == "model_mismatch":
+                self.mismatch = note
+        if out.kind == "accepted":
+            self.accepted += 1
+        if self.mismatch is not None or self.accepted >= self.n:
+            self.stop.set()
+
+    def report(self) -> int:
+        """Print the outcome; the exit code."""
+        if self.mismatch is not None:
+            print(f"model_mismatch after {self.accepted} products: {self.mismatch['detail']}",
+                  flush=True)
+            return 1
+        if self.accepted < self.n:
+            print(f"check incomplete: {self.accepted} of {self.n} products received", flush=True)
+            return 1
+        print(f"check passed: the model explains the first {self.n} products", flush=True)
+        return 0
+
+
 def register(sub: Any) -> None:
     """Add the ``serve`` command to the subparsers ``sub``."""
     p = sub.add_parser("serve", help="track live strokes from MQTT; store, publish, live page",
@@ -110,8 +184,12 @@ def register(sub: Any) -> None:
     p.add_argument("--http-host", default="127.0.0.1", help="page bind address")
     p.add_argument("--http-port", type=int, default=8765, help="page port (0: any free)")
     p.add_argument("--no-page", action="store_true", help="do not serve the live page")
-    p.add_argument("--page-token", help="token that acknowledging alarms on the page needs "
-                   "(default: a random one, printed in the page's URL)")
+    p.add_argument("--page-token", help="token that state-changing actions on the page "
+                   "(acknowledging alarms) need; prefer --page-token-file or the environment "
+                   "variable FORMTWIN_PAGE_TOKEN (default: none, the page is read-only and "
+                   "binds 127.0.0.1 only)")
+    p.add_argument("--page-token-file", help="file holding the page token")
+    add_check_options(p)
     add_monitor_options(p)
     p.add_argument("--status-every", type=float, default=60.0, metavar="S",
                    help="print a status line every S seconds (0: never)")
@@ -132,7 +210,12 @@ def _serve(args: argparse.Namespace) -> int:
     settings = ServiceSettings(
         model="analytic" if args.analytic else str(Path(args.metamodel).resolve()),
         tracker=tracker_config(args), gate_k=args.gate, max_bytes=args.max_bytes,
-        min_force_N=args.min_force, max_force_N=args.max_force)
+        min_force_N=args.min_force, max_force_N=args.max_force, min_peak_N=args.min_peak,
+        clip_samples=args.clip_samples, peak_window_ms=_window(args.peak_window),
+        health_k=args.mismatch_k, health_m=args.mismatch_m)
+    token = _page_token(args)
+    if args.check is not None and args.check < 1:
+        raise ValueError(f"--check {args.check}: expected >= 1 products")
     from threadpoolctl import threadpool_limits
 
     # one BLAS thread: the step is many small products (see formtwin._threads)
@@ -142,8 +225,12 @@ def _serve(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     page = monitor = None
+    check = None if args.check is None else _Check(proc, args.check, stop)
     try:
         monitor = _monitor(args, proc)
+        describe = getattr(proc.plausible, "describe", None)
+        if describe is not None:
+            print(describe(), flush=True)
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
@@ -154,18 +241,19 @@ def _serve(args: argparse.Namespace) -> int:
             units = {v.name: v.internal_unit for v in load_spec().augmented}
             feed = LiveFeed(proc.tracker_names(), units=units)
             feed.seed(proc.store)
+            feed.health_state = getattr(proc.health, "state", None)
+            feed.n_particles = getattr(getattr(proc.tracker, "config", None), "n_particles",
+                                       None)
             proc.on_outcome = feed.on_outcome
-            page = PageServer(feed, args.http_host, args.http_port)
-            token = ""
+            page = PageServer(feed, args.http_host, args.http_port, token)
             if monitor is not None:
-                import secrets
-
                 from formtwin.service.alarm_api import add_alarm_routes
 
-                token = args.page_token or secrets.token_urlsafe(16)
                 add_alarm_routes(page.app, monitor, feed, token)
             url = page.start()
             print(f"live page: {url}" + (f"?token={token}" if token else ""), flush=True)
+        if check is not None:
+            check.listener, proc.on_outcome = proc.on_outcome, check
         service = MqttService(proc, broker, topics, client_id=args.client_id)
         if args.status_every > 0:
             threading.Thread(target=_status, args=(proc, service, stop, args.status_every),
@@ -177,6 +265,8 @@ def _serve(args: argparse.Namespace) -> int:
                     on_connected=lambda: print("connected and subscribed", flush=True))
         print(f"stopped after {service.handled} messages ({service.busy_s:.2f} s busy)",
               flush=True)
+        if check is not None:
+            return check.report()
     finally:
         if page is not None:
             page.stop()

@@ -10,24 +10,19 @@
 
 from __future__ import annotations
 
-import hmac
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 
 from formtwin.service.alarms import ServiceMonitor
-from formtwin.service.web import LiveFeed
-
-#: the request header carrying the page token
-TOKEN_HEADER = "x-formtwin-token"
+from formtwin.service.web import TOKEN_HEADER, LiveFeed, token_ok
 
 
 def add_alarm_routes(app: FastAPI, monitor: ServiceMonitor, feed: LiveFeed,
                      token: str) -> None:
-    """Add the alarm routes to ``app``; acknowledging needs ``token`` (non-empty)."""
-    if not token:
-        raise ValueError("the alarm routes need a non-empty page token")
+    """Add the alarm routes to ``app``; acknowledging needs ``token`` (empty: the page is
+    read-only, acknowledging is refused, :func:`formtwin.service.web.token_ok`)."""
 
     @app.get("/api/monitor")
     def limits() -> JSONResponse:
@@ -39,9 +34,9 @@ def add_alarm_routes(app: FastAPI, monitor: ServiceMonitor, feed: LiveFeed,
 
     @app.post("/api/alarms/{alarm_id}/ack")
     async def ack(alarm_id: int, request: Request) -> JSONResponse:
-        given = request.headers.get(TOKEN_HEADER, "")
-        if not hmac.compare_digest(given.encode(), token.encode()):
-            return JSONResponse({"error": "page token missing or wrong"}, status_code=403)
+        refused = token_ok(request, token)
+        if refused is not None:
+            return refused
         note = ""
         if request.headers.get("content-type", "").startswith("application/json"):
             try:

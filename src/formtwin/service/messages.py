@@ -56,6 +56,12 @@ REASONS: dict[str, str] = {
     "non_finite": "NaN or infinity in the force curve or angles",
     "negative_force": "force below the allowed negative tolerance",
     "absurd_force": "force above the configured maximum",
+    "no_stroke": "peak force below the floor derived from the spec's ranges (no stroke, "
+                 "unplugged sensor)",
+    "clipped_sensor": "a run of samples at one value at the top of the curve (clipped or "
+                      "saturated sensor, flat curve)",
+    "peak_outside_window": "the force peak lies outside the time window the model allows "
+                           "(trigger or time base wrong)",
     "duplicate_part_id": "part id already stored with a different curve",
     "out_of_order": "cycle count not greater than the last accepted cycle",
     "tracker_rejected": "the tracker refused the curve",
@@ -63,6 +69,8 @@ REASONS: dict[str, str] = {
 }
 
 _PART_ID_MAX = 128
+#: largest cycle count the store holds (SQLite INTEGER: signed 64 bit)
+CYCLE_MAX = 2**63 - 1
 
 
 class MessageError(ValueError):
@@ -156,7 +164,9 @@ def _valid_part_id(raw: Any) -> bool:
 def _valid_timestamp(ts: Any) -> bool:
     if isinstance(ts, bool):
         return False
-    if isinstance(ts, int | float):
+    if isinstance(ts, int):  # an int of any size: compare as int (no float overflow)
+        return 0 <= ts <= CYCLE_MAX
+    if isinstance(ts, float):
         return math.isfinite(ts) and ts >= 0
     if isinstance(ts, str) and 0 < len(ts) <= 64:
         try:
@@ -209,8 +219,8 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
         raise MessageError("bad_field", f"part_id must be a printable string of 1.."
                            f"{_PART_ID_MAX} characters, got {raw_id!r:.60}")
     cycle = doc["cycle"]
-    if isinstance(cycle, bool) or not isinstance(cycle, int) or cycle < 0:
-        raise MessageError("bad_field", f"cycle must be a non-negative integer, got "
+    if isinstance(cycle, bool) or not isinstance(cycle, int) or not 0 <= cycle <= CYCLE_MAX:
+        raise MessageError("bad_field", f"cycle must be an integer in 0..2^63-1, got "
                            f"{cycle!r:.40}", part_id)
     ts = doc["timestamp"]
     if not _valid_timestamp(ts):

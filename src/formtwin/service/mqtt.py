@@ -186,6 +186,8 @@ class MqttService:
             out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
             for alarm in out.alarms:  # before the answer: acknowledged once it is in
                 client.publish(self.topics.alarms or self.topics.errors, dumps(alarm), qos=1)
+            for note in out.notices:  # model_mismatch: once per episode, errors topic
+                client.publish(self.topics.errors, dumps(note), qos=1)
             topic = self.topics.errors if out.is_error else self.topics.results
             info = client.publish(topic, dumps(out.message), qos=1)
         except Exception as exc:  # storage failure: never acknowledge, stop the service

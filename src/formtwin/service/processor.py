@@ -31,6 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.service.health import ModelHealth
 from formtwin.service.messages import (
     Limits,
     MessageError,
@@ -151,6 +152,7 @@ class Outcome:
     part_id: str | None = None
     seq: int | None = None
     alarms: tuple[dict[str, Any], ...] = ()
+    notices: tuple[dict[str, Any], ...] = ()  # model health, for the errors topic
 
     @property
     def is_error(self) -> bool:
@@ -178,14 +180,24 @@ class Processor:
     monitor : MonitorLike or None
         Control charts on the accepted estimates (:mod:`formtwin.service.alarms`): their
         statistics and alarms go into the estimate message before the commit.
+    health : ModelHealth or None
+        Model health (:class:`formtwin.service.health.ModelHealth`): its state goes into
+        the estimate message (``model_health``, ``flags.model_mismatch``) before the commit,
+        its notices (``model_mismatch``) to the errors topic.
+    plausible : callable, optional
+        Checks a parsed stroke before the tracker (:mod:`formtwin.service.plausibility`);
+        raises :class:`MessageError` (no_stroke, clipped_sensor, peak_outside_window).
     """
 
     def __init__(self, store: Store, tracker: TrackerLike, limits: Limits,
                  gate: OutlierGate | None = None,
                  on_outcome: Callable[[Outcome], None] | None = None,
-                 monitor: MonitorLike | None = None) -> None:
+                 monitor: MonitorLike | None = None, health: ModelHealth | None = None,
+                 plausible: Callable[[Stroke], None] | None = None) -> None:
         self.store = store
         self.monitor = monitor
+        self.health = health
+        self.plausible = plausible
         self.tracker = tracker
         self.limits = limits
         self.gate = gate
@@ -209,13 +221,16 @@ class Processor:
         return tuple(str(n) for n in names)
 
     def close(self) -> None:
-        """Nothing to release (kept for callers; the store stays open: close it yourself)."""
+        """Close the model health's connection (the store stays open: close it yourself)."""
+        if self.health is not None:
+            self.health.close()
 
     # ------------------------------------------------------------------ internals
     def _rollback(self) -> None:
         self.tracker.load_state_bytes(self._last_ckpt)
-        if self.monitor is not None:
-            self.monitor.rollback()
+        for m in (self.monitor, self.health):
+            if m is not None:
+                m.rollback()
 
     def _reject(self, err: MessageError, payload: bytes, topic: str, now: float) -> Outcome:
         digest = hashlib.sha256(payload).hexdigest()
@@ -274,6 +289,11 @@ class Processor:
             return self._reject(MessageError(
                 "out_of_order", f"cycle {stroke.cycle} <= last accepted cycle "
                 f"{self._last_cycle}", stroke.part_id), payload, topic, now)
+        if self.plausible is not None:
+            try:
+                self.plausible(stroke)
+            except MessageError as err:
+                return self._reject(err, payload, topic, now)
         try:
             est = self.tracker.step(stroke.force_N)
         except ValueError as exc:  # the tracker's contract: state untouched
@@ -324,6 +344,10 @@ class Processor:
         msg = estimate_message(stroke, est.to_dict(), seq=-1, flags=flags)
         seq = self._next_seq
         msg["seq"] = seq
+        if self.health is not None:
+            msg["peak_force_N"] = float(np.max(stroke.force_N))
+            msg["model_health"] = self.health.observe(msg, stroke.force_N)
+            msg["flags"]["model_mismatch"] = msg["model_health"]["state"] == "model_mismatch"
         if self.monitor is not None:
             msg["monitoring"] = self.monitor.observe(msg)
         got = self.store.commit_product(
@@ -345,5 +369,12 @@ class Processor:
                                                       now))
             except Exception:  # rebuilt from the stored estimate at the next start
                 log.exception("recording the alarms of part %s failed", stroke.part_id)
-        return Outcome("accepted", msg, stroke.part_id, seq, alarms)
+        notices: tuple[dict[str, Any], ...] = ()
+        if self.health is not None:
+            try:  # as the alarms: the episodes table is completed at the next start
+                notices = tuple(self.health.committed(seq, stroke.part_id,
+                                                      msg["model_health"], now))
+            except Exception:
+                log.exception("recording the model health of part %s failed", stroke.part_id)
+        return Outcome("accepted", msg, stroke.part_id, seq, alarms, notices)
 

@@ -12,18 +12,28 @@ import dataclasses
 import hashlib
 import json
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
 from formtwin.defaults import load_model
 from formtwin.measurement import MeasurementModel
+from formtwin.service.health import HealthRule, ModelHealth
 from formtwin.service.messages import Limits
+from formtwin.service.plausibility import Plausibility
 from formtwin.service.processor import OutlierGate, Processor
 from formtwin.service.store import Store
-from formtwin.tracker import TrackerConfig, build_measurement, build_tracker
+from formtwin.tracker import Tracker, TrackerConfig, build_measurement, build_tracker
+from formtwin.tracker.explain import best_distance2, default_starts
 
 log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -40,6 +50,11 @@ class ServiceSettings:
     gate_k : float
         Outlier gate in robust standard deviations of loglik (0 disables the gate).
     max_bytes, min_force_N, max_force_N : message limits (:class:`Limits`).
+    min_peak_N, clip_samples, peak_window_ms : plausibility limits
+        (:class:`~formtwin.service.plausibility.Plausibility`); ``None``: derived from the
+        spec's ranges through the model.
+    health_k, health_m : a model-mismatch episode opens when ``health_k`` of the last
+        ``health_m`` products are not explained (:class:`~formtwin.service.health.HealthRule`).
     """
 
     model: str = "analytic"
@@ -48,6 +63,11 @@ class ServiceSettings:
     max_bytes: int = 65536
     min_force_N: float = -50.0
     max_force_N: float = 1.0e4
+    min_peak_N: float | None = None
+    clip_samples: int = 5
+    peak_window_ms: tuple[float, float] | None = None
+    health_k: int = 5
+    health_m: int = 10
 
     def to_json(self) -> str:
         """The settings as JSON (stored in the store's ``meta`` table)."""
@@ -63,6 +83,8 @@ class ServiceSettings:
             raise ValueError("stored settings predate the nested [tracker] settings; use a "
                              "new --store")
         d["tracker"] = TrackerConfig.from_dict(d["tracker"])
+        if d.get("peak_window_ms") is not None:
+            d["peak_window_ms"] = tuple(d["peak_window_ms"])
         return cls(**d)
 
     def limits(self, n_t: int) -> Limits:
@@ -108,6 +130,18 @@ def check_settings(store: Store, settings: ServiceSettings) -> ServiceSettings:
     return old
 
 
+def explainer(tracker: Tracker) -> Callable[[FloatArray, FloatArray | None], float]:
+    """``explain(curve, mean)`` for :class:`ModelHealth`: the best fit of the curve over the
+    model's whole box (:func:`formtwin.tracker.explain.best_distance2`), stopping at the
+    99.9 % quantile, from the posterior mean, the box centre and 4 Sobol points."""
+    q = float(chi2.ppf(0.999, tracker.measurement.n_t))
+
+    def explain(curve: FloatArray, mean: FloatArray | None) -> float:
+        return best_distance2(tracker.ssm, curve, default_starts(tracker.ssm, mean), target=q)
+
+    return explain
+
+
 def measurement_path(store_path: Path) -> Path:
     """Where the measurement model of a store is kept."""
     return store_path.with_name(store_path.name + ".measurement.npz")
@@ -149,7 +183,12 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
             tracker.load_state_bytes(ck[1])
             log.info("restored tracker from checkpoint of product seq %d", ck[0])
         gate = OutlierGate(k=settings.gate_k) if settings.gate_k > 0 else None
-        return Processor(store, tracker, settings.limits(model.spec.n_t), gate)
+        plausible = Plausibility.from_model(model, settings.min_peak_N, settings.clip_samples,
+                                            settings.peak_window_ms)
+        health = ModelHealth(store, HealthRule(settings.health_k, settings.health_m),
+                             plausible.expected_peak_N, explainer(tracker))
+        return Processor(store, tracker, settings.limits(model.spec.n_t), gate,
+                         health=health, plausible=plausible)
     except BaseException:
         store.close()
         raise

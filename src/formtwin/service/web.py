@@ -9,7 +9,11 @@ Routes
   ``reset`` event and reloads ``/api/state``;
 * ``GET /static/...`` -- uPlot (MIT, see ``static/uPlot.LICENSE``) and the page's script.
 
-The page only reads; it binds 127.0.0.1 unless told otherwise.
+The page is read-only unless a page token is configured (``formtwin serve
+--page-token-file``, ``FORMTWIN_PAGE_TOKEN``): every state-changing request (acknowledging
+an alarm) carries it in the header ``X-Formtwin-Token`` (:func:`token_ok`). Without a token
+the page binds 127.0.0.1 only (:class:`PageServer` refuses any other address). A model
+mismatch (:mod:`formtwin.service.health`) shows as a banner in words.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import logging
 import secrets
 import threading
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +38,8 @@ from formtwin.service.store import Store
 log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).resolve().parent / "static"
+#: the request header carrying the page token (state-changing requests need it)
+TOKEN_HEADER = "x-formtwin-token"
 
 
 class LiveFeed:
@@ -62,6 +68,10 @@ class LiveFeed:
         self.counts: dict[str, int] = {"accepted": 0, "gated": 0, "rejected": 0,
                                        "redelivered": 0}
         self.reasons: dict[str, int] = {}
+        #: the model-health state for the banner (``ModelHealth.state``), if any
+        self.health_state: Callable[[], dict[str, Any]] | None = None
+        #: N of the tracker (the ESS chart's axis runs from 0 to N)
+        self.n_particles: int | None = None
 
     def seed(self, store: Store, n: int = 500) -> None:
         """Load counters and the last ``n`` points from the store (at start-up)."""
@@ -97,6 +107,9 @@ class LiveFeed:
             self._push(_point(out.message))
             if out.alarms:
                 self._push({"type": "alarms", "alarms": list(out.alarms)})
+            if out.notices:  # the model-health state changed: the banner follows
+                self._push({"type": "health", "notices": list(out.notices),
+                            "health": self._health()})
         elif out.is_error:
             self._push({"type": "rejected", "reason": out.message.get("reason"),
                         "detail": out.message.get("detail"), "part_id": out.part_id})
@@ -108,14 +121,23 @@ class LiveFeed:
         with self._lock:
             return self._n, [(k, e) for k, e in self._events if k > n]
 
+    def _health(self) -> dict[str, Any] | None:
+        try:
+            return None if self.health_state is None else self.health_state()
+        except Exception:  # the page must never break the tracking
+            log.exception("reading the model-health state failed")
+            return None
+
     def snapshot(self) -> dict[str, Any]:
         """The recent estimates as JSON-ready values (the page's first draw)."""
+        health = self._health()
         with self._lock:
             points = [e for _, e in self._events if e.get("type") == "point"]
             return {"names": list(self.names), "units": self.units, "points": points,
                     "last": self._n,
                     "epoch": self.epoch, "counts": dict(self.counts),
-                    "reasons": dict(self.reasons)}
+                    "reasons": dict(self.reasons), "health": health,
+                    "n_particles": self.n_particles}
 
 
 def _point(msg: dict[str, Any]) -> dict[str, Any]:
@@ -123,7 +145,9 @@ def _point(msg: dict[str, Any]) -> dict[str, Any]:
             "index": msg.get("index"), "mean": msg.get("mean"), "std": msg.get("std"),
             "angles_mean": msg.get("angles_mean"), "angles_std": msg.get("angles_std"),
             "measured_angles": msg.get("measured_angles_deg"), "ess": msg.get("ess"),
-            "collapsed": msg.get("collapsed"), "monitoring": msg.get("monitoring")}
+            "collapsed": msg.get("collapsed"), "monitoring": msg.get("monitoring"),
+            "health": msg.get("health"), "fit": msg.get("fit"),
+            "model_health": msg.get("model_health")}
 
 
 def create_app(feed: LiveFeed, poll_s: float = 0.1) -> FastAPI:
@@ -182,6 +206,34 @@ def create_app(feed: LiveFeed, poll_s: float = 0.1) -> FastAPI:
     return app
 
 
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is a loopback address or ``localhost``."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def token_ok(request: Request, token: str) -> JSONResponse | None:
+    """None if ``request`` may change state (header ``X-Formtwin-Token`` equal to the
+    configured ``token``), else the 403 answer: the page is read-only without a configured
+    token, and a wrong or missing token is refused."""
+    import hmac
+
+    if not token:
+        return JSONResponse({"error": "the page is read-only: start formtwin serve with "
+                             "--page-token-file or FORMTWIN_PAGE_TOKEN to act from it"},
+                            status_code=403)
+    given = request.headers.get(TOKEN_HEADER, "")
+    if not hmac.compare_digest(given.encode(), token.encode()):
+        return JSONResponse({"error": "page token missing or wrong"}, status_code=403)
+    return None
+
+
 class PageServer:
     """Run the page with uvicorn in a background thread.
 
@@ -189,14 +241,22 @@ class PageServer:
     ----------
     feed : LiveFeed
     host : str
-        Bind address; 127.0.0.1 by default (serve elsewhere only when told).
+        Bind address; 127.0.0.1 by default. Any other address needs ``token``.
     port : int
         TCP port (0 picks a free one; see :attr:`url` after :meth:`start`).
+    token : str
+        The page token configured for state-changing actions (empty: the page is
+        read-only, and only 127.0.0.1 is served).
     """
 
-    def __init__(self, feed: LiveFeed, host: str = "127.0.0.1", port: int = 8765) -> None:
+    def __init__(self, feed: LiveFeed, host: str = "127.0.0.1", port: int = 8765,
+                 token: str = "") -> None:
         import uvicorn
 
+        if not token and not is_loopback(host):
+            raise ValueError(f"the live page binds {host!r} only with a page token "
+                             "(--page-token-file or FORMTWIN_PAGE_TOKEN): without one it "
+                             "serves 127.0.0.1 alone")
         self.app = create_app(feed)
         self._server = uvicorn.Server(uvicorn.Config(
             self.app, host=host, port=port, log_level="warning", access_log=False,

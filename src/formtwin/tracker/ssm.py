@@ -189,6 +189,11 @@ class BendingSSM:
         self._last["r"] = np.concatenate([p[1] for p in parts])
         return np.concatenate([p[0] for p in parts])
 
+    def residuals(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        """Residuals ``obs - model`` (N, n_t) N of curve ``y`` for particles ``x``, as the
+        likelihood compares them (does not touch :meth:`last_residuals`)."""
+        return self._loglik(x, y)[1]
+
     def last_residuals(self) -> FloatArray:
         """Residuals (N, n_t) N of the curve of the last :meth:`loglik` call: ``obs - model``
         as the likelihood compares them (the goodness of fit, :mod:`formtwin.tracker.fit`)."""

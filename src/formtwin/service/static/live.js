@@ -22,7 +22,8 @@
     const series = [{label: "product"}].concat(opts.series);
     const plot = new uPlot({
       width: Math.max(280, box.clientWidth - 10), height: 150, series: series, bands: opts.bands || [],
-      legend: {show: false}, scales: {x: {time: false}},
+      legend: {show: false},
+      scales: {x: {time: false}, y: opts.yRange ? {range: opts.yRange} : {}},
       axes: [{size: 24}, {size: 62}],
     }, opts.series.map(() => []).concat([[]]), box);
     const c = {key: key, plot: plot, data: [[]].concat(opts.series.map(() => [])),
@@ -45,7 +46,7 @@
     return (a !== 0 && (a < 1e-3 || a >= 1e5)) ? v.toExponential(3) : v.toPrecision(4);
   }
 
-  function build(names, units) {
+  function build(names, units, nParticles) {
     el("grid").innerHTML = "";
     charts.length = 0;
     names.forEach((name) => {
@@ -72,9 +73,13 @@
         },
       });
     });
-    makeChart("effective sample size", "ess", {
+    // a fixed axis 0 .. N: an ESS of 1 of 500 must look like one, not like a flat "1, 1, 1"
+    makeChart("effective sample size" + (nParticles ? " (of N = " + nParticles + ")" : ""),
+              "ess", {
       series: [{label: "ESS", stroke: "#2a7a2a", width: 1.5, points: {show: false}}],
+      yRange: nParticles ? [0, nParticles] : null,
       extract: (p) => [p.ess],
+      label: (ys) => fmt(ys[0]),
     });
   }
 
@@ -157,6 +162,41 @@
     });
   }
 
+  // model health: a banner in words while the model does not explain the curves
+  function showHealth(h) {
+    const banner = el("banner");
+    const mismatch = !!h && h.state === "model_mismatch";
+    document.body.classList.toggle("mismatch", mismatch);
+    document.body.dataset.health = mismatch ? "model_mismatch" : "ok";
+    if (!mismatch) { banner.hidden = true; banner.innerHTML = ""; return; }
+    const ep = h.episode || {};
+    banner.innerHTML = "";
+    const t = document.createElement("h2");
+    t.textContent = "Model mismatch" + (ep.opened_seq ? " since product " + ep.opened_seq : "") +
+      ": the model does not explain the force curves. The estimates below are not " +
+      "supported by the data (marked model_mismatch); do not use them.";
+    banner.appendChild(t);
+    [["Expected", ep.expected], ["Seen", ep.seen]].forEach(([k, v]) => {
+      if (!v) return;
+      const d = document.createElement("div");
+      d.textContent = k + ": " + v + ".";
+      banner.appendChild(d);
+    });
+    if (ep.likely_causes) {
+      const d = document.createElement("div");
+      d.textContent = "Likely causes:";
+      const ul = document.createElement("ul");
+      ep.likely_causes.forEach((c) => {
+        const li = document.createElement("li");
+        li.textContent = c;
+        ul.appendChild(li);
+      });
+      d.appendChild(ul);
+      banner.appendChild(d);
+    }
+    banner.hidden = false;
+  }
+
   function addPoint(p) {
     const x = p.seq !== null && p.seq !== undefined ? p.seq : nPoints;
     charts.forEach((c) => {
@@ -203,7 +243,8 @@
     Promise.all([fetch("/api/state").then((r) => r.json()),
                  fetch("/api/monitor").then((r) => r.ok ? r.json() : null)]).then(([st, mon]) => {
       nPoints = 0;
-      build(st.names, st.units);
+      build(st.names, st.units, st.n_particles);
+      showHealth(st.health);
       buildMonitor(mon);
       if (mon) loadAlarms();
       st.points.forEach(addPoint);
@@ -222,6 +263,7 @@
         }
         if (e.type === "point") { addPoint(e); schedule(); }
         if (e.type === "alarms") e.alarms.forEach(showAlarm);
+        if (e.type === "health") showHealth(e.health);
         if (e.type === "ack") showAlarm(e.alarm);
         showCounts(e.counts, e.reasons);
       };
