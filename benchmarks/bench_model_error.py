@@ -1,0 +1,146 @@
+"""Benchmark: estimates that stay honest under model error (issue 11).
+
+On the embedded default (bundled physics DOE, its metamodel with the statistics of its
+5-fold held-out residuals) and the full study's pseudo-data (``--out``, default
+``benchmarks/.cache/study``: 5 datasets x 1000 products), N = 500:
+
+1. the full default study (series 1-6 x 5 datasets x 5 repetitions with the calibrated
+   likelihood, plus 1 repetition per dataset with the paper's): ``study_s`` (its filter
+   runs, metrics and report, pseudo-data apart; from the cache if already run, see
+   ``from_cache``);
+2. a second repetition of the paper's likelihood for series 1, 5, 6, and series 8 (learned
+   mu, conjugate) for 2 repetitions, in the same folder.
+
+Figures (repetitions 0-1 of every dataset for both likelihoods, identical data):
+
+* ``s1/s5/s6_state_ratio``: mean state nRMSE (7 variables), calibrated / paper;
+* ``min_skill``: smallest skill over the 7 states and series 1, 3, 4, 5, 6 (calibrated,
+  all 5 repetitions);
+* ``coverage90_min/max``: extremes of the coverage of the 90 % intervals over the 7 states
+  and 2 angles, series 1, 3, 5, 6 (calibrated, mean over datasets and repetitions);
+* ``s8_vs_s6``: state nRMSE of series 8 (learned mu) / series 6 (assumed mu), calibrated.
+
+Targets (issue 11): s5 <= 0.7, s6 <= 0.8, s1 <= 1.05, min_skill >= 0, 0.80 <= coverage90_min,
+coverage90_max <= 0.97, s8_vs_s6 <= 0.85, study_s <= 600.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formtwin._bench import write_result
+from formtwin.cli import study
+from formtwin.defaults import default_metamodel, physics_model
+from formtwin.study.run import StudyResult, StudySettings, run_study
+
+TARGETS = {"s1_state_ratio": ("<=", 1.05), "s5_state_ratio": ("<=", 0.7),
+           "s6_state_ratio": ("<=", 0.8), "min_skill": (">=", 0.0),
+           "coverage90_min": (">=", 0.80), "coverage90_max": ("<=", 0.97),
+           "s8_vs_s6": ("<=", 0.85), "study_s": ("<=", 600.0)}
+
+
+def _mean(a: np.ndarray, axis: Any = None) -> Any:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(a, axis=axis)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", default="benchmarks/.cache/study")
+    parser.add_argument("--fresh-runs", action="store_true",
+                        help="delete cached filter runs first (keep the pseudo-data)")
+    args = parser.parse_args()
+    out = Path(args.out)
+    if args.fresh_runs:
+        for f in (out / "runs").glob("*.npz"):
+            f.unlink()
+    load0 = os.getloadavg()[0]
+    study.run(study.build_namespace(out=str(out), physics="bending"))
+    summary = json.loads((out / "results.json").read_text())
+    timings = summary["timings"]
+    mm, mm_path = default_metamodel(out / "model", "bending")
+    physics = physics_model("bending", mm.spec)
+    base = StudySettings()
+    t0 = time.perf_counter()
+    paper = run_study(dataclasses.replace(base, series=(1, 5, 6), n_repetitions=2,
+                                          paper_repetitions=2), out, mm, mm_path, physics)
+    learned = run_study(dataclasses.replace(base, series=(6, 8), n_repetitions=2,
+                                            paper_repetitions=0), out, mm, mm_path, physics)
+    full = run_study(base, out, mm, mm_path, physics)  # cached: the default study's numbers
+    extra_s = time.perf_counter() - t0
+    nx = len(mm.spec.state)
+    n_aug = len(mm.spec.augmented)
+
+    def state(r: StudyResult, s: int, paper_lik: bool = False) -> float:
+        a = r.paper["nrmse"] if paper_lik else r.nrmse
+        return float(_mean(a[s - 1, :, :2, :nx]))
+
+    skill = {s: _mean(full.skill[s - 1], axis=(0, 1)) for s in (1, 3, 4, 5, 6)}
+    cov = {s: _mean(full.coverage[s - 1], axis=(0, 1)) for s in (1, 3, 5, 6)}
+    cov_sel = np.concatenate([np.r_[c[:nx], c[n_aug:n_aug + 2]] for c in cov.values()])
+    figures: dict[str, Any] = {
+        "s1_state_ratio": round(state(paper, 1) / state(paper, 1, True), 4),
+        "s5_state_ratio": round(state(paper, 5) / state(paper, 5, True), 4),
+        "s6_state_ratio": round(state(paper, 6) / state(paper, 6, True), 4),
+        "min_skill": round(float(min(np.nanmin(v[:nx]) for v in skill.values())), 4),
+        "coverage90_min": round(float(np.nanmin(cov_sel)), 4),
+        "coverage90_max": round(float(np.nanmax(cov_sel)), 4),
+        "s8_vs_s6": round(state(learned, 8) / state(learned, 6), 4),
+        "study_s": round(timings["total_s"] - timings["pseudo_data_s"], 1),
+        "study_from_cache": bool(timings.get("cached", 0.0)),
+        "study_filter_runs": int(timings["filter_runs_computed"]),
+        "extra_runs_s": round(extra_s, 1),
+        "state_nrmse": {
+            "calibrated": {f"series{s}": round(state(paper, s), 4) for s in (1, 5, 6)},
+            "paper": {f"series{s}": round(state(paper, s, True), 4) for s in (1, 5, 6)},
+            "series8_learned_mu": round(state(learned, 8), 4)},
+        "skill_state": {f"series{s}": [round(float(v), 3) for v in skill[s][:nx]]
+                        for s in skill},
+        "coverage_states_angles": {f"series{s}": [round(float(v), 3) for v in
+                                                  np.r_[c[:nx], c[n_aug:n_aug + 2]]]
+                                   for s, c in cov.items()},
+        "coverage_paper_states_angles": {
+            f"series{s}": [round(float(v), 3) for v in np.r_[
+                _mean(paper.paper["coverage"][s - 1], axis=(0, 1))[:nx],
+                _mean(paper.paper["coverage"][s - 1], axis=(0, 1))[n_aug:n_aug + 2]]]
+            for s in (1, 5, 6)},
+        "mean_ess": {"calibrated": {f"series{s}": round(float(_mean(full.ess[s - 1])), 1)
+                                    for s in full.settings.series},
+                     "paper": {f"series{s}": round(float(_mean(paper.paper["ess"][s - 1])), 1)
+                               for s in (1, 5, 6)}},
+        "log_evidence": {
+            "calibrated": {f"series{s}": round(float(_mean(paper.log_evidence[s - 1, :, :2])))
+                           for s in (1, 5, 6)},
+            "paper": {f"series{s}": round(float(_mean(paper.paper["log_evidence"][s - 1])))
+                      for s in (1, 5, 6)}},
+        "load_average_1min_start": round(load0, 2),
+        "load_average_1min_end": round(os.getloadavg()[0], 2),
+        "settings": {"particles": base.tracker.n_particles, "products": base.n_products,
+                     "window": base.window, "datasets": base.n_realisations,
+                     "ratio_repetitions": 2, "metamodel": str(mm_path),
+                     "residuals_k": None if mm.residuals is None else mm.residuals.k,
+                     "residuals_n": None if mm.residuals is None else mm.residuals.n},
+    }
+    met = {}
+    for key, (op, target) in TARGETS.items():
+        v = figures[key]
+        met[key] = bool(v <= target if op == "<=" else v >= target)
+    figures["targets"] = {k: f"{op} {t}" for k, (op, t) in TARGETS.items()}
+    figures["targets_met"] = met
+    write_result("model_error", figures, model={
+        "name": "metamodel of the bundled physics DOE (with 5-fold residual statistics)",
+        "physics_version": mm.model_version, "metamodel_file": str(mm_path)})
+
+
+if __name__ == "__main__":
+    main()
