@@ -300,6 +300,21 @@ class MeasurementModel:
             out = self._lognorm + const - 0.5 * (nu + p) * np.log1p(m2 / nu)
         return np.where(np.isnan(out), -np.inf, out)
 
+    def loglik_scaled(self, curves_model: FloatArray, curves_obs: FloatArray,
+                      scales: FloatArray) -> FloatArray:
+        """Gaussian log-likelihoods (N, n_c) under ``c Sigma`` for each scale ``c`` (n_c,).
+
+        ``log N(d; 0, c Sigma) = log N(d; 0, Sigma) - n_t/2 log c - (1/c - 1) m2 / 2``
+        with ``m2`` the squared Mahalanobis distance under ``Sigma``.
+        """
+        if not math.isinf(self.nu):
+            raise ValueError("a learned likelihood scale needs the Gaussian (nu = inf)")
+        c = np.asarray(scales, dtype=np.float64)
+        m2 = self.mahalanobis2(curves_model, curves_obs)[:, None]
+        out: FloatArray = (self._lognorm - 0.5 * self.n_t * np.log(c)
+                           - 0.5 * m2 / c)
+        return np.where(np.isnan(out), -np.inf, out)
+
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> Path:
         """Write an ``.npz`` (no pickle) and return its path."""

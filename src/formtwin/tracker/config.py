@@ -20,6 +20,9 @@ COMPARE = ("model", "measurement")
 #: residual covariance K_res to fraction^2 K_MC; "paper" is eq. 12 alone
 LIKELIHOODS = ("calibrated", "paper")
 
+#: the grid of factors on the likelihood covariance learned with ``learn_scale``
+SCALES = tuple(float(2.0**k) for k in np.arange(-3.0, 3.5, 0.5))
+
 
 def _help(text: str, *flags: str) -> dict[str, Any]:
     """Field metadata: help text and extra command-line flags."""
@@ -64,6 +67,9 @@ class TrackerConfig:
         (paper: 1/2, i.e. ``K_MC / 4``).
     sensor_noise : std of the force sensor, N (a floor of 1 % of the largest principal std
         applies anyway, see :mod:`formtwin.measurement`).
+    learn_scale : learn a factor ``c`` on the likelihood's covariance online: a posterior
+        over :data:`SCALES`, updated by each product's evidence under each ``c``; the
+        particles are weighted by the posterior mixture. Gaussian likelihood only.
     """
 
     n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))
@@ -97,6 +103,8 @@ class TrackerConfig:
     fraction: float = field(default=0.5, metadata=_help(
         "measurement std as a fraction of the Monte-Carlo std (paper: 0.5)"))
     sensor_noise: float = field(default=0.0, metadata=_help("force sensor std, N"))
+    learn_scale: bool = field(default=False, metadata=_help(
+        "learn a factor on the likelihood covariance online"))
 
     def __post_init__(self) -> None:
         if self.angle_particles is not None and self.angle_particles < 1:
@@ -121,6 +129,8 @@ class TrackerConfig:
             raise ValueError(f"alpha = {self.alpha}, expected >= 0")
         if not self.nu > 0:
             raise ValueError(f"nu = {self.nu}, expected > 0 (inf for Gaussian)")
+        if self.learn_scale and not math.isinf(self.nu):
+            raise ValueError("learn_scale needs the Gaussian likelihood (nu = inf)")
 
     def to_dict(self) -> dict[str, Any]:
         """The settings as JSON-ready values (``nu = inf`` as ``None``)."""

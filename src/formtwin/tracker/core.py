@@ -33,7 +33,7 @@ from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.tracker import state as _state
-from formtwin.tracker.config import TrackerConfig
+from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
 from formtwin.tracker.ssm import BendingSSM
 
@@ -109,6 +109,14 @@ class Tracker:
         self._fingerprint: str | None = None
 
     @property
+    def scale(self) -> float | None:
+        """Posterior mean of the learned factor on the likelihood covariance
+        (``learn_scale``), else ``None``."""
+        if not self.config.learn_scale:
+            return None
+        return float(np.exp(self.ssm.scale_logpost) @ np.array(SCALES))
+
+    @property
     def n_steps(self) -> int:
         """Number of products assimilated so far."""
         return self.filter.t
@@ -129,12 +137,18 @@ class Tracker:
         y = validate_curve(curve, self.spec.n_t)
         f = self.filter
         saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
+        scale = self.ssm.scale_logpost if self.config.learn_scale else None
         try:
+            logw_prev = f.logw
             s = f.step(y)
+            if scale is not None:
+                self.ssm.update_scale(logw_prev)
             return self._estimate(s, np.exp(saved[1]))
         except BaseException:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
             self.rng.bit_generator.state = saved[3]
+            if scale is not None:
+                self.ssm.set_scale_logpost(scale)
             raise
 
     def _estimate(self, s: Step, v: FloatArray) -> Estimate:
@@ -190,10 +204,12 @@ class Tracker:
             self._fingerprint = _state.fingerprint(self.measurement)
         f = self.filter
         x = np.empty((0, self.ssm.n_aug)) if f.x is None else f.x
+        model = {"scale_logpost": [float(v) for v in self.ssm.scale_logpost]} \
+            if self.config.learn_scale else {}
         return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
                                    t=f.t, rng=dict(self.rng.bit_generator.state),
                                    config=self._config_dict, names=self.names,
-                                   measurement=self._fingerprint)
+                                   measurement=self._fingerprint, model=model)
 
     def set_state(self, s: _state.TrackerState, where: str = "state") -> None:
         """Continue from ``s`` (made by a tracker with the same config and names)."""
@@ -206,6 +222,8 @@ class Tracker:
         if s.measurement != (self._fingerprint or _state.fingerprint(self.measurement)):
             log.warning("%s: restoring with a different measurement model than saved", where)
         self.rng.bit_generator.state = s.rng
+        if self.config.learn_scale and "scale_logpost" in s.model:
+            self.ssm.set_scale_logpost(np.array(s.model["scale_logpost"], dtype=np.float64))
         self.filter.x = s.particles if s.t > 0 and s.particles.size else None
         self.filter.logw = s.logw
         self.filter.t = s.t

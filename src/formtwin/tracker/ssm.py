@@ -22,6 +22,10 @@ with mu integrated out (:func:`~formtwin.evolution.mu_predictive`), then ``(m, P
 the exact update of that step (:func:`~formtwin.evolution.mu_update`). No jitter: nothing
 is forgotten, and the posterior of mu is the mixture of the particles' Normals.
 
+With ``learn_scale=True`` the likelihood is a mixture over factors ``c`` on its covariance
+(:data:`~formtwin.tracker.config.SCALES`) weighted by their posterior, which
+:meth:`BendingSSM.update_scale` moves after each product by the evidence under each ``c``.
+
 With ``estimate_deviation=False`` (paper series 1, 2, 4, 5) ``theta_d`` is fixed at 0
 (``g`` is the identity) and never jittered.
 """
@@ -32,13 +36,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import logsumexp
 
 from formtwin.deviation import DeviationModel
 from formtwin.evolution import evolve, jitter, mu_predictive, mu_update, reflect, stationary
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
-from formtwin.tracker.config import TrackerConfig
+from formtwin.tracker.config import SCALES, TrackerConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -76,6 +81,8 @@ class BendingSSM:
     angle_error_var: FloatArray = field(init=False, repr=False)
     # residuals (N, n_t) of the last loglik call (see last_residuals)
     _last: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
+    # log-posterior of the likelihood scale (learn_scale)
+    _scale: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
@@ -184,10 +191,39 @@ class BendingSSM:
         # in blocks of particles: bounds the (N, n_t) temporaries of model and g^-1
         parts = [self._loglik(x[i: i + CHUNK], y) for i in range(0, x.shape[0], CHUNK)]
         if len(parts) == 1:
-            self._last["r"] = parts[0][1]
-            return parts[0][0]
-        self._last["r"] = np.concatenate([p[1] for p in parts])
-        return np.concatenate([p[0] for p in parts])
+            self._last["r"], ll = parts[0][1], parts[0][0]
+        else:
+            self._last["r"] = np.concatenate([p[1] for p in parts])
+            ll = np.concatenate([p[0] for p in parts])
+        if not self.config.learn_scale:
+            return ll
+        self._last["scaled"] = ll  # (N, n_scales): the mixture over the scale posterior
+        out: FloatArray = logsumexp(ll + self.scale_logpost, axis=1)
+        return out
+
+    @property
+    def scale_logpost(self) -> FloatArray:
+        """Log-posterior (n_scales,) of the factor on the likelihood covariance over
+        :data:`~formtwin.tracker.config.SCALES` (``learn_scale``; uniform prior)."""
+        if "logp" not in self._scale:
+            self._scale["logp"] = np.full(len(SCALES), -np.log(len(SCALES)))
+        return self._scale["logp"]
+
+    def set_scale_logpost(self, value: FloatArray) -> None:
+        """Replace the log-posterior of the scale (restoring a saved state)."""
+        self._scale["logp"] = np.asarray(value, dtype=np.float64)
+
+    def update_scale(self, logw_prev: FloatArray) -> None:
+        """Bayes' rule for the scale after a step whose predicted particles had normalised
+        log-weights ``logw_prev`` (N,): ``p(c | Z_i) ~ p(c | Z_i-1) p(z_i | Z_i-1, c)``,
+        the evidence under each ``c`` estimated with the same particles."""
+        if "scaled" not in self._last:
+            return
+        ev = logsumexp(logw_prev[:, None] + self._last.pop("scaled"), axis=0)
+        if not np.any(np.isfinite(ev)):
+            return  # a collapsed step says nothing about the scale
+        logp = self.scale_logpost + np.where(np.isfinite(ev), ev, -np.inf)
+        self.set_scale_logpost(logp - logsumexp(logp))
 
     def residuals(self, x: FloatArray, y: FloatArray) -> FloatArray:
         """Residuals ``obs - model`` (N, n_t) N of curve ``y`` for particles ``x``, as the
@@ -241,7 +277,9 @@ class BendingSSM:
                 curves = self.deviation.apply(curves, td)
             else:
                 obs = self.deviation.invert(y, td)
-        return self.measurement.loglik(curves, obs), np.atleast_2d(obs - curves)
+        ll = self.measurement.loglik_scaled(curves, obs, np.array(SCALES)) \
+            if self.config.learn_scale else self.measurement.loglik(curves, obs)
+        return ll, np.atleast_2d(obs - curves)
 
 
 def residual_covariance(model: ProcessModel) -> FloatArray | None:

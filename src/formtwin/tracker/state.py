@@ -16,7 +16,7 @@ import hashlib
 import io
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +46,8 @@ class TrackerState:
     config : the :class:`~formtwin.tracker.TrackerConfig` as a dict (``to_dict``).
     names : the estimated quantities (the spec's augmented names).
     measurement : fingerprint of the measurement model (:func:`fingerprint`).
+    model : small learned state of the model beyond the particles, JSON numbers (the
+        log-posterior of the likelihood scale with ``learn_scale``); empty otherwise.
     """
 
     particles: FloatArray
@@ -55,6 +57,7 @@ class TrackerState:
     config: dict[str, Any]
     names: tuple[str, ...]
     measurement: str
+    model: dict[str, list[float]] = field(default_factory=dict)
 
 
 def fingerprint(m: MeasurementModel) -> str:
@@ -68,7 +71,8 @@ def fingerprint(m: MeasurementModel) -> str:
 def _header(s: TrackerState) -> dict[str, Any]:
     return {"format": FORMAT, "t": s.t, "rng": s.rng, "config": s.config,
             "names": list(s.names), "measurement": s.measurement,
-            "shape": list(s.particles.shape), "n_logw": int(s.logw.size)}
+            "shape": list(s.particles.shape), "n_logw": int(s.logw.size),
+            "model": s.model}
 
 
 def encode(s: TrackerState) -> bytes:
@@ -101,7 +105,8 @@ def decode(data: bytes) -> TrackerState:
     w = np.frombuffer(data, dtype="<f8", count=n_w, offset=start + 8 * n_x)
     return TrackerState(particles=x.astype(np.float64), logw=w.astype(np.float64),
                         t=int(head["t"]), rng=head["rng"], config=head["config"],
-                        names=tuple(head["names"]), measurement=str(head["measurement"]))
+                        names=tuple(head["names"]), measurement=str(head["measurement"]),
+                        model=head.get("model", {}))
 
 
 def save_npz(s: TrackerState, path: str | Path) -> Path:
@@ -112,7 +117,8 @@ def save_npz(s: TrackerState, path: str | Path) -> Path:
     np.savez(buf, format=np.array(FORMAT), particles=s.particles, logw=s.logw,
              t=np.array(s.t), rng=np.array(json.dumps(s.rng)),
              config=np.array(json.dumps(s.config, sort_keys=True)),
-             names=np.array(s.names), measurement=np.array(s.measurement))
+             names=np.array(s.names), measurement=np.array(s.measurement),
+             model=np.array(json.dumps(s.model)))
     tmp.write_bytes(buf.getvalue())
     os.replace(tmp, p)
     return p
@@ -128,4 +134,5 @@ def load_npz(path: str | Path) -> TrackerState:
                             rng=json.loads(str(z["rng"])),
                             config=json.loads(str(z["config"])),
                             names=tuple(str(n) for n in z["names"]),
-                            measurement=str(z["measurement"]))
+                            measurement=str(z["measurement"]),
+                            model=json.loads(str(z["model"])) if "model" in z else {})
