@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Any
 
 
@@ -83,6 +84,7 @@ def _fit(args: argparse.Namespace) -> int:
     if args.cv_folds:
         calibrate(mm, data, k=args.cv_folds)
         print(f"stored the statistics of {args.cv_folds}-fold held-out residuals")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     print(f"-> {mm.save(args.out)}")
     return 0
 

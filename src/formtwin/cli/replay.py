@@ -30,6 +30,9 @@ def register(sub: Any) -> None:
     p.add_argument("--write", default="out/stream.npz",
                    help="where --synthetic writes its stream (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of --synthetic")
+    p.add_argument("--noise", type=float, default=2.0, metavar="N",
+                   help="with --synthetic: std of the Gaussian sensor noise, N; give the "
+                   "service the same (serve --sensor-noise) (default: %(default)s)")
     p.add_argument("--source", default="gFE",
                    help="NetCDF files with a source dimension: which source (default: gFE)")
     add_broker_options(p)
@@ -87,7 +90,8 @@ def _replay(args: argparse.Namespace) -> int:
     if args.synthetic is not None:
         model, what = synthetic_model(args.metamodel, args.analytic, args.draw_from)
         print(f"drawing {args.synthetic} products from {what}", flush=True)
-        path = make_stream(args.write, args.synthetic, seed=args.seed, model=model)
+        path = make_stream(args.write, args.synthetic, seed=args.seed, model=model,
+                           noise_N=args.noise)
         print(f"synthetic stream of {args.synthetic} products -> {path}")
     elif args.file:
         if args.metamodel or args.analytic:

@@ -64,7 +64,8 @@ NOTICES: dict[str, str] = {
 
 LIKELY_CAUSES = (
     "a metamodel of another press, tool or process than this one (check --metamodel)",
-    "a faulty, unplugged or recalibrated force sensor",
+    "a faulty, unplugged or recalibrated force sensor, or one noisier than the likelihood "
+    "assumes (serve --sensor-noise, its std in N)",
     "force in other units than N, or a time window other than the spec's",
 )
 

@@ -4,7 +4,8 @@ Run as ``python -m formtwin.service.livedemo [--rate R] [--n N] [--duration S]``
 
 1. starts mosquitto on 127.0.0.1 (a free port, temporary config; Debian package
    ``mosquitto``),
-2. writes a synthetic stream of ``N`` products from the analytic stand-in,
+2. writes a synthetic stream of ``N`` products from the analytic stand-in (2 N sensor
+   noise, which the service's likelihood is told with ``--sensor-noise 2``),
 3. starts ``formtwin serve`` (store in ``out/live-demo/``) and prints the page's address,
 4. replays the stream at ``R`` strokes per second,
 5. on Ctrl-C, at the end of the stream or after ``--duration`` seconds stops everything and
@@ -93,7 +94,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         serve_log = out / "serve.log"
         with open(serve_log, "wb") as fh:
             procs.append(subprocess.Popen(
-                [*_CLI, "serve", "--analytic", "--broker", url, "--store", str(store),
+                [*_CLI, "serve", "--analytic", "--sensor-noise", "2", "--broker", url,
+                 "--store", str(store),
                  "--particles", str(args.particles), "--http-port", str(args.http_port)],
                 stdout=fh, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1")))
         page = _wait_line(serve_log, "live page:", procs[-1], 120).split("live page:")[1].strip()
