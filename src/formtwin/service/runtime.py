@@ -137,7 +137,8 @@ def explainer(tracker: Tracker) -> Callable[[FloatArray, FloatArray | None], flo
     q = float(chi2.ppf(0.999, tracker.measurement.n_t))
 
     def explain(curve: FloatArray, mean: FloatArray | None) -> float:
-        return best_distance2(tracker.ssm, curve, default_starts(tracker.ssm, mean), target=q)
+        return best_distance2(tracker.ssm, curve, default_starts(tracker.ssm, mean), target=q,
+                              scale=tracker.scale or 1.0)
 
     return explain
 

@@ -143,7 +143,8 @@ class Tracker:
             s = f.step(y)
             if scale is not None:
                 self.ssm.update_scale(logw_prev)
-            return self._estimate(s, np.exp(saved[1]))
+            c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
+            return self._estimate(s, np.exp(saved[1]), c)
         except BaseException:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
             self.rng.bit_generator.state = saved[3]
@@ -151,8 +152,9 @@ class Tracker:
                 self.ssm.set_scale_logpost(scale)
             raise
 
-    def _estimate(self, s: Step, v: FloatArray) -> Estimate:
-        """The estimate of step ``s``; ``v`` (N,) the predictive weights of its particles."""
+    def _estimate(self, s: Step, v: FloatArray, scale: float = 1.0) -> Estimate:
+        """The estimate of step ``s``; ``v`` (N,) the predictive weights of its particles,
+        ``scale`` the predictive mean of the likelihood's covariance factor."""
         m = self.config.angle_particles
         if m is None or m >= s.x.shape[0]:
             xa, wa = s.x, s.w
@@ -171,7 +173,7 @@ class Tracker:
         mean, std, na = s.mean(), s.std(), len(self.names)
         mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None
         fit = assess(self.ssm.last_residuals(), v, s.ess, self.measurement, s.collapsed,
-                     self.fit_rule)
+                     self.fit_rule, scale)
         return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
                         std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
                         collapsed=s.collapsed, loglik=s.loglik,

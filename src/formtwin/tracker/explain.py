@@ -60,7 +60,7 @@ def default_starts(ssm: BendingSSM, mean: FloatArray | None = None, n_box: int =
 
 
 def best_distance2(ssm: BendingSSM, y: FloatArray, starts: FloatArray,
-                   target: float = 0.0, max_nfev: int = 40) -> float:
+                   target: float = 0.0, max_nfev: int = 40, scale: float = 1.0) -> float:
     """Smallest squared Mahalanobis distance of curve ``y`` (n_t,) N over the box.
 
     Parameters
@@ -70,13 +70,14 @@ def best_distance2(ssm: BendingSSM, y: FloatArray, starts: FloatArray,
     starts : (S, 18) starting points, tried in order.
     target : stop as soon as a start reaches a distance at or below it.
     max_nfev : function evaluations per start.
+    scale : factor on the likelihood's covariance (the learned scale; else 1).
     """
     spec = ssm.spec
     lo, hi = spec.augmented.lo.copy(), spec.augmented.hi.copy()
     k = spec.n_inputs if not ssm.config.estimate_deviation else lo.size
     lo, hi = lo[:k], hi[:k]
     span = hi - lo
-    chol = cholesky(ssm.measurement.covariance(), lower=True)
+    chol = cholesky(scale * ssm.measurement.covariance(), lower=True)
     y = np.asarray(y, dtype=np.float64)
 
     def whitened(P: FloatArray) -> FloatArray:

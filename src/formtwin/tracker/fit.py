@@ -112,7 +112,7 @@ def distance_logsf(m2: FloatArray, measurement: MeasurementModel) -> FloatArray:
 
 def assess(residuals: FloatArray, v: FloatArray, ess: float,
            measurement: MeasurementModel, collapsed: bool = False,
-           rule: FitRule | None = None) -> Fit:
+           rule: FitRule | None = None, scale: float = 1.0) -> Fit:
     """The goodness of fit of one step.
 
     Parameters
@@ -123,6 +123,7 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     measurement : the likelihood (gives ``Sigma``, ``n_t`` and ``nu``).
     collapsed : the step collapsed (no particle explained the curve).
     rule : thresholds; default :class:`FitRule()`.
+    scale : factor on ``Sigma`` (the learned likelihood scale, ``learn_scale``; else 1).
     """
     rule = FitRule() if rule is None else rule
     r = np.asarray(residuals, dtype=np.float64)
@@ -137,7 +138,7 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     stride = max(1, -(-r.shape[0] // MAX_SPREAD))
     rs, vs = r[::stride], v[::stride]
     rc = (rs - r_bar) * np.sqrt(vs / vs.sum())[:, None]
-    cov = measurement.covariance() + rc.T @ rc
+    cov = scale * measurement.covariance() + rc.T @ rc
     chol = cho_factor(cov, lower=True, check_finite=False)
     d2 = float(r_bar @ cho_solve(chol, r_bar, check_finite=False))
     logp = min(float(distance_logsf(np.array([d2]), measurement)[0]), 0.0)
