@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import urllib.error
 import urllib.request
@@ -106,6 +107,27 @@ def test_mismatch_banner_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> No
         collector.stop()
         proc.terminate()
         proc.wait(20)
+
+
+def test_serve_check_exits_nonzero_with_the_message(mosquitto: Mosquitto,  # noqa: F811
+                                                   tmp_path: Path) -> None:
+    """`serve --check 20` on a model that does not explain the press: exit 1, the message."""
+    log = tmp_path / "check.log"
+    proc = start_serve(serve_cmd(mosquitto, tmp_path / "c.sqlite", "--particles", "100",
+                                 "--n-mc", "1000", "--no-monitor", "--no-page", "--check",
+                                 "20"), log)
+    try:
+        wait_serving(proc, log)
+        publish_strokes(physics_strokes(20), BrokerConfig.from_url(mosquitto.url), TOPIC)
+        code = proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = log.read_text()
+    assert code == 1, text[-2000:]
+    found = re.search(r"model_mismatch after (\d+) products: the model does not explain the "
+                      r"force curves", text)
+    assert found and int(found.group(1)) <= 10, text[-2000:]
 
 
 def test_page_refuses_other_addresses_without_a_token(mosquitto: Mosquitto,  # noqa: F811
