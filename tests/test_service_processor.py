@@ -172,6 +172,8 @@ def test_export_parquet_and_csv(tmp_path: Path, payloads: list[bytes]) -> None:
     assert np.allclose(t.column("mean_yield_stress").to_pylist(),
                        [m["mean"]["yield_stress"] for m in msgs])  # type: ignore[index]
     assert "f100" in t.column_names and "angle2_measured" in t.column_names
+    assert t.column("health").to_pylist() == [m["health"] for m in msgs]
+    assert t.column("model_mismatch").to_pylist() == [False] * 6
     path, n = export_store(tmp_path / "a.sqlite", tmp_path / "r.csv", rejections=True)
     rows = list(csv.DictReader(open(path, encoding="utf-8")))
     assert n == 1 and rows[0]["reason"] == "malformed_json"

@@ -52,6 +52,11 @@ def product_table(store: Store, curves: bool = False) -> dict[str, list[Any]]:
         put("ess", e.get("ess"))
         put("collapsed", e.get("collapsed"))
         put("loglik", e.get("loglik"))
+        fit = e.get("fit") or {}
+        put("health", e.get("health"))
+        put("fit_distance2", fit.get("distance2"))
+        put("fit_quantile", fit.get("quantile"))
+        put("model_mismatch", (e.get("flags") or {}).get("model_mismatch"))
         if curves:
             for j in range(n_t):
                 put(f"f{j}", float(r.curve[j]))
