@@ -5,8 +5,12 @@ Every estimate carries its absolute goodness of fit (``health``: ok / degraded /
 :mod:`formtwin.tracker.fit`). A single ``no_fit`` product can be a bad stroke; a run of
 them means that the model does not explain this press. :class:`ModelHealth` keeps the
 health of the last ``m`` accepted products and, when at least ``k`` of them are
-``no_fit`` (:class:`HealthRule`, defaults ``k = 5`` of ``m = 10``), opens a *model
-mismatch episode*:
+``no_fit`` (:class:`HealthRule`, defaults ``k = 5`` of ``m = 10``), asks whether the
+model could explain those curves at all (the ``explain`` check: the best fit over the
+model's whole box, :mod:`formtwin.tracker.explain`, on the last up to 3 unexplained
+curves). If it can, the *filter* is behind (its start-up, a process change, a cloud stuck
+in a wrong mode): nothing is raised, the entry says ``explained``, the count starts afresh.
+If it cannot, a *model mismatch episode* opens:
 
 * one ``model_mismatch`` message (schema ``formtwin.error/1``) on the errors topic, in
   words: what the measurement model expects, what was seen, the likely causes;
@@ -17,14 +21,16 @@ mismatch episode*:
 
 The episode closes (one ``model_fit_restored`` message) after ``m`` products in a row
 without ``no_fit``. Why 5 of 10: a model of another press fails on every product and is
-reported at the 5th; a matched model fails a product only rarely and not in runs (the
-filter's start-up and a process change give isolated failures, measured in
-``benchmarks/bench_health.py``), and 5 failures within 10 products need more than bad luck.
+reported at the 5th; on matched data ``no_fit`` products are rare, and their runs (the
+filter's start-up) are explained by the model (``benchmarks/bench_health.py``); 5 failures
+within 10 products need more than bad luck (under the model, ``P(no_fit) <= 10^-3`` per
+product).
 
 Like the charts of :mod:`formtwin.service.alarms`, the state goes into the estimate message
-before the commit (``model_health``: state, failures in the window, the event of this
-product), so it is stored in the same transaction as the product; the episodes table is
-written after the commit and completed from the stored estimates at the next start.
+before the commit (``model_health``: state, failures in the window, the window itself, the
+event of this product), so it is stored in the same transaction as the product. A restart
+takes the window from the last stored estimate; the episodes table is written after the
+commit and completed from the stored events at the next start.
 
 >>> r = HealthRule(k=2, m=3)
 >>> w = HealthWindow(r)
