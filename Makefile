@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench live-demo system-deps clean
+.PHONY: demo test lint bench live-demo system-deps fe-deps clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -25,7 +25,7 @@ lint: $(STAMP)
 	    awk '$$2 != "total" && $$1 > 400 {print "over 400 lines: " $$2 " (" $$1 ")"; bad = 1} \
 	    END {exit bad}'
 
-test: $(STAMP) lint system-deps
+test: $(STAMP) lint system-deps fe-deps
 	OMP_NUM_THREADS=1 $(BIN)/pytest
 
 # the service tests need a real mosquitto broker and a headless chromium (Debian packages)
@@ -36,6 +36,14 @@ system-deps:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
 	        apt-get install -y -qq mosquitto chromium openssl; \
 	else echo "system-deps: mosquitto/chromium missing and not root: service tests will skip"; fi
+
+# the CalculiX model and its tests need ccx (Debian package calculix-ccx, 2.20 on bookworm)
+fe-deps:
+	@if command -v ccx >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ]; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	        apt-get install -y -qq -o DPkg::Lock::Timeout=300 calculix-ccx; \
+	else echo "fe-deps: ccx missing and not root: CalculiX tests will skip"; fi
 
 live-demo: $(STAMP) system-deps
 	OMP_NUM_THREADS=1 $(BIN)/python -m formtwin.service.livedemo

@@ -1,7 +1,8 @@
 """The embedded default: process models by name, and the metamodel the demo and study use.
 
 ``physics_model("bending")`` is formtwin's corotational-beam flap-bending model,
-``physics_model("analytic")`` the closed-form stand-in. :func:`default_metamodel` loads a
+``physics_model("analytic")`` the closed-form stand-in, ``physics_model("calculix")``
+the plane-strain CalculiX model (needs ``ccx``). :func:`default_metamodel` loads a
 given metamodel file or fits one from the DOE dataset bundled with the package for that
 model (``formtwin/data/doe_<name>.h5``, made by ``formtwin doe run``), caching the fit.
 The analytic model's DOE is cheap and is made on first use instead of being bundled.
@@ -31,7 +32,7 @@ from formtwin.simulator import Simulator, SimulatorModel
 from formtwin.spec import ProcessSpec, load_spec
 
 log = logging.getLogger(__name__)
-PHYSICS = ("bending", "analytic")
+PHYSICS = ("bending", "analytic", "calculix")
 
 
 def physics_model(name: str, spec: ProcessSpec | None = None) -> Simulator:
@@ -45,6 +46,10 @@ def physics_model(name: str, spec: ProcessSpec | None = None) -> Simulator:
         from formtwin.physics.analytic import AnalyticBending
 
         return AnalyticBending(spec)
+    if name == "calculix":
+        from formtwin.physics.calculix import CalculixModel
+
+        return CalculixModel(spec)
     raise ValueError(f"physics model {name!r} unknown; known: {', '.join(PHYSICS)}")
 
 

@@ -20,8 +20,9 @@ def register(sub: Any) -> None:
     run = dsub.add_parser("run", help="run the paper's design (2^10 corners + Latin "
                           "hypercube) over a process model; resumes an interrupted run")
     run.add_argument("--out", required=True, help="dataset file (HDF5) to write or resume")
-    run.add_argument("--physics", choices=("bending", "analytic"), default="bending",
-                     help="process model (default: %(default)s)")
+    run.add_argument("--physics", choices=("bending", "analytic", "calculix"),
+                     default="bending", help="process model (default: %(default)s; "
+                     "calculix needs ccx)")
     run.add_argument("--spec", help="process spec TOML (default: the demonstrator)")
     run.add_argument("--lhs", type=int, default=6000, help="Latin-hypercube points "
                      "(default: %(default)s)")
