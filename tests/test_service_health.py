@@ -119,8 +119,17 @@ def test_mismatched_model_raises_model_mismatch_within_10_products_once(
     assert stored.estimate["flags"]["model_mismatch"] is True
     proc.close()
     proc.store.close()
+    # killed between the commit and the episodes table: the next start completes the table
+    import sqlite3
+
+    db = sqlite3.connect(path)
+    db.execute("DELETE FROM health_episodes")
+    db.commit()
+    db.close()
     # a restart keeps the episode open and says nothing again
     proc = open_processor(path, SETTINGS)
+    eps = proc.health.episodes()  # type: ignore[union-attr]
+    assert [e["opened_seq"] for e in eps] == [first] and "Likely causes" in eps[0]["detail"]
     more = [proc.handle(stroke(c, 21 + i)) for i, c in enumerate(phys[20:25])]
     assert all(not o.notices for o in more)
     assert all(o.message["flags"]["model_mismatch"] for o in more)
