@@ -160,43 +160,87 @@ def _node_surface(out: StringIO, name: str, ids: NDArray[np.int64]) -> None:
     out.write(f"*SURFACE, NAME={name}, TYPE=NODE\n" + "\n".join(str(i) for i in ids) + "\n")
 
 
+def time_at_height(h: float, g: FlapGeometry) -> float:
+    """Time (s) after bottom dead centre at which the ram is ``h`` mm above it."""
+    lo, hi = 0.0, 0.5 * math.pi / g.omega
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if ram_height(np.array([mid]), g)[0][0] < h else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def stage2_tools(g: FlapGeometry, u: float) -> tuple[tuple[FloatArray, FloatArray],
+                                                     tuple[FloatArray, FloatArray], float]:
+    """Stage-2 die and punch (at bottom dead centre for the depth setting ``u``, mm) and the
+    ram height (mm) at which stage 2 starts and ends, as the bending model defines them."""
+    try:
+        punch = g.punch2(u)  # type: ignore[call-arg, unused-ignore]
+    except TypeError:  # a geometry without the stage-2 setting
+        if u != 0.0:
+            raise ValueError("this FlapGeometry has no stage-2 depth setting u") from None
+        punch = g.punch2()
+    return g.die2()[0], punch[0], float(getattr(g, "release_height2", 3.0))
+
+
 @dataclass(frozen=True)
-class Stage1Deck:
-    """A stage-1 deck: its text, the sheet mesh, the tools and the output times (s)."""
+class ProcessDeck:
+    """A deck: its text, the sheet mesh, the tools, the stage-1 output times (s, from
+    ``t0``), whether stage 2 is in it and the deck's end time (s, CalculiX's total time)."""
 
     text: str
     sheet: SheetMesh
     tools: tuple[ToolMesh, ...]
     times: FloatArray
     t0: float
+    stage2: bool
+    end: float
 
 
-def stage1_deck(p: ProcessPoint, g: FlapGeometry, s: FeSettings, grid: FloatArray) -> Stage1Deck:
-    """The deck of stage 1: load to bottom dead centre, unload until the ram is at
-    ``g.release_height`` (springback); outputs at the grid times ``grid`` (s) and the end."""
+def _tool_surfaces(p: ProcessPoint, g: FlapGeometry, s: FeSettings, c0: float, stage2: bool,
+                   u: float) -> dict[str, FloatArray]:
+    """Working surfaces ``(m, 2)`` of the tools: the die's top and radius up to the end of
+    the stage-1 arc (``DIE``, both stages), the stage-1 die face (``DIEF1``, dropped after
+    stage 1), the stage-1 punch (lifted to ``c0`` above bottom dead centre) and, with
+    ``stage2``, the stage-2 die's arc beyond 45 deg and vertical face (``DIEF2``, inside
+    die 1 during stage 1) and the stage-2 punch (``release_height2`` up)."""
+    x_split = g.r_die * math.sin(math.pi / 4)
+    die1 = sample_tool(*g.die1()[0], s.tool_h, s.tool_arc_deg, 1.5, 3.5)
+    k = int(np.argmin(np.abs(die1[:, 0] - x_split)))
+    punch1 = sample_tool(*g.punch1(p.gap, p.dx, p.dy)[0], s.tool_h, s.tool_arc_deg, 1.0, 1.0)
+    out = {"DIE": die1[:k + 1], "DIEF1": die1[k:], "PUNCH": punch1 + np.array([0.0, c0])}
+    if stage2:
+        (pts, radii), punch2, h2 = stage2_tools(g, u)
+        die2 = sample_tool(pts, radii, s.tool_h, s.tool_arc_deg, 1.5, 3.0)
+        out["DIEF2"] = np.vstack([die1[k], die2[die2[:, 0] > die1[k, 0] + 1e-9]])
+        out["PUNCH2"] = sample_tool(*punch2, s.tool_h, s.tool_arc_deg, 1.0, 1.5) + [0.0, h2]
+    return out
+
+
+def process_deck(p: ProcessPoint, g: FlapGeometry, s: FeSettings, grid: FloatArray,
+                 stage2: bool = True, u: float = 0.0) -> ProcessDeck:
+    """The deck of the process: stage 1 (load to bottom dead centre, unload until the ram is
+    at ``g.release_height``: springback; outputs at the grid times ``grid`` (s) and the end),
+    then, with ``stage2``, the stage-1 die face drops away (step 2) and the stage-2 punch runs on
+    the crank from ``release_height2`` above bottom dead centre down (its nose to
+    ``punch2_bdc - u``) and back (step 3); the stage-2 die face lies inside die 1 until then."""
     t = p.thickness
     sheet = sheet_mesh(g.x_root, g.x_tip, t, s.n_along(g, t), s.n_thick)
     t0 = float(grid[0])
     t_end = g.release_time()
     c0 = float(ram_height(np.array([t0]), g)[0][0])
-    chains = {
-        "DIE": (g.die1()[0], 1.5, 3.5, 0.0),
-        "PUNCH": (g.punch1(p.gap, p.dx, p.dy)[0], 1.0, 1.0, c0),
-    }
     tools = []
     first_node = int(sheet.node_ids.max()) + 1
     first_el = sheet.elements.shape[0] + 1
-    for name, ((pts, radii), keep0, keep1, lift) in chains.items():
-        surf = sample_tool(pts, radii, s.tool_h, s.tool_arc_deg, keep0, keep1)
-        surf = surf + np.array([0.0, lift])
+    for name, surf in _tool_surfaces(p, g, s, c0, stage2, u).items():
         tools.append(tool_mesh(name, surf, s.tool_depth, first_node, first_el))
         first_node += tools[-1].node_ids.size
         first_el += tools[-1].element_ids.size
     # ids stay compact: CalculiX sizes its arrays by the largest node number
     ref_node, ram_node, spring_el = first_node, first_node + 1, first_el
     times = np.r_[grid, t_end] - t0
+    names = [tm.name for tm in tools]
     out = StringIO()
-    out.write("*HEADING\nformtwin flap bending, stage 1 (plane strain)\n")
+    out.write("*HEADING\nformtwin flap bending (plane strain)\n")
     _nodes(out, "NSHEET", sheet.node_ids, sheet.nodes)
     _elements(out, "CPE8R", "ESHEET", np.arange(1, sheet.elements.shape[0] + 1), sheet.elements)
     for tm in tools:
@@ -210,15 +254,52 @@ def stage1_deck(p: ProcessPoint, g: FlapGeometry, s: FeSettings, grid: FloatArra
     x, y = sheet.nodes[:, 0], sheet.nodes[:, 1]
     _set(out, "NSET", "NCLAMP", sheet.node_ids[x <= g.x_holder + 1e-9])
     _set(out, "NSET", "NMID", sheet.mid)
-    out.write("*ELSET, ELSET=ETOOLS\nEDIE, EPUNCH\n*NSET, NSET=NALL\nNSHEET, NDIE, NPUNCH\n")
+    out.write("*ELSET, ELSET=ETOOLS\n" + ", ".join("E" + n for n in names) + "\n"
+              "*NSET, NSET=NALL\nNSHEET, " + ", ".join("N" + n for n in names) + "\n")
     free = x > g.x_holder + 1e-9
     top = free & ((np.abs(y - t) < 1e-9) | (np.abs(x - g.x_tip) < 1e-9))
     _node_surface(out, "SBOT", sheet.node_ids[free & (np.abs(y) < 1e-9)])
     _node_surface(out, "STOP", sheet.node_ids[top & (x > 0.5 * g.x_holder)])
     for tm in tools:
         _surface(out, "M" + tm.name, [(int(e), 4) for e in tm.element_ids])
-    # material: plastic table at rate factors 1 and T_HI (linear in the factor)
-    m = p.material
+    _material(out, p.material)
+    out.write(f"*SURFACE INTERACTION, NAME=SI\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
+              f"{s.contact_stiffness:.10e}, 1., 1.e-3\n")
+    if p.mu_tool_flap > 0:
+        out.write(f"*FRICTION\n{p.mu_tool_flap:.10g}, {s.stick_slope:.10e}\n")
+    for tm in tools:
+        slave = "SBOT" if tm.name.startswith("DIE") else "STOP"
+        out.write(f"*CONTACT PAIR, INTERACTION=SI, TYPE=NODE TO SURFACE\n{slave}, M{tm.name}\n")
+    # rigid punch: every node follows the reference node vertically
+    out.write("*EQUATION\n")
+    for n in tools[names.index("PUNCH")].node_ids:
+        out.write(f"2\n{n}, 2, 1., {ref_node}, 2, -1.\n")
+    fixed = "".join(f"N{n}, 1, 2\n" for n in names if n != "PUNCH")
+    out.write(f"*BOUNDARY\nNCLAMP, 1, 2\n{fixed}NPUNCH, 1, 1\n"
+              f"{ref_node}, 1, 1\n{ref_node}, 3, 3\n{ram_node}, 1, 1\n{ram_node}, 3, 3\n")
+    ta = np.linspace(0.0, times[-1], max(2, math.ceil(times[-1] / 5e-4) + 1))
+    c, _ = ram_height(ta + t0, g)
+    factor = rate_factor(ta + t0, g, p.material, s)
+    _amplitude(out, "ARAM", ta, c - c0)
+    _amplitude(out, "ARATE", ta, factor)
+    out.write(f"*INITIAL CONDITIONS, TYPE=TEMPERATURE\nNALL, {factor[0]:.10g}\n")
+    out.write("*TIME POINTS, NAME=TP\n" + _fmt_rows(times) + "\n")
+    steps2 = _stage2(out, p, g, s, u, ram_node, float(c[-1] - c0)) if stage2 else ""
+    # one set of time points per step: CalculiX uses the last one given for all prints
+    inc = f"{min(s.dt_max, 2e-4):.6g}, {{:.10g}}, {s.dt_min:.6g}, {s.dt_max:.6g}\n"
+    out.write("*STEP, NLGEOM, INC=100000\n*STATIC\n" + inc.format(times[-1])
+              + f"*BOUNDARY, AMPLITUDE=ARAM\n{ram_node}, 2, 2, 1.\n"
+              "*TEMPERATURE, AMPLITUDE=ARATE\nNALL, 1.\n"
+              "*NODE PRINT, NSET=NRAM, TIME POINTS=TP\nRF\n"
+              "*NODE PRINT, NSET=NPUNCH, TOTALS=ONLY, TIME POINTS=TP\nRF\n"
+              "*NODE PRINT, NSET=NMID, TIME POINTS=TP\nU\n*END STEP\n")
+    out.write(steps2)
+    end = times[-1] + (1e-3 + 2 * time_at_height(stage2_tools(g, u)[2], g) if stage2 else 0.0)
+    return ProcessDeck(out.getvalue(), sheet, tuple(tools), times, t0, stage2, float(end))
+
+
+def _material(out: StringIO, m: Material) -> None:
+    """Sheet material: plastic tables at rate factors 1 and :data:`T_HI` (linear in it)."""
     ratio = HARD_RATIO if m.hardening else np.ones_like(HARD_RATIO)
     out.write(f"*MATERIAL, NAME=SHEET\n*ELASTIC\n{m.E:.10g}, {m.nu:.10g}\n*PLASTIC\n")
     for level in (1.0, T_HI):
@@ -227,32 +308,31 @@ def stage1_deck(p: ProcessPoint, g: FlapGeometry, s: FeSettings, grid: FloatArra
     out.write(f"*MATERIAL, NAME=TOOL\n*ELASTIC\n{m.E:.10g}, {m.nu:.10g}\n")
     out.write("*SOLID SECTION, ELSET=ESHEET, MATERIAL=SHEET\n1.\n"
               "*SOLID SECTION, ELSET=ETOOLS, MATERIAL=TOOL\n1.\n")
-    out.write(f"*SURFACE INTERACTION, NAME=SI\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
-              f"{s.contact_stiffness:.10e}, 1., 1.e-3\n")
-    if p.mu_tool_flap > 0:
-        out.write(f"*FRICTION\n{p.mu_tool_flap:.10g}, {s.stick_slope:.10e}\n")
-    for slave, master in (("SBOT", "MDIE"), ("STOP", "MPUNCH")):
-        out.write(f"*CONTACT PAIR, INTERACTION=SI, TYPE=NODE TO SURFACE\n{slave}, {master}\n")
-    # rigid punch: every node follows the reference node vertically
-    out.write("*EQUATION\n")
-    for n in tools[1].node_ids:
-        out.write(f"2\n{n}, 2, 1., {ref_node}, 2, -1.\n")
-    out.write("*BOUNDARY\nNCLAMP, 1, 2\nNDIE, 1, 2\nNPUNCH, 1, 1\n"
-              f"{ref_node}, 1, 1\n{ref_node}, 3, 3\n{ram_node}, 1, 1\n{ram_node}, 3, 3\n")
-    # amplitudes: ram motion and rate factor on a 0.5 ms grid
-    ta = np.linspace(0.0, times[-1], max(2, math.ceil(times[-1] / 5e-4) + 1))
-    c, _ = ram_height(ta + t0, g)
-    factor = rate_factor(ta + t0, g, m, s)
-    out.write("*AMPLITUDE, NAME=ARAM\n" + _fmt_rows(np.column_stack([ta, c - c0])) + "\n")
-    out.write("*AMPLITUDE, NAME=ARATE\n" + _fmt_rows(np.column_stack([ta, factor])) + "\n")
-    out.write(f"*INITIAL CONDITIONS, TYPE=TEMPERATURE\nNALL, {factor[0]:.10g}\n")
-    out.write("*TIME POINTS, NAME=TP\n" + _fmt_rows(times) + "\n")
-    out.write("*STEP, NLGEOM, INC=100000\n*STATIC\n"
-              f"{min(s.dt_max, 2e-4):.6g}, {times[-1]:.10g}, {s.dt_min:.6g}, {s.dt_max:.6g}\n"
-              f"*BOUNDARY, AMPLITUDE=ARAM\n{ram_node}, 2, 2, 1.\n"
-              "*TEMPERATURE, AMPLITUDE=ARATE\nNALL, 1.\n"
-              "*NODE PRINT, NSET=NRAM, TIME POINTS=TP\nRF\n"
-              "*NODE PRINT, NSET=NPUNCH, TOTALS=ONLY, TIME POINTS=TP\nRF\n"
-              "*NODE PRINT, NSET=NMID, TIME POINTS=TP\nU\n"
-              "*END STEP\n")
-    return Stage1Deck(out.getvalue(), sheet, tuple(tools), times, t0)
+
+
+def _amplitude(out: StringIO, name: str, t: FloatArray, v: FloatArray) -> None:
+    out.write(f"*AMPLITUDE, NAME={name}\n" + _fmt_rows(np.column_stack([t, v])) + "\n")
+
+
+def _stage2(out: StringIO, p: ProcessPoint, g: FlapGeometry, s: FeSettings, u: float,
+            ram_node: int, ram_end: float) -> str:
+    """Writes stage 2's amplitudes (which precede all steps) and returns its steps.
+
+    Step 2: the stage-1 die face drops 3 mm, the stage-1 ram rises 5 mm more. Step 3: the
+    stage-2 punch on the crank from ``release_height2`` down to bottom dead centre and back.
+    """
+    _, _, h2 = stage2_tools(g, u)
+    t2 = time_at_height(h2, g)
+    ta = np.linspace(-t2, t2, max(2, math.ceil(2 * t2 / 5e-4) + 1))
+    c, _ = ram_height(ta, g)
+    _amplitude(out, "ARAM2", ta + t2, c - c[0])
+    _amplitude(out, "ARATE2", ta + t2, rate_factor(ta, g, p.material, s))
+    out.write(f"*TIME POINTS, NAME=TP3\n{2 * t2:.10g}\n")
+    inc = f"{min(s.dt_max, 2e-4):.6g}, {{:.10g}}, {s.dt_min:.6g}, {s.dt_max:.6g}\n"
+    return ("*STEP, NLGEOM, INC=100000\n*STATIC\n" + inc.format(1e-3)
+            + f"*BOUNDARY\nNDIEF1, 2, 2, -3.\n{ram_node}, 2, 2, {ram_end + 5.0:.10g}\n"
+            "*TEMPERATURE\nNALL, 1.\n*END STEP\n"
+            "*STEP, NLGEOM, INC=100000\n*STATIC\n" + inc.format(2 * t2)
+            + "*BOUNDARY, AMPLITUDE=ARAM2\nNPUNCH2, 2, 2, 1.\n"
+            "*TEMPERATURE, AMPLITUDE=ARATE2\nNALL, 1.\n"
+            "*NODE PRINT, NSET=NMID, TIME POINTS=TP3\nU\n*END STEP\n")

@@ -26,8 +26,13 @@ from numpy.typing import NDArray
 
 from formtwin.physics.bending.geometry import FlapGeometry
 from formtwin.physics.bending.material import Material
-from formtwin.physics.calculix.deck import FeSettings, ProcessPoint, Stage1Deck, ram_height
-from formtwin.physics.calculix.deck import stage1_deck as make_stage1_deck
+from formtwin.physics.calculix.deck import (
+    FeSettings,
+    ProcessDeck,
+    ProcessPoint,
+    process_deck,
+    ram_height,
+)
 from formtwin.physics.calculix.results import chord_angle, read_dat
 from formtwin.simulator import RunResult
 from formtwin.spec import ProcessSpec, load_spec
@@ -35,7 +40,9 @@ from formtwin.spec import ProcessSpec, load_spec
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-VERSION = "calculix-0.1"
+VERSION = "calculix-0.2"
+#: the spec's name of the stage-2 depth setting u (a run input when the spec has it)
+CONTROL = "stage2_depth"
 
 
 class CcxError(RuntimeError):
@@ -104,6 +111,8 @@ class CalculixModel:
         Seconds a single ccx job may take.
     keep_dir
         Keep every run's files in a new subdirectory of this directory (debugging).
+    stage2
+        Run stage 2 as well (else angle 2 is NaN).
     **overrides
         Fields of :class:`FeSettings`, e.g. ``n_thick=6``.
     """
@@ -111,7 +120,7 @@ class CalculixModel:
     def __init__(self, spec: ProcessSpec | None = None, geometry: FlapGeometry | None = None,
                  settings: FeSettings | None = None, *, ccx: str = "ccx",
                  timeout: float = 1800.0, keep_dir: str | Path | None = None,
-                 **overrides: Any) -> None:
+                 stage2: bool = True, **overrides: Any) -> None:
         self.spec = spec if spec is not None else load_spec()
         self.geometry = geometry if geometry is not None else FlapGeometry()
         self.settings = replace(settings or FeSettings(), **overrides)
@@ -119,6 +128,7 @@ class CalculixModel:
             raise ValueError(f"n_thick = {self.settings.n_thick}: must be even (the angle is "
                              "read on the mid-thickness line)")
         self.ccx = ccx
+        self.stage2 = stage2
         self.timeout = timeout
         self.keep_dir = None if keep_dir is None else Path(keep_dir)
         self._ix = self.spec.inputs.index
@@ -128,7 +138,7 @@ class CalculixModel:
         """Model version with the CalculiX version and the mesh (stored with datasets)."""
         s = self.settings
         return (f"{VERSION} ccx-{ccx_version(self.ccx)} mesh {s.n_thick}x{s.aspect:g} "
-                f"K {s.contact_stiffness:g}")
+                f"K {s.contact_stiffness:g}" + ("" if self.stage2 else " stage 1 only"))
 
     def centre(self) -> FloatArray:
         """Centre of Table 1: ``mu_mid`` for the state, box centre for the parameters."""
@@ -147,10 +157,11 @@ class CalculixModel:
                             float(x[ix["horizontal_alignment"]]),
                             float(x[ix["vertical_alignment"]]), float(x[ix["press_stiffness"]]))
 
-    def stage1_deck(self, x: FloatArray) -> Stage1Deck:
-        """The stage-1 deck of input vector ``x``."""
-        return make_stage1_deck(self.point(x), self.geometry, self.settings,
-                                np.asarray(self.spec.time, dtype=np.float64))
+    def deck(self, x: FloatArray) -> ProcessDeck:
+        """The deck of input vector ``x`` (both stages unless ``stage2=False``)."""
+        u = float(x[self._ix[CONTROL]]) if CONTROL in self._ix else 0.0
+        return process_deck(self.point(x), self.geometry, self.settings,
+                            np.asarray(self.spec.time, dtype=np.float64), self.stage2, u)
 
     def run(self, inputs: FloatArray) -> RunResult:
         """Run one input point ``(n_inputs,)`` (internal units); never raises for a run
@@ -165,12 +176,12 @@ class CalculixModel:
         tic = time.perf_counter()
         try:
             with self._workdir() as wd:
-                curve, angle1, extra = self.stage1(x, Path(wd))
+                curve, angles, extra = self.solve(x, Path(wd))
         except (CcxError, ValueError, KeyError, IndexError) as exc:
             log.warning("calculix run failed: %s", exc)
             return RunResult.failure(n_t, str(exc))
         info = {"seconds": time.perf_counter() - tic, **extra}
-        return RunResult(curve, np.array([angle1, math.nan]), ok=True, info=info)
+        return RunResult(curve, angles, ok=True, info=info)
 
     def _workdir(self) -> Any:
         if self.keep_dir is None:
@@ -178,20 +189,24 @@ class CalculixModel:
         self.keep_dir.mkdir(parents=True, exist_ok=True)
         return _Kept(tempfile.mkdtemp(prefix="run-", dir=self.keep_dir))
 
-    def stage1(self, x: FloatArray, workdir: Path) -> tuple[FloatArray, float, dict[str, float]]:
-        """Run stage 1 in ``workdir``: force on the grid (N), angle after springback (deg)."""
+    def solve(self, x: FloatArray, workdir: Path
+              ) -> tuple[FloatArray, FloatArray, dict[str, float]]:
+        """Run in ``workdir``: stage-1 force on the grid (N), angles after springback (deg;
+        angle 2 NaN without stage 2)."""
         g = self.geometry
-        deck = self.stage1_deck(x)
+        deck = self.deck(x)
         tables = read_dat(run_ccx(deck.text, workdir, self.ccx, self.timeout))
         ram = tables[("forces", "NRAM")]
         punch = tables[("total force", "NPUNCH")]
         mid = tables[("displacements", "NMID")]
         n_t = self.spec.n_t
-        if not ram.times.size or abs(ram.times[-1] - deck.times[-1]) > 1e-6:
+        # output requests carry over to later steps: stage 1 ends at deck.times[-1]
+        in1 = ram.times <= deck.times[-1] + 1e-6
+        if not in1.any() or abs(ram.times[in1][-1] - deck.times[-1]) > 1e-6:
             done = ram.times[-1] if ram.times.size else 0.0
             raise CcxError(f"stage 1 stopped at t = {done + deck.t0:.4f} s "
                            "(increment below the minimum)")
-        rows_t = _match(ram.times, deck.times[:n_t])  # -1: the start, which CalculiX skips
+        rows_t = _match(ram.times[in1], deck.times[:n_t])  # -1: the start, which CalculiX skips
         f_v = np.where(rows_t >= 0, -ram.values[rows_t, 0, 1], 0.0)
         f_lat = np.where(rows_t >= 0, punch.values[rows_t, 0, 0], 0.0)
         _, v = ram_height(np.asarray(self.spec.time, dtype=np.float64), g)
@@ -200,10 +215,15 @@ class CalculixModel:
         idx = deck.sheet.node_index
         rows = np.array([idx(int(n)) for n in mid.ids])
         ref = deck.sheet.nodes[rows]
-        pos = ref + mid.values[-1, :, :2]
-        angle = chord_angle(pos, ref[:, 0], g.angle_length)
-        return np.asarray(curve, dtype=np.float64), angle, {
-            "release_force": float(-ram.values[-1, 0, 1] * g.width),
+        k1 = int(np.argmin(np.abs(mid.times - deck.times[-1])))
+        angles = np.array([chord_angle(ref + mid.values[k, :, :2], ref[:, 0], g.angle_length)
+                           for k in (k1, -1)])
+        if not deck.stage2:
+            angles[1] = math.nan
+        elif abs(mid.times[-1] - deck.end) > 1e-6:
+            raise CcxError("stage 2 did not finish (increment below the minimum)")
+        return np.asarray(curve, dtype=np.float64), angles, {
+            "release_force": float(-ram.values[np.flatnonzero(in1)[-1], 0, 1] * g.width),
             "increments": float(ram.times.size)}
 
 
