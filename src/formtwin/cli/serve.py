@@ -58,7 +58,7 @@ def add_monitor_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--monitor-phase1", type=int, default=100,
                    help="products after the warm-up that set the angles' in-control level "
                    "(default: %(default)s)")
-    g.add_argument("--monitor-arl0", type=float, default=2.0e5,
+    g.add_argument("--monitor-arl0", type=float, default=1.0e6,
                    help="in-control average run length of each chart (default: %(default)g)")
 
 

@@ -18,7 +18,7 @@ benchmark (``benchmarks/bench_monitoring.py``) counts the real rate.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -46,14 +46,23 @@ class ChartDesign:
     k_mismatch : reference of the one-sided mismatch CUSUM on the health scores.
     arl0_per_chart : in-control ARL of each chart (two-sided ones counted two-sided).
     order : AR order of the in-control models.
+    tails : standardise residuals through their in-control distribution (heavy tails).
+    health_ar : chart the health scores' AR residuals (they are autocorrelated) instead of
+        the scores.
+    health_phase1 : the scores' level from Phase I (it depends on the machine parameters,
+        but the first products are still the filter's transient) instead of the pooled
+        in-control level.
     warmup, phase1 : see :class:`~formtwin.monitoring.monitor.MonitorConfig`.
     """
 
     lam: float = 0.2
     k: float = 1.0
-    k_mismatch: float = 0.5
-    arl0_per_chart: float = 2.0e5
+    k_mismatch: float = 1.0
+    arl0_per_chart: float = 1.0e6
     order: int = 2
+    tails: bool = True
+    health_ar: bool = True
+    health_phase1: bool = False
     warmup: int = 50
     phase1: int = 100
 
@@ -91,7 +100,15 @@ def series(est: Estimates) -> dict[str, FloatArray]:
 
 def calibrate(runs: Sequence[Estimates], state_names: Sequence[str], mu: FloatArray,
               design: ChartDesign | None = None) -> MonitorConfig:
-    """A monitor for a line whose state means are ``mu`` (7,), from in-control ``runs``.
+    """A monitor for a line whose state means are ``mu`` (7,), from in-control ``runs``
+    (see :func:`calibrate_series`)."""
+    return calibrate_series([series(r) for r in runs], state_names, mu, design)
+
+
+def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequence[str],
+                     mu: FloatArray, design: ChartDesign | None = None) -> MonitorConfig:
+    """A monitor for a line whose state means are ``mu`` (7,), from the :func:`series` of
+    in-control runs.
 
     State variables get an AR model about ``mu`` (the in-control mean is the spec's or the
     user's); the angles about a Phase-I level; the health statistics a reference from the
@@ -100,20 +117,27 @@ def calibrate(runs: Sequence[Estimates], state_names: Sequence[str], mu: FloatAr
     d = ChartDesign() if design is None else design
     if d.phase1 < 2:
         raise ValueError(f"phase1 = {d.phase1}: the angles' level needs phase1 >= 2")
-    values = [{k: v[d.warmup:] for k, v in series(r).items()} for r in runs]
+    values = [{k: np.asarray(v)[d.warmup:] for k, v in r.items()} for r in runs]
     quantities: dict[str, InControl] = {}
     for j, name in enumerate(state_names):
         quantities[name] = fit_in_control([v[name] for v in values], d.order,
-                                          mean=float(mu[j]))
+                                          mean=float(mu[j]), tails=d.tails)
     for name in ANGLES:
         quantities[name] = fit_in_control([v[name] for v in values], d.order, mean=None,
-                                          keep_mean=False)
+                                          keep_mean=False, tails=d.tails)
     pooled = {name: np.concatenate([v[name] for v in values]) for name in HEALTH
               if all(name in v for v in values)}
     health = {name: Reference(tuple(pooled[name]), bad) for name, bad in HEALTH.items()
               if name in pooled and np.isfinite(pooled[name]).sum() >= 20}
+    models = {}
+    if d.health_ar:  # the scores' level depends on the run (machine parameters): Phase I
+        for name, ref in health.items():
+            scores = [np.array([ref.normal_score(float(x)) for x in v[name]]) for v in values]
+            models[name] = fit_in_control(scores, d.order, mean=None,
+                                          keep_mean=not d.health_phase1, tails=d.tails)
     ewma, cusum, mismatch = d.charts()
-    return MonitorConfig(quantities, health, ewma, cusum, mismatch, d.warmup, d.phase1)
+    return MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
+                         d.phase1)
 
 
-__all__ = ["ChartDesign", "calibrate", "series", "simulate_in_control"]
+__all__ = ["ChartDesign", "calibrate", "calibrate_series", "series", "simulate_in_control"]

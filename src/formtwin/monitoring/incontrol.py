@@ -56,11 +56,16 @@ class InControl:
     sigma : std of the one-step residual ``e`` (the quantity's unit), > 0.
     phi : (p,) autoregressive coefficients; ``()`` for independent observations, when
         ``sigma`` is the std of ``y`` itself.
+    quantiles : sorted quantiles of the in-control standardised residual ``e / sigma``
+        (from :func:`fit_in_control` with ``tails=True``); when given, :meth:`score` maps
+        the residual through their distribution to a normal score (heavy-tailed residuals
+        would otherwise make Gaussian limits far too tight). ``()``: ``e / sigma`` as is.
     """
 
     mean: float | None
     sigma: float
     phi: tuple[float, ...] = ()
+    quantiles: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.sigma) and self.sigma > 0):
@@ -68,6 +73,10 @@ class InControl:
         if self.mean is not None and not math.isfinite(self.mean):
             raise ValueError(f"in-control mean = {self.mean}, expected a finite number")
         object.__setattr__(self, "phi", tuple(float(p) for p in self.phi))
+        q = tuple(float(v) for v in self.quantiles)
+        if q and (len(q) < 20 or any(b < a for a, b in zip(q, q[1:], strict=False))):
+            raise ValueError("in-control quantiles: expected >= 20 sorted values")
+        object.__setattr__(self, "quantiles", q)
 
     @property
     def order(self) -> int:
@@ -79,25 +88,54 @@ class InControl:
         (``history``, oldest first) and the mean in force."""
         pred = mean + sum(p * (h - mean) for p, h in zip(self.phi, reversed(history),
                                                           strict=True))
-        return (y - pred) / self.sigma
+        e = (y - pred) / self.sigma
+        return normal_score(e, self.quantiles) if self.quantiles else e
 
     def to_dict(self) -> dict[str, Any]:
-        return {"mean": self.mean, "sigma": self.sigma, "phi": list(self.phi)}
+        return {"mean": self.mean, "sigma": self.sigma, "phi": list(self.phi),
+                "quantiles": list(self.quantiles)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> InControl:
         return cls(mean=None if d["mean"] is None else float(d["mean"]),
-                   sigma=float(d["sigma"]), phi=tuple(d["phi"]))
+                   sigma=float(d["sigma"]), phi=tuple(d["phi"]),
+                   quantiles=tuple(d.get("quantiles", ())))
+
+
+def normal_score(e: float, q: Sequence[float]) -> float:
+    """``Phi^-1`` of the in-control probability below ``e`` given its sorted quantiles ``q``
+    (at probabilities ``(i + 0.5) / m``); beyond the outermost quantile the score grows
+    linearly with ``e`` from there (unit slope), so a large change stays large.
+
+    >>> q = [float(k) for k in range(-10, 11)]      # 21 quantiles
+    >>> normal_score(0.0, q), round(normal_score(12.0, q), 3)   # 1.981 + 2 beyond the last
+    (0.0, 3.981)
+    """
+    m = len(q)
+    lo, hi = q[0], q[-1]
+    zmax = float(norm.ppf(1.0 - 0.5 / m))
+    if not math.isfinite(e):
+        return math.copysign(math.inf, e) if not math.isnan(e) else math.nan
+    if e <= lo:
+        return -zmax - (lo - e)
+    if e >= hi:
+        return zmax + (e - hi)
+    k = int(np.searchsorted(q, e, "right")) - 1  # q[k] <= e < q[k + 1]
+    span = q[k + 1] - q[k]
+    f = (k + 0.5 + ((e - q[k]) / span if span > 0 else 0.5)) / m
+    return float(norm.ppf(f))
 
 
 def fit_in_control(runs: Sequence[FloatArray], order: int = 2, mean: float | None = None,
-                   keep_mean: bool = True) -> InControl:
+                   keep_mean: bool = True, tails: bool = False, n_quantiles: int = 1000
+                   ) -> InControl:
     """Least-squares AR(``order``) fit pooled over in-control runs (each (n_r,)).
 
     ``mean`` is the in-control mean (e.g. the spec's mu); ``None``: each run is centred on
     its own mean (a run's level is then set in Phase I), and the result has ``mean=None``
     unless ``keep_mean`` (then the pooled mean). Non-finite values are dropped with the
-    rows they touch.
+    rows they touch. ``tails``: keep ``n_quantiles`` quantiles of the standardised
+    residuals (:attr:`InControl.quantiles`).
     """
     if order < 0:
         raise ValueError(f"AR order = {order}, expected >= 0")
@@ -123,7 +161,11 @@ def fit_in_control(runs: Sequence[FloatArray], order: int = 2, mean: float | Non
     sigma = float(np.sqrt(resid @ resid / max(b.size - order, 1)))
     if mean is None and keep_mean:
         mean = float(np.nanmean(np.concatenate([np.asarray(r, float) for r in runs])))
-    return InControl(mean=mean, sigma=sigma, phi=tuple(phi))
+    quantiles: tuple[float, ...] = ()
+    if tails:
+        m = min(n_quantiles, resid.size)
+        quantiles = tuple(np.quantile(resid / sigma, (np.arange(m) + 0.5) / m))
+    return InControl(mean=mean, sigma=sigma, phi=tuple(phi), quantiles=quantiles)
 
 
 @dataclass(frozen=True)
@@ -148,12 +190,13 @@ class Reference:
         if s.size < 20:
             raise ValueError(f"reference has {s.size} finite values, expected >= 20")
         object.__setattr__(self, "sample", tuple(float(v) for v in s))
+        object.__setattr__(self, "_array", s)
 
     def normal_score(self, v: float) -> float:
         """``Phi^-1`` of the in-control probability of a value at least as good as ``v``:
         N(0, 1) in control, large when the fit is worse; ``-inf``/NaN count as worst.
         Clipped to the resolution of the sample (``+-Phi^-1(1 - 1/(2n))``)."""
-        s = np.asarray(self.sample)
+        s: FloatArray = self._array  # type: ignore[attr-defined]
         n = s.size
         if not math.isfinite(v):  # NaN is worst; an infinity is worst on its bad side
             u = 0.0 if (v > 0) == (self.bad == "low") and not math.isnan(v) else 1.0
@@ -164,4 +207,4 @@ class Reference:
         return float(norm.ppf(min(max(u, 0.5 / n), 1.0 - 0.5 / n)))
 
 
-__all__ = ["InControl", "Reference", "fit_in_control"]
+__all__ = ["InControl", "Reference", "fit_in_control", "normal_score"]

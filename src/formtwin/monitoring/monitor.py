@@ -73,7 +73,11 @@ class MonitorConfig:
     Attributes
     ----------
     quantities : name -> in-control model, for state variables and angles.
-    health : name (a key of :data:`HEALTH`) -> in-control reference.
+    health : name (a key of :data:`HEALTH`) -> in-control reference (maps the statistic to
+        a normal score, large = worse fit).
+    health_models : name -> in-control AR model of that normal score (its level, often
+        set in Phase I: it depends on the machine parameters); the mismatch chart then
+        watches the model's residual. Missing: the score itself.
     ewma, cusum : the charts on every quantity (design: :mod:`formtwin.monitoring.design`).
     mismatch : the one-sided CUSUM on every health score.
     warmup : products not charted at the start.
@@ -82,6 +86,7 @@ class MonitorConfig:
 
     quantities: Mapping[str, InControl]
     health: Mapping[str, Reference] = field(default_factory=dict)
+    health_models: Mapping[str, InControl] = field(default_factory=dict)
     ewma: Ewma = Ewma()
     cusum: Cusum = Cusum()
     mismatch: Cusum = Cusum(sides="high")
@@ -94,7 +99,11 @@ class MonitorConfig:
             raise ValueError(f"health statistics {bad} unknown; known: {', '.join(HEALTH)}")
         if self.warmup < 0 or self.phase1 < 0:
             raise ValueError(f"warmup = {self.warmup}, phase1 = {self.phase1}: expected >= 0")
-        needs_phase1 = [n for n, q in self.quantities.items() if q.mean is None]
+        extra = [n for n in self.health_models if n not in self.health]
+        if extra:
+            raise ValueError(f"health models for {extra} without a health reference")
+        needs_phase1 = [n for n, q in (*self.quantities.items(), *self.health_models.items())
+                        if q.mean is None]
         if needs_phase1 and self.phase1 < 2:
             raise ValueError(f"quantities {needs_phase1} have no in-control mean and "
                              f"phase1 = {self.phase1}: expected phase1 >= 2")
@@ -106,6 +115,7 @@ class MonitorConfig:
             "quantities": {n: q.to_dict() for n, q in self.quantities.items()},
             "health": {n: {"sample": list(r.sample), "bad": r.bad}
                        for n, r in self.health.items()},
+            "health_models": {n: q.to_dict() for n, q in self.health_models.items()},
             "ewma": {"lam": self.ewma.lam, "L": self.ewma.L},
             "cusum": {"k": self.cusum.k, "h": self.cusum.h},
             "mismatch": {"k": self.mismatch.k, "h": self.mismatch.h},
@@ -117,6 +127,8 @@ class MonitorConfig:
         return cls(quantities={n: InControl.from_dict(q) for n, q in d["quantities"].items()},
                    health={n: Reference(tuple(r["sample"]), r["bad"])
                            for n, r in d["health"].items()},
+                   health_models={n: InControl.from_dict(q)
+                                  for n, q in d.get("health_models", {}).items()},
                    ewma=Ewma(**d["ewma"]), cusum=Cusum(**d["cusum"]),
                    mismatch=Cusum(**d["mismatch"], sides="high"),
                    warmup=int(d["warmup"]), phase1=int(d["phase1"]))
@@ -155,9 +167,11 @@ class Monitor:
         #: chart (``{"thickness": {"ewma": (Z, limit), "cusum": (C, h)}, "ess":
         #: {"mismatch": (C, h)}}``, sigma units); empty before charting starts
         self.last: dict[str, dict[str, tuple[float, float]]] = {}
-        self.means = {n: q.mean for n, q in config.quantities.items()}
-        self.phase1_sums = {n: 0.0 for n, q in config.quantities.items() if q.mean is None}
-        self.history: dict[str, list[float]] = {n: [] for n in config.quantities}
+        #: every AR model by name: the quantities' and the health scores'
+        self.models = {**config.quantities, **config.health_models}
+        self.means = {n: q.mean for n, q in self.models.items()}
+        self.phase1_sums = {n: 0.0 for n, q in self.models.items() if q.mean is None}
+        self.history: dict[str, list[float]] = {n: [] for n in self.models}
         self.ewma = {n: EwmaState() for n in config.quantities}
         self.cusum = {n: CusumState() for n in config.quantities}
         self.health = {n: CusumState() for n in config.health}
@@ -186,6 +200,8 @@ class Monitor:
         self.n += 1
         if self.n <= c.warmup:
             return ()
+        values = {**values, **{n: ref.normal_score(float(values[n]))
+                               for n, ref in c.health.items()}}  # health: normal scores
         if self.n <= c.warmup + c.phase1:
             for n in self.phase1_sums:
                 self.phase1_sums[n] += float(values[n])
@@ -210,9 +226,14 @@ class Monitor:
             last["cusum"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "cusum", idx, s.statistic, s.limit, s.side))
-        for n, ref in c.health.items():
-            self.health[n], s = c.mismatch.update(self.health[n],
-                                                   ref.normal_score(float(values[n])))
+        for n in c.health:
+            z, hm = float(values[n]), c.health_models.get(n)
+            if hm is not None:
+                hist, mean = self.history[n], self.means[n]
+                if len(hist) < hm.order or mean is None:
+                    continue
+                z = hm.score(z, hist, mean)
+            self.health[n], s = c.mismatch.update(self.health[n], z)
             self.last[n] = {"mismatch": (s.statistic, s.limit)}
             if s.side:
                 alarms.append(Alarm(n, "mismatch", idx, s.statistic, s.limit, s.side))
@@ -220,7 +241,7 @@ class Monitor:
         return tuple(alarms)
 
     def _remember(self, values: Mapping[str, float]) -> None:
-        for n, q in self.config.quantities.items():
+        for n, q in self.models.items():
             y = float(values[n])
             if q.order and math.isfinite(y):
                 self.history[n] = [*self.history[n], y][-q.order:]
@@ -235,7 +256,7 @@ class Monitor:
                 "health": {n: [s.hi, s.lo] for n, s in self.health.items()}}
 
     def _load(self, st: Mapping[str, Any]) -> None:
-        names, health = set(self.config.quantities), set(self.config.health)
+        names, health = set(self.models), set(self.config.health)
         if set(st["history"]) != names or set(st["health"]) != health:
             raise ValueError(f"monitor state watches {sorted(st['history'])} and "
                              f"{sorted(st['health'])}, the config {sorted(names)} and "

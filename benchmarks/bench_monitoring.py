@@ -1,0 +1,233 @@
+"""Benchmark of the monitoring (EWMA + CUSUM charts, model-mismatch chart): detection delay
+for known changes and false alarms in control.
+
+Run ``python benchmarks/bench_monitoring.py`` (heavy: run it under
+``flock /tmp/formtwin-heavy.lock``). Model: the metamodel of the bundled physics DOE
+(:func:`formtwin._bench.bundled_metamodel`, what a fresh clone gets); tracker: SIR with
+N = ``--particles``, the line's state means ``mu`` known (the spec's mid-range), deviation
+not estimated (``--deviation`` to estimate it), ``K_MC`` from 10^4 curves. The tracked
+series (posterior means, predicted angles, health statistics) are cached in
+``benchmarks/.cache/monitoring`` by their settings, so chart designs (``--lam``, ``--k``,
+``--arl0``, ``--no-tails``, ``--no-health-ar``) are compared on the same estimates.
+
+1. Calibration: :func:`~formtwin.monitoring.calibrate.calibrate` on ``--calib-runs``
+   simulated in-control runs of ``--calib-products`` products (AR(2) models of the state
+   posterior means about mu, of the predicted angles about a Phase-I level, health
+   references and AR models of their normal scores), charts designed for ``--arl0`` per
+   chart.
+2. False alarms: ``--ic-runs`` fresh in-control runs (other seeds, other machine
+   parameters) of ``--ic-products`` products; every alarm counts.
+   ``false_alarms_per_10k_products`` = alarms / charted products * 10^4 (charted: after
+   warm-up and Phase I).
+3. Changes (:mod:`formtwin.monitoring.scenarios`), each over ``--reps`` runs with the change
+   at product ``--at`` (after warm-up and Phase I) and ``--after`` products after it:
+
+   * ``step``: a 2-sigma step in the mean of one state variable (up and down in turn),
+     every variable in turn; ``detection_delay_median_products`` is the median over all
+     variables and runs of ``first alarm index - at + 1`` (alarms before ``at`` are
+     counted as false alarms, not as detections); a run without an alarm counts as
+     ``after + 1`` (``detected_share`` says how many were seen);
+   * ``drift``: the mean of one variable moving by ``--drift`` sigma per product;
+   * ``batch``: a new material batch, the four material means each stepping by
+     ``--batch`` sigma with random signs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formtwin._bench import CACHE, bundled_metamodel, write_result
+from formtwin._threads import single_blas_thread
+from formtwin.estimates import Estimates
+from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.monitoring.calibrate import (
+    ChartDesign,
+    calibrate_series,
+    series,
+    simulate_in_control,
+)
+from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
+from formtwin.monitoring.scenarios import Change, changed_run
+from formtwin.tracker import Tracker, TrackerConfig
+
+Series = dict[str, np.ndarray]
+
+
+class Runs:
+    """Tracked series by name, computed once and cached as ``.npz``."""
+
+    def __init__(self, folder: Path, key: dict[str, Any]) -> None:
+        self.folder = folder / hashlib.sha256(json.dumps(key, sort_keys=True).encode()
+                                              ).hexdigest()[:12]
+        self.folder.mkdir(parents=True, exist_ok=True)
+        (self.folder / "key.json").write_text(json.dumps(key, indent=1))
+
+    def get(self, name: str, make: Any) -> Series:
+        """The series of run ``name``, from the cache or ``make()`` (an Estimates)."""
+        path = self.folder / f"{name}.npz"
+        if path.exists():
+            with np.load(path, allow_pickle=False) as f:
+                return {k: f[k] for k in f.files}
+        est: Estimates = make()
+        out = {k: np.asarray(v, dtype=np.float64) for k, v in series(est).items()}
+        np.savez(path, **out)  # type: ignore[arg-type]
+        return out
+
+
+def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
+    """Chart a run's series; all alarms."""
+    mon = Monitor(config)
+    n = len(next(iter(s.values())))
+    return [a for i in range(n)
+            for a in mon.update_values({k: float(v[i]) for k, v in s.items()}, i)]
+
+
+def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, change: Change,
+            n: int, seed: int) -> Estimates:
+    """Track one production run with ``change``."""
+    run = changed_run(model.spec, n, np.asarray(tcfg.mu), np.random.default_rng(seed),
+                      change)
+    return Tracker(model, mm, replace(tcfg, seed=seed)).run(model.predict_curves(run.inputs))
+
+
+def delay(alarms: list[Alarm], at: int, n: int) -> tuple[int, int, str]:
+    """(delay, false alarms before ``at``, first alarm's variable) of one changed run."""
+    after = [a for a in alarms if a.index >= at]
+    first = after[0] if after else None
+    return (first.index - at + 1 if first else n - at + 1, sum(a.index < at for a in alarms),
+            first.variable if first else "")
+
+
+def summary(d: list[int], horizon: int) -> dict[str, Any]:
+    """Median, mean and detected share of delays (``horizon + 1`` = not detected)."""
+    a = np.asarray(d)
+    return {"median": float(np.median(a)), "mean": round(float(a.mean()), 1),
+            "detected_share": round(float(np.mean(a <= horizon)), 3)}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--particles", type=int, default=500)
+    p.add_argument("--deviation", action="store_true")
+    p.add_argument("--calib-runs", type=int, default=4)
+    p.add_argument("--calib-products", type=int, default=1500)
+    p.add_argument("--ic-runs", type=int, default=10)
+    p.add_argument("--ic-products", type=int, default=2000)
+    p.add_argument("--reps", type=int, default=6)
+    p.add_argument("--at", type=int, default=250)
+    p.add_argument("--after", type=int, default=150)
+    p.add_argument("--drift", type=float, default=0.02)
+    p.add_argument("--batch", type=float, default=1.0)
+    d0 = ChartDesign()
+    p.add_argument("--arl0", type=float, default=d0.arl0_per_chart)
+    p.add_argument("--lam", type=float, default=d0.lam)
+    p.add_argument("--k", type=float, default=d0.k)
+    p.add_argument("--no-tails", action="store_true")
+    p.add_argument("--no-health-ar", action="store_true")
+    p.add_argument("--health-phase1", action="store_true")
+    p.add_argument("--k-mismatch", type=float, default=d0.k_mismatch)
+    p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--out", help="result folder (default benchmarks/results)")
+    args = p.parse_args()
+    model, _, info = bundled_metamodel()
+    spec = model.spec
+    mu = spec.state.mu_mid
+    tcfg = TrackerConfig(n_particles=args.particles, estimate_deviation=args.deviation,
+                         mu=tuple(mu), seed=args.seed)
+    mm = MeasurementModel.from_monte_carlo(model, mu=mu, n=tcfg.n_mc,
+                                           rng=np.random.default_rng(args.seed))
+    design = ChartDesign(lam=args.lam, k=args.k, k_mismatch=args.k_mismatch,
+                         arl0_per_chart=args.arl0, tails=not args.no_tails,
+                         health_ar=not args.no_health_ar, health_phase1=args.health_phase1)
+    key = {"model": info["doe_sha256_16"], "metamodel": info["metamodel"],
+           "particles": args.particles, "deviation": args.deviation, "seed": args.seed,
+           "at": args.at, "after": args.after}
+    runs = Runs(CACHE / "monitoring", key)
+    n = args.at + args.after
+    t0 = time.perf_counter()
+    with single_blas_thread():
+        calib_runs = [runs.get(f"calib{r}_{args.calib_products}", lambda r=r: simulate_in_control(
+            model, mm, replace(tcfg, seed=tcfg.seed + r), args.calib_products, 1,
+            seed=args.seed + r)[0]) for r in range(args.calib_runs)]
+        ic_runs = [runs.get(f"ic{r}_{args.ic_products}", lambda r=r: simulate_in_control(
+            model, mm, replace(tcfg, seed=tcfg.seed + 5000 + r), args.ic_products, 1,
+            seed=args.seed + 10_000 + r)[0]) for r in range(args.ic_runs)]
+        scenarios: dict[str, list[tuple[Change, Series]]] = {}
+        for j, name in enumerate(spec.state.names):
+            for kind, size in (("step", 2.0), ("drift", args.drift)):
+                scenarios.setdefault(f"{kind}:{name}", [])
+                for r in range(args.reps):
+                    ch = Change(kind, (name,), args.at, size * (1 if r % 2 == 0 else -1))
+                    seed = args.seed + 100_000 + 1000 * j + 100 * (kind == "drift") + r
+                    scenarios[f"{kind}:{name}"].append((ch, runs.get(
+                        f"{kind}_{name}_{size}_{r}",
+                        lambda ch=ch, seed=seed: changed(model, mm, tcfg, ch, n, seed))))
+        rng = np.random.default_rng(args.seed + 7)
+        scenarios["batch"] = []
+        for r in range(2 * args.reps):
+            ch = Change.batch(args.at, args.batch, rng)
+            scenarios["batch"].append((ch, runs.get(
+                f"batch_{args.batch}_{r}", lambda ch=ch, r=r: changed(
+                    model, mm, tcfg, ch, n, args.seed + 200_000 + r))))
+    track_s = time.perf_counter() - t0
+    config = calibrate_series(calib_runs, spec.state.names, mu, design)
+    ic_alarms = [a for s in ic_runs for a in chart(config, s)]
+    charted = args.ic_runs * (args.ic_products - design.warmup - design.phase1)
+    results: dict[str, list[tuple[int, int, str]]] = {
+        k: [delay(chart(config, s), ch.at, n) for ch, s in v] for k, v in scenarios.items()}
+    false_changes = sum(f for v in results.values() for _, f, _ in v)
+
+    def block(kind: str) -> dict[str, Any]:
+        per = {name: [d for d, _, _ in results[f"{kind}:{name}"]] for name in spec.state.names}
+        return {**summary([d for v in per.values() for d in v], args.after),
+                "per_variable": {k: summary(v, args.after) for k, v in per.items()},
+                "first_alarm_variable": {name: [v for _, _, v in results[f"{kind}:{name}"]]
+                                         for name in spec.state.names}}
+
+    by_chart: dict[str, int] = {}
+    for a in ic_alarms:
+        by_chart[f"{a.variable}/{a.chart}"] = by_chart.get(f"{a.variable}/{a.chart}", 0) + 1
+    steps = block("step")
+    figures: dict[str, Any] = {
+        "detection_delay_median_products": steps["median"],
+        "detection_delay_target": 30,
+        "false_alarms_per_10k_products": round(len(ic_alarms) / charted * 1e4, 3),
+        "false_alarms_target": 1,
+        "false_alarms_in_control": len(ic_alarms),
+        "charted_products_in_control": charted,
+        "false_alarms_by_chart": by_chart,
+        "false_alarms_before_changes": false_changes,
+        "step_2sigma": steps,
+        f"drift_{args.drift}sigma_per_product": block("drift"),
+        f"batch_{args.batch}sigma": {
+            **summary([d for d, _, _ in results["batch"]], args.after),
+            "first_alarm_variable": [v for _, _, v in results["batch"]]},
+        "settings": {"particles": args.particles, "deviation": args.deviation,
+                     "calib_runs": args.calib_runs, "calib_products": args.calib_products,
+                     "ic_runs": args.ic_runs, "ic_products": args.ic_products,
+                     "reps": args.reps, "at": args.at, "after": args.after,
+                     "design": {"lam": design.lam, "k": design.k,
+                                "k_mismatch": design.k_mismatch,
+                                "arl0_per_chart": design.arl0_per_chart,
+                                "order": design.order, "tails": design.tails,
+                                "health_ar": design.health_ar,
+                                "health_phase1": design.health_phase1, "warmup": design.warmup,
+                                "phase1": design.phase1},
+                     "charts": 2 * len(config.quantities) + len(config.health),
+                     "ewma_L": round(config.ewma.L, 4), "cusum_h": round(config.cusum.h, 4),
+                     "mismatch_h": round(config.mismatch.h, 4)},
+        "tracking_s": round(track_s, 1),
+    }
+    write_result("monitoring", figures, directory=args.out, model=info)
+
+
+if __name__ == "__main__":
+    main()
