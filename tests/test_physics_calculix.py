@@ -163,3 +163,13 @@ def test_coarse_two_stage_run_is_flap_bending(spec) -> None:  # type: ignore[no-
     assert 40.0 < r.angles[0] < 50.0  # 45 deg die face, springback
     assert 75.0 < r.angles[1] < 95.0  # wiped towards the vertical die face, springback
     assert r.info["seconds"] > 0 and "ccx-" in model.version
+
+
+def test_model_pickles_for_process_pools_and_dask() -> None:
+    import pickle
+
+    model = CalculixModel(n_thick=2, stage2=False, timeout=60.0)
+    clone = pickle.loads(pickle.dumps(model))
+    x = model.centre()
+    assert clone.version == model.version and clone.settings == model.settings
+    assert clone.deck(x).text == model.deck(x).text

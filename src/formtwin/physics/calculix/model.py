@@ -131,7 +131,9 @@ class CalculixModel:
         self.stage2 = stage2
         self.timeout = timeout
         self.keep_dir = None if keep_dir is None else Path(keep_dir)
-        self._ix = self.spec.inputs.index
+        # the run inputs: (x, theta) or, when the spec has a control, (x, theta, u)
+        self._inputs = getattr(self.spec, "run_inputs", self.spec.inputs)
+        self._ix = self._inputs.index
 
     @property
     def version(self) -> str:
@@ -141,9 +143,10 @@ class CalculixModel:
                 f"K {s.contact_stiffness:g}" + ("" if self.stage2 else " stage 1 only"))
 
     def centre(self) -> FloatArray:
-        """Centre of Table 1: ``mu_mid`` for the state, box centre for the parameters."""
-        mid = np.r_[self.spec.state.mu_mid, 0.5 * (self.spec.params.lo + self.spec.params.hi)]
-        return np.asarray(mid, dtype=np.float64)
+        """Centre of Table 1 as the bending model defines it (run inputs)."""
+        from formtwin.physics.bending import BendingModel
+
+        return BendingModel(self.spec).centre()
 
     def point(self, x: FloatArray) -> ProcessPoint:
         """The physical inputs of input vector ``x (n_inputs,)``."""
@@ -168,9 +171,9 @@ class CalculixModel:
         that fails (a failure record with the reason); ``ValueError`` for a bad shape."""
         n_t = self.spec.n_t
         x = np.asarray(inputs, dtype=np.float64)
-        if x.shape != (self.spec.n_inputs,):
-            raise ValueError(f"inputs: expected shape ({self.spec.n_inputs},) in the order "
-                             f"{', '.join(self.spec.inputs.names)}; got {x.shape}")
+        if x.shape != (len(self._inputs),):
+            raise ValueError(f"inputs: expected shape ({len(self._inputs)},) in the order "
+                             f"{', '.join(self._inputs.names)}; got {x.shape}")
         if not np.all(np.isfinite(x)):
             return RunResult.failure(n_t, "non-finite input")
         tic = time.perf_counter()

@@ -1,0 +1,222 @@
+"""Cross-check of the beam model against the plane-strain CalculiX model (issue 12).
+
+Points: the centre of Table 1, each main input (yield stress, thickness, punch end
+distance, tool-flap friction) at its minimum and maximum with the others at the centre
+(the 9 one-at-a-time cases), and with ``--corners`` the 16 corners of the box of the main
+inputs. CalculiX runs on a coarse and a fine mesh (``--meshes``, elements through the
+thickness); the fine mesh is the reference, ``|fine - coarse|`` its mesh-error estimate.
+
+Figures: ``peak_rel_err_max``, ``plateau_rel_err_max`` (plateau = mean force over
+-40..-20 ms), ``peak_time_err_max_ms``, ``angle1_err_max_deg``, ``angle2_err_max_deg``
+(final angle) over all points; ``sensitivity_sign_agreement`` (stage 1: peak, plateau,
+angle 1) and ``sensitivity_sign_agreement_final`` (angle 2): the fraction of input effects
+(max minus min) with the same sign in both models, counting only effects larger than
+CalculiX's own mesh error; the mesh errors; ccx version, meshes, seconds per FE run.
+Targets (issue 12): peak <= 0.05, plateau <= 0.03, angle 1 <= 0.5 deg, agreement 1.0.
+
+Every ccx run takes the shared heavy lock (``--lock``) by itself, so other jobs take turns;
+FE results are cached in ``benchmarks/.cache/fe_runs.json`` by model version, geometry and
+input, so a rerun after a beam-model change only runs the beam model.
+``--reference PATH`` also writes the 9 cases' stage-1 figures (the FE reference for the
+beam model) there.
+
+Run: ``python benchmarks/bench_physics_fe.py [--meshes 4,6] [--corners] [--reference F]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fcntl
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from formtwin._bench import CACHE, write_result  # noqa: E402
+from formtwin.physics.bending import BendingModel  # noqa: E402
+from formtwin.physics.calculix import CalculixModel, ccx_version  # noqa: E402
+
+MAIN = ("yield_stress", "thickness", "punch_end_distance", "friction_tool_flap")
+QUANTITIES = ("peak", "plateau", "peak_time_ms", "angle1", "angle2")
+
+
+def figures_of(curve: np.ndarray, angles: np.ndarray, t: np.ndarray) -> dict[str, float]:
+    """Peak (N), plateau (mean over -40..-20 ms, N), peak time (ms, parabola through the
+    three samples at the maximum), angles (deg)."""
+    k = int(np.argmax(curve))
+    dt = float(t[1] - t[0])
+    tk = float(t[k])
+    if 0 < k < curve.size - 1:
+        a, b, c = curve[k - 1], curve[k], curve[k + 1]
+        den = a - 2 * b + c
+        tk += 0.5 * dt * (a - c) / den if den != 0 else 0.0
+    window = (t >= -0.040 - 1e-9) & (t <= -0.020 + 1e-9)
+    return {"peak": float(curve.max()), "plateau": float(curve[window].mean()),
+            "peak_time_ms": 1e3 * tk, "angle1": float(angles[0]), "angle2": float(angles[1])}
+
+
+def design(model: BendingModel, corners: bool) -> list[tuple[str, np.ndarray]]:
+    """Named points: centre, min/max of each main input, optionally the 16 corners."""
+    ix = model.spec.inputs.index
+    lo, hi = model.spec.inputs.lo, model.spec.inputs.hi
+    x0 = model.centre()
+    pts = [("centre", x0)]
+    for name in MAIN:
+        for side, bound in (("min", lo), ("max", hi)):
+            x = x0.copy()
+            x[ix[name]] = bound[ix[name]]
+            pts.append((f"{name}_{side}", x))
+    if corners:
+        for k in range(2 ** len(MAIN)):
+            x = x0.copy()
+            tag = []
+            for j, name in enumerate(MAIN):
+                up = (k >> j) & 1
+                x[ix[name]] = (hi if up else lo)[ix[name]]
+                tag.append("+" if up else "-")
+            pts.append(("corner" + "".join(tag), x))
+    return pts
+
+
+class FeCache:
+    """FE figures by model version, geometry and input (JSON, git-ignored)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.data: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
+
+    @staticmethod
+    def key(fe: CalculixModel, x: np.ndarray) -> str:
+        """Cache key of one FE run."""
+        text = f"{fe.version}|{fe.stage2}|{fe.geometry!r}|{fe.settings!r}|{x.tolist()!r}"
+        return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+    def run(self, fe: CalculixModel, x: np.ndarray, lock: str) -> dict[str, Any]:
+        """Figures of one FE run (cached), the run under the heavy lock."""
+        k = self.key(fe, x)
+        if k not in self.data:
+            with open(lock, "a") as fh:
+                fcntl.flock(fh, fcntl.LOCK_EX)
+                tic = time.process_time()
+                wall = time.perf_counter()
+                r = fe.run(x)
+                fcntl.flock(fh, fcntl.LOCK_UN)
+            rec: dict[str, Any] = {"ok": r.ok, "reason": r.reason,
+                                   "cpu_s": time.process_time() - tic,
+                                   "wall_s": time.perf_counter() - wall}
+            if r.ok:
+                rec.update(figures_of(r.curve, r.angles, fe.spec.time))
+            self.data[k] = rec
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_text(json.dumps(self.data, indent=1))
+            print(f"  ccx {fe.settings.n_thick} through the thickness: {rec}", flush=True)
+        return dict(self.data[k])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--meshes", default="4,6", help="coarse,fine elements through the "
+                        "thickness (default: %(default)s)")
+    parser.add_argument("--corners", action="store_true", help="add the 16 corners")
+    parser.add_argument("--stage1-only", action="store_true", help="no stage 2 in CalculiX")
+    parser.add_argument("--reference", help="also write the 9 cases' FE figures to this JSON")
+    parser.add_argument("--lock", default=os.environ.get("FORMTWIN_HEAVY_LOCK",
+                                                         "/tmp/formtwin-heavy.lock"))
+    args = parser.parse_args()
+    coarse_n, fine_n = (int(v) for v in args.meshes.split(","))
+    beam = BendingModel()
+    t = np.asarray(beam.spec.time)
+    stage2 = not args.stage1_only
+    fes = {n: CalculixModel(beam.spec, n_thick=n, stage2=stage2) for n in (coarse_n, fine_n)}
+    cache = FeCache(CACHE / "fe_runs.json")
+    points = design(beam, args.corners)
+    rows: dict[str, dict[str, Any]] = {}
+    for name, x in points:
+        b = beam.run(x)
+        rows[name] = {"beam": figures_of(b.curve, b.angles, t) if b.ok else None,
+                      "fine": cache.run(fes[fine_n], x, args.lock),
+                      "coarse": cache.run(fes[coarse_n], x, args.lock) if name in
+                      dict(points[:9]) else None}
+    figures = compare(rows, stage2)
+    figures["ccx_version"] = ccx_version()
+    figures["fe_model"] = fes[fine_n].version
+    figures["fe_mesh_fine"] = _mesh(fes[fine_n], beam)
+    figures["fe_mesh_coarse"] = _mesh(fes[coarse_n], beam)
+    figures["beam_model"] = beam.version
+    fine_runs = [r["fine"] for r in rows.values() if r["fine"].get("ok")]
+    figures["fe_cpu_s_per_run_fine"] = float(np.median([r["cpu_s"] for r in fine_runs]))
+    figures["points"] = {k: v for k, v in rows.items()}
+    write_result("physics_fe", figures)
+    if args.reference:
+        ref = {k: {"fe": v["fine"], "mesh_error": _mesh_error(v)} for k, v in
+               list(rows.items())[:9]}
+        Path(args.reference).write_text(json.dumps({
+            "what": "CalculiX plane-strain reference of formtwin's flap bending (issue 12); "
+                    "fe = fine mesh, mesh_error = |fine - coarse|; plateau = mean force "
+                    "-40..-20 ms; peak time by a parabola through the maximum",
+            "fe_model": figures["fe_model"], "ccx_version": figures["ccx_version"],
+            "meshes": [figures["fe_mesh_coarse"], figures["fe_mesh_fine"]],
+            "cases": ref}, indent=1) + "\n")
+
+
+def _mesh(fe: CalculixModel, beam: BendingModel) -> str:
+    s = fe.settings
+    n_along = s.n_along(fe.geometry, float(beam.centre()[beam.spec.inputs.index["thickness"]]))
+    return f"CPE8R {n_along} x {s.n_thick} (aspect {s.aspect:g})"
+
+
+def _mesh_error(row: dict[str, Any]) -> dict[str, float]:
+    f, c = row["fine"], row["coarse"]
+    if not (c and f.get("ok") and c.get("ok")):
+        return {}
+    return {q: abs(float(f[q]) - float(c[q])) for q in QUANTITIES if np.isfinite(f[q])}
+
+
+def compare(rows: dict[str, dict[str, Any]], stage2: bool) -> dict[str, Any]:
+    """Errors of the beam model against the fine FE mesh and the sign agreement."""
+    ok = {k: v for k, v in rows.items() if v["beam"] and v["fine"].get("ok")}
+    b = {q: np.array([v["beam"][q] for v in ok.values()]) for q in QUANTITIES}
+    f = {q: np.array([v["fine"][q] for v in ok.values()]) for q in QUANTITIES}
+    err = {k: _mesh_error(v) for k, v in rows.items()}
+    mesh = {q: max([e.get(q, 0.0) for e in err.values()] or [0.0]) for q in QUANTITIES}
+    out: dict[str, Any] = {
+        "points_compared": len(ok), "fe_failed": len(rows) - len(ok),
+        "peak_rel_err_max": float(np.max(np.abs(b["peak"] / f["peak"] - 1))),
+        "plateau_rel_err_max": float(np.max(np.abs(b["plateau"] / f["plateau"] - 1))),
+        "peak_time_err_max_ms": float(np.max(np.abs(b["peak_time_ms"] - f["peak_time_ms"]))),
+        "angle1_err_max_deg": float(np.max(np.abs(b["angle1"] - f["angle1"]))),
+        "angle1_err_mean_deg": float(np.mean(b["angle1"] - f["angle1"])),
+    }
+    if stage2:
+        out["angle2_err_max_deg"] = float(np.max(np.abs(b["angle2"] - f["angle2"])))
+        out["angle2_err_mean_deg"] = float(np.mean(b["angle2"] - f["angle2"]))
+    out.update({f"fe_mesh_error_{q}": mesh[q] for q in QUANTITIES})
+    effects: dict[str, dict[str, Any]] = {}
+    for name in MAIN:
+        lo, hi = rows.get(f"{name}_min"), rows.get(f"{name}_max")
+        if not (lo and hi and lo["beam"] and hi["beam"] and lo["fine"].get("ok")
+                and hi["fine"].get("ok")):
+            continue
+        for q in ("peak", "plateau", "angle1", "angle2"):
+            fe_eff = float(hi["fine"][q]) - float(lo["fine"][q])
+            tol = err[f"{name}_min"].get(q, np.inf) + err[f"{name}_max"].get(q, np.inf)
+            effects[f"{name}:{q}"] = {
+                "fe": fe_eff, "beam": hi["beam"][q] - lo["beam"][q], "fe_mesh_error": tol,
+                "counted": bool(abs(fe_eff) > tol and np.isfinite(fe_eff))}
+    for label, qs in (("", ("peak", "plateau", "angle1")), ("_final", ("angle2",))):
+        counted = [e for k, e in effects.items() if k.split(":")[1] in qs and e["counted"]]
+        agree = [np.sign(e["fe"]) == np.sign(e["beam"]) for e in counted]
+        out[f"sensitivity_sign_agreement{label}"] = float(np.mean(agree)) if agree else None
+        out[f"sensitivity_effects_counted{label}"] = len(agree)
+    out["effects"] = effects
+    return out
+
+
+if __name__ == "__main__":
+    main()
