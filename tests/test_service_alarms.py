@@ -64,15 +64,19 @@ def test_alarms_are_charted_stored_and_survive_a_restart(tmp_path: Path,
     phases = [o.message["monitoring"]["phase"] for o in ref_out]
     assert phases[:2] == ["warmup"] * 2 and phases[2:5] == ["phase1"] * 3
     assert set(phases[5:]) == {"charting"}
-    alarms = [a for o in ref_out for a in o.alarms]
+    every = [a for o in ref_out for a in o.alarms]
+    # the charts' alarms (the service's model-health episodes are alarms too, tested below)
+    alarms = [a for a in every if a["chart"] != "model_mismatch"]
     assert len(alarms) > 5  # out of control by construction
     assert {a["variable"] for a in alarms} <= {"thickness", "angle_stage2"}
     stored = ref_mon.alarms()
     assert [(a["seq"], a["variable"], a["chart"]) for a in stored] == \
-        [(a["seq"], a["variable"], a["chart"]) for a in alarms]
+        [(a["seq"], a["variable"], a["chart"]) for a in every]
     # the message carries the chart statistics: the EWMA statistic beyond its limit
     for o in ref_out:
         for a in o.message["monitoring"]["alarms"]:
+            if a["chart"] == "model_mismatch":
+                continue
             stat, lim = o.message["monitoring"]["charts"][a["variable"]][a["chart"]]
             assert abs(stat) > lim and a["limit"] == lim
     # the same charts from the stored values alone (the monitor is a function of them)
@@ -210,3 +214,29 @@ def test_alarm_routes_need_the_page_token(tmp_path: Path, payloads: list[bytes])
     finally:
         page.stop()
         close(proc, mon)
+
+
+def test_model_health_episode_is_an_alarm(tmp_path: Path) -> None:
+    """Physics curves (the bundled DOE) into a service on the analytic stand-in: the
+    service's model-health episode opens once, and it is one acknowledgeable alarm
+    (chart ``model_mismatch``, variable ``model_health``) on the product that opened it."""
+    from formtwin.dataset import DoeDataset
+    from formtwin.defaults import analytic_model, bundled_doe
+    from formtwin.service.messages import STROKE_SCHEMA
+    from formtwin.service.plausibility import Plausibility
+
+    data = DoeDataset.load(bundled_doe("bending"))
+    lim = Plausibility.from_model(analytic_model())
+    phys = [c for c in data.curves[data.ok][:200] if lim.check(c) is None][:20]
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    mon = attach(proc, MonitorConfig({"thickness": InControl(mean=0.3, sigma=1.0)},
+                                     warmup=0, phase1=0))
+    outs = [proc.handle(dumps({"schema": STROKE_SCHEMA, "part_id": f"P-{i:05d}", "cycle": i,
+                               "timestamp": float(i), "force_N": [float(v) for v in c]}))
+            for i, c in enumerate(phys, 1)]
+    opened = [o.seq for o in outs if any(n["reason"] == "model_mismatch" for n in o.notices)]
+    health = [a for a in mon.alarms() if a["chart"] == "model_mismatch"]
+    assert len(opened) == 1 and [a["seq"] for a in health] == opened
+    assert health[0]["variable"] == "model_health" and health[0]["side"] == "high"
+    assert health[0]["statistic"] >= health[0]["limit"] > 0
+    close(proc, mon)

@@ -5,7 +5,8 @@ published and acknowledged.
 on the state posterior means and the predicted angles, the model-mismatch CUSUM on the
 filter's health: log-evidence increment and ESS against their in-control distribution). For
 every accepted product the processor calls :meth:`ServiceMonitor.observe` *before* the
-commit: the chart statistics, their limits and the product's alarms go into the estimate
+commit (after the service's model health, :mod:`formtwin.service.health`, whose opening
+``model_mismatch`` episode becomes an alarm too, chart ``model_mismatch``): the chart statistics, their limits and the product's alarms go into the estimate
 message (``"monitoring"``), so they are stored in the same SQLite transaction as the
 product and the tracker checkpoint, published with the estimate, and shown on the page.
 After the commit, :meth:`ServiceMonitor.committed` copies the alarms into the ``alarms``
@@ -168,9 +169,15 @@ class ServiceMonitor:
                  else "charting")
         charts = {n: {k: [_num(v[0]), _num(v[1])] for k, v in d.items()}
                   for n, d in self.monitor.last.items()}
-        return {"phase": phase, "charts": charts,
-                "alarms": [{**a.to_dict(), "statistic": _num(a.statistic),
-                            "limit": _num(a.limit)} for a in alarms]}
+        out = [{**a.to_dict(), "statistic": _num(a.statistic), "limit": _num(a.limit)}
+               for a in alarms]
+        health = message.get("model_health") or {}
+        if health.get("event") == "opened":  # the service's model-health episode opens
+            out.append({"variable": "model_health", "chart": "model_mismatch",
+                        "index": index, "statistic": float(health.get("failing", 0)),
+                        "limit": _num(float((health.get("rule") or {}).get("k", math.nan))),
+                        "side": "high"})
+        return {"phase": phase, "charts": charts, "alarms": out}
 
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
