@@ -6,8 +6,9 @@ on the state posterior means and the predicted angles, the model-mismatch CUSUM 
 filter's health: log-evidence increment and ESS against their in-control distribution). For
 every accepted product the processor calls :meth:`ServiceMonitor.observe` *before* the
 commit (after the service's model health, :mod:`formtwin.service.health`, whose opening
-``model_mismatch`` episode becomes an alarm too, chart ``model_mismatch``): the chart statistics, their limits and the product's alarms go into the estimate
-message (``"monitoring"``), so they are stored in the same SQLite transaction as the
+``model_mismatch`` episode becomes an alarm too, chart ``model_mismatch``): the chart
+statistics, their limits and the product's alarms go into the estimate message
+(``"monitoring"``), so they are stored in the same SQLite transaction as the
 product and the tracker checkpoint, published with the estimate, and shown on the page.
 After the commit, :meth:`ServiceMonitor.committed` copies the alarms into the ``alarms``
 table (one row per alarm, unique per product, variable and chart) where they are
