@@ -100,7 +100,7 @@ def _ours(factory: Callable[[], Metamodel], train: _Rows, test: _Rows, mean: np.
 
 def _scipy(train: _Rows, test: _Rows, mean: np.ndarray, repeat: int) -> dict[str, Any]:
     pod = POD(n_modes=40).fit(train.curves)
-    lo, hi = train.spec.inputs.lo, train.spec.inputs.hi
+    lo, hi = train.spec.run_inputs.lo, train.spec.run_inputs.hi
     U, V = (train.inputs - lo) / (hi - lo), (test.inputs - lo) / (hi - lo)
     t = time.perf_counter()
     rbf = RBFInterpolator(U, np.hstack([pod.transform(train.curves), train.angles]),

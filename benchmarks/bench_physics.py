@@ -1,10 +1,23 @@
-"""Speed and robustness of the two-stage bending model (formtwin.physics.bending).
+"""Speed, robustness and final-angle behaviour of the two-stage bending model.
 
-One full two-stage run at the centre of Table 1, then 50 random Table-1 points (uniform in
-the input box, seed 2024), one core. Figures: ``median_s_per_run`` (wall clock, random
-points), ``converged_fraction``, ``compile_s`` (first run in a fresh process with an empty
-Numba cache), ``cache_load_s`` (first run in a fresh process with the cache filled).
-Targets (issue 3): median <= 0.2 s, converged fraction >= 0.99.
+One full two-stage run at the centre of Table 1, then 50 random points of the run-input box
+(Table 1 plus the stage-2 setting u, uniform, seed 2024), one core. Figures:
+
+* ``median_s_per_run`` (wall clock, random points), ``converged_fraction``, ``compile_s``
+  (first run in a fresh process with an empty Numba cache), ``cache_load_s`` (first run in
+  a fresh process with the cache filled); targets (issues 3, 12): median <= 0.2 s,
+  converged fraction >= 0.99;
+* ``final_angle_range_yield_deg``, ``final_angle_range_thickness_deg``: the final angle's
+  change from the input's minimum to its maximum, the others at the centre (issue 12:
+  >= 1.5 and >= 0.5 deg);
+* ``angle2_gain_deg_per_mm``: d final angle / d u at the centre (central difference over
+  +-50 um);
+* ``angle2_noise_ratio``: the std of the final angle over 20 runs at the centre with every
+  input perturbed by 1e-6 of its range (numerical noise), over the std of the final angle in
+  a production run (40 products of :func:`~formtwin.production.draw_production_run`, seed
+  7, nominal u) (issue 12: <= 0.05); ``angle2_sweep_scatter_deg``: the largest std about a
+  quadratic trend of the final angle in 9-point sweeps of yield stress and thickness
+  (noise from the adaptive steps and contact events).
 
 Run: ``python benchmarks/bench_physics.py [--points 50]``.
 """
@@ -25,6 +38,7 @@ import numpy as np  # noqa: E402
 
 from formtwin._bench import write_result  # noqa: E402
 from formtwin.physics.bending import VERSION, BendingModel  # noqa: E402
+from formtwin.production import draw_production_run  # noqa: E402
 
 _FIRST_RUN = (
     "import time; t = time.perf_counter();"
@@ -42,6 +56,46 @@ def first_run_seconds(cache_dir: str | None) -> float:
     out = subprocess.run([sys.executable, "-c", _FIRST_RUN], env=env, check=True,
                          capture_output=True, text=True).stdout.split()
     return float(out[0])
+
+
+def final_angle_figures(model: BendingModel) -> dict[str, float]:
+    """Ranges of the final angle with yield stress and thickness, its gain with u, and its
+    numerical noise against its spread in a production run (see the module doc)."""
+    box, centre = model.spec.run_inputs, model.centre()
+
+    def angle2(x: np.ndarray) -> float:
+        r = model.run(x)
+        return float(r.angles[1]) if r.ok else float("nan")
+
+    def moved(name: str, value: float) -> np.ndarray:
+        x = centre.copy()
+        x[box.index[name]] = value
+        return x
+
+    out: dict[str, float] = {}
+    for name, key in (("yield_stress", "yield"), ("thickness", "thickness")):
+        a, b = angle2(moved(name, box[name].lo)), angle2(moved(name, box[name].hi))
+        out[f"final_angle_range_{key}_deg"] = round(abs(b - a), 4)
+    du = 0.05
+    out["angle2_gain_deg_per_mm"] = round(
+        (angle2(moved("stage2_depth", du)) - angle2(moved("stage2_depth", -du))) / (2 * du), 3)
+    rng = np.random.default_rng(11)
+    noise = [angle2(centre + 1e-6 * (hi - lo) * rng.uniform(-1, 1, lo.size))
+             for lo, hi in [(box.lo, box.hi)] for _ in range(20)]
+    run = draw_production_run(model.spec, 40, np.random.default_rng(7))
+    in_run = [angle2(x) for x in run.run_inputs]
+    out["angle2_noise_std_deg"] = float(f"{np.nanstd(noise):.3g}")
+    out["angle2_in_run_std_deg"] = round(float(np.nanstd(in_run)), 4)
+    out["angle2_noise_ratio"] = float(f"{np.nanstd(noise) / np.nanstd(in_run):.3g}")
+    # a coarser view of the noise: scatter about a quadratic trend in a 9-point sweep
+    worst = 0.0
+    for name in ("yield_stress", "thickness"):
+        v = np.linspace(box[name].lo, box[name].hi, 9)
+        a = np.array([angle2(moved(name, val)) for val in v])
+        z = (v - v.mean()) / np.ptp(v)
+        worst = max(worst, float(np.std(a - np.polyval(np.polyfit(z, a, 2), z))))
+    out["angle2_sweep_scatter_deg"] = float(f"{worst:.3g}")
+    return out
 
 
 def main() -> None:
@@ -63,7 +117,8 @@ def main() -> None:
     assert r.ok, r.reason
 
     rng = np.random.default_rng(2024)
-    lo, hi = model.spec.inputs.lo, model.spec.inputs.hi
+    box = model.spec.run_inputs
+    lo, hi = box.lo, box.hi
     wall, cpu, ok, reasons = [], [], 0, []
     for _ in range(args.points):
         x = lo + (hi - lo) * rng.random(lo.size)
@@ -74,7 +129,9 @@ def main() -> None:
         ok += res.ok
         if not res.ok:
             reasons.append(res.reason)
+    angle = final_angle_figures(model)
     figures = {
+        **angle,
         "median_s_per_run": round(float(np.median(wall)), 4),
         "converged_fraction": ok / args.points,
         "compile_s": round(compile_s, 2),

@@ -27,4 +27,4 @@ def test_bundled_doe_is_the_paper_design_over_the_current_physics_model() -> Non
 def test_unknown_physics_model_is_named() -> None:
     with pytest.raises(ValueError, match="'fem' unknown; known: bending, analytic"):
         physics_model("fem")
-    assert default_doe("bending", cache=bundled_doe("bending").parent).n == 7024
+    assert default_doe("bending", cache=bundled_doe("bending").parent).n == 7048

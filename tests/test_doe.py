@@ -23,21 +23,21 @@ SPEC = load_spec()
 
 
 def test_full_factorial_is_every_corner_once() -> None:
-    X = full_factorial(SPEC)
-    assert X.shape == (1024, 10)
-    at_lo = np.isclose(X, SPEC.inputs.lo)
-    assert np.all(at_lo | np.isclose(X, SPEC.inputs.hi))
-    assert len({tuple(r) for r in at_lo}) == 1024
+    X = full_factorial(SPEC)  # Table 1 plus the stage-2 setting u
+    assert X.shape == (2048, 11)
+    at_lo = np.isclose(X, SPEC.run_inputs.lo)
+    assert np.all(at_lo | np.isclose(X, SPEC.run_inputs.hi))
+    assert len({tuple(r) for r in at_lo}) == 2048
 
 
 def test_latin_hypercube_is_seeded_stratified_and_inside() -> None:
     a, b = latin_hypercube(SPEC, 200, seed=3), latin_hypercube(SPEC, 200, seed=3)
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, latin_hypercube(SPEC, 200, seed=4))
-    u = (a - SPEC.inputs.lo) / (SPEC.inputs.hi - SPEC.inputs.lo)
-    for j in range(10):  # one point per stratum in every dimension
+    u = (a - SPEC.run_inputs.lo) / (SPEC.run_inputs.hi - SPEC.run_inputs.lo)
+    for j in range(11):  # one point per stratum in every dimension
         assert sorted(np.floor(u[:, j] * 200).astype(int)) == list(range(200))
-    assert paper_design(SPEC, 50).shape == (1074, 10)
+    assert paper_design(SPEC, 50).shape == (2098, 11)
 
 
 @dataclass(frozen=True)
@@ -154,7 +154,8 @@ def test_csv_import_interpolates_converts_units_and_keeps_failures(tmp_path: Pat
     _write_csv(p, [_csv_row(display, curve), _csv_row(display, curve * np.nan, "diverged")],
                times)
     data = import_csv(p, SPEC)
-    np.testing.assert_allclose(data.inputs[0], centre)
+    # no control column: the nominal stage-2 setting
+    np.testing.assert_allclose(data.inputs[0], np.r_[centre, SPEC.controls.nominal])
     np.testing.assert_allclose(data.curves[0], 100 + (SPEC.time * 1e3) ** 2, rtol=1e-3)
     assert data.ok.tolist() == [True, False] and data.reason[1] == "diverged"
 

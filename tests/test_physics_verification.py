@@ -112,28 +112,33 @@ def test_springback_elastic_perfectly_plastic(rho: float) -> None:
     assert r_i / r_f == pytest.approx(1 - 3 * rho + 4 * rho**3, rel=2e-2)
 
 
-def friction_history(mu: float) -> tuple[np.ndarray, np.ndarray]:
+def friction_history(mu: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A stiff strip on a flat die, pressed by 1 N/mm per node, dragged +d, then back to -d.
 
-    Returns ``(lam_fix, reaction)`` at the recorded instants (reaction at the dragged dof).
+    The nodes' rotations are held: friction acts on the strip's lower face, ``t/2`` below
+    the nodes, and its moment would otherwise rock the strip on the (soft at first)
+    contact. Returns ``(lam_fix, reaction, moments)`` at the recorded instants: the
+    reaction at the dragged dof and the sum of the reactions at the held rotations.
     """
     stiff = Material(yield_stress=1e12, E=1e9, rate=False)
     sheet = Sheet.straight(0.0, 1.0, 0.5 * T, 4, T, 15, 2)
-    die = make_toolset([("die", 0, [(np.array([[-5.0, 0.0], [5.0, 0.0]]), np.zeros(0))])])
+    die = make_toolset([("die", 0, -1, [(np.array([[-5.0, 0.0], [5.0, 0.0]]), np.zeros(0))])])
     fref = np.zeros(sheet.u.size)
     fref[1::3] = -1.0
     t = np.r_[0.0, 0.5, 1.0, 1.01, 2.0, 2.005, 2.5, 3.0]
     lam = np.minimum(t, 1.0)
     lam_fix = np.interp(t, [0.0, 1.0, 2.0, 3.0], [0.0, 0.0, 1.0, -1.0])
+    rot = np.arange(2, sheet.u.size, 3)
     h = solve(sheet, stiff, die, t, DISC, dt_max=0.01, mu=np.array([mu]), lam=lam,
-              lam_fix=lam_fix, fix=np.array([0]), fix_ref=np.array([1e-4]), fref=fref)
+              lam_fix=lam_fix, fix=np.r_[0, rot], fix_ref=np.r_[1e-4, np.zeros(rot.size)],
+              fref=fref)
     assert h.status == 0
-    return lam_fix, h.reactions[:, 0]
+    return lam_fix, h.reactions[:, 0], h.reactions[:, rot].sum(axis=1)
 
 
 def test_friction_stick_slip_and_reversal() -> None:
     mu, penalty = 0.2, 5.0e5
-    lam_fix, reaction = friction_history(mu)
+    lam_fix, reaction, moments = friction_history(mu)
     # stick: 1e-6 mm of drag, every node sticks: reaction = penalty * length * drag (the
     # strip's axial compliance, E = 1e9 MPa, takes 5e-4 of it)
     assert lam_fix[3] == pytest.approx(0.01)
@@ -145,11 +150,15 @@ def test_friction_stick_slip_and_reversal() -> None:
     # then slips the other way
     assert reaction[6] == pytest.approx(-mu * 5.0, rel=1e-6)
     assert reaction[7] == pytest.approx(-mu * 5.0, rel=1e-6)
+    # the friction force on the lower face has the lever arm t/2 about the nodes
+    assert moments[4] == pytest.approx(0.5 * T * mu * 5.0, rel=1e-6)
+    assert moments[7] == pytest.approx(-0.5 * T * mu * 5.0, rel=1e-6)
 
 
 def test_frictionless_drag_needs_no_force() -> None:
-    _, reaction = friction_history(0.0)
+    _, reaction, moments = friction_history(0.0)
     assert np.abs(reaction[3:]).max() < 1e-7
+    assert np.abs(moments[3:]).max() < 1e-7
 
 
 @pytest.mark.parametrize(("rate", "window", "strain"), [
@@ -194,3 +203,56 @@ def test_cowper_symonds_plastic_bending(kappa_rate: float) -> None:
                         / kappa) ** 2 / 3
     expected = mp * (elastic_core + 2 / (2 + q) * (edge_rate / 10**m.log_rate) ** q)
     assert abs(h.reactions[-1, 5]) == pytest.approx(expected, rel=1e-2)
+
+
+@pytest.mark.parametrize("slip", [False, True])
+def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool) -> None:
+    """Contact on the sheet's faces (the point ``x + f t/2 n(theta)`` of each node, force
+    and moment there): the assembled band tangent and the punch column ``dR/dp`` are the
+    finite-difference derivatives of the residual, in stick and in slip, on a nose (arc)
+    and on a flat die, with rotated nodes."""
+    from formtwin.physics.bending.solver import BW, assemble
+
+    sheet = Sheet.straight(0.0, 0.6, 0.5 * T, 3, T, 15, 2)
+    n = sheet.u.size
+    rng = np.random.default_rng(3)
+    u = 1e-3 * rng.standard_normal(n)
+    u[2::3] = [0.02, -0.01, 0.03, 0.015]  # rotations, rad
+    u[1::3] -= 2e-4  # into the die
+    tools = make_toolset([
+        ("die", 0, -1, [(np.array([[-5.0, 0.0], [5.0, 0.0]]), np.zeros(0))]),
+        ("nose", 1, +1, [(np.array([[0.8, 2.0], [0.8, 0.3], [-1.0, 0.3]]), np.array([0.3]))])])
+    p = T - 0.3 - 2e-4 - 0.01  # the punch's nose pressed into the sheet's upper face
+    mesh = (sheet.X, sheet.phi0, T, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg, ELASTIC.array)
+    zeros = np.zeros_like(sheet.sig)
+    pen = np.full((sheet.X.shape[0], 2), 5.0e4)
+    mu = np.full(2, 0.3)
+    # the committed face points: a slip far beyond mu N / penalty, or a tiny stick offset
+    ct_rel = np.zeros((sheet.X.shape[0], 2, 2))
+    ct_rel[:, :, 0] = sheet.X[:, [0]] + (5e-3 if slip else 1e-7)
+    ct_rel[:, :, 1] = 0.0
+    ct_rel[:, 1, 1] = T - p
+    contact = (np.zeros((sheet.X.shape[0], 2)), ct_rel, np.zeros((sheet.X.shape[0], 2), np.int64))
+    press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0, 5e-4])
+    toolarr = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, pen)
+
+    def residual(uu: np.ndarray, pp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        Kb, R = np.zeros((n, 2 * BW + 1)), np.zeros(n)
+        col, row, out = np.zeros(n), np.zeros(n), np.zeros(5)
+        trial = (np.zeros_like(zeros), np.zeros_like(zeros), np.zeros_like(zeros))
+        ct_trial = (np.zeros((sheet.X.shape[0], 2)), np.zeros((sheet.X.shape[0], 2), np.int64))
+        assemble(0.0, uu, pp, mesh, zeros, zeros, zeros, zeros, trial, toolarr, contact,
+                 ct_trial, press, np.zeros(n), Kb, R, col, row, out)
+        assert ct_trial[1].sum() >= 4  # several contacts active
+        return R, Kb, col
+
+    R0, Kb, col = residual(u, p)
+    h = 1e-9
+    for j in range(n):
+        du = np.zeros(n)
+        du[j] = h
+        fd = (residual(u + du, p)[0] - residual(u - du, p)[0]) / (2 * h)
+        band = np.array([Kb[i, j - i + BW] if abs(i - j) <= BW else 0.0 for i in range(n)])
+        np.testing.assert_allclose(band, fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
+    fd = (residual(u, p + h)[0] - residual(u, p - h)[0]) / (2 * h)
+    np.testing.assert_allclose(col, fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())

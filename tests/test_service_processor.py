@@ -282,7 +282,7 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
     real = proc.tracker
 
     class Refusing:
-        def step(self, curve: object) -> object:
+        def step(self, curve: object, u: object = None) -> object:
             raise ValueError("curve is not monotone before contact (test double)")
 
         def state_bytes(self) -> bytes:
@@ -300,7 +300,7 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
     assert proc.store.rejection_counts() == {"tracker_rejected": 1}
 
     class Crashing:  # an unexpected error after touching the state: rolled back
-        def step(self, curve: object) -> object:
+        def step(self, curve: object, u: object = None) -> object:
             real.step(curve)
             raise FloatingPointError("overflow in the model (test double)")
 
@@ -320,7 +320,7 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
         def __init__(self, inner: object) -> None:
             self.inner = inner
 
-        def step(self, curve: object) -> object:
+        def step(self, curve: object, u: object = None) -> object:
             e = self.inner.step(curve)  # type: ignore[attr-defined]
             return dataclasses.replace(e, index=float("nan"))  # to_dict: int(nan) fails
 

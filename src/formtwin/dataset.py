@@ -38,7 +38,8 @@ class DatasetError(ValueError):
 class DoeDataset:
     """Results of a design of experiments, internal units (mm, N, s, MPa; degrees).
 
-    ``inputs (n, n_inputs)``, ``curves (n, n_t)`` N, ``angles (n, 2)`` degrees,
+    ``inputs (n, n_run_inputs)`` the run inputs ``(x, theta, u)``, ``curves (n, n_t)``
+    N, ``angles (n, 2)`` degrees,
     ``ok (n,)`` run succeeded, ``reason (n,)`` why not, ``time (n_t,)`` s.
     """
 
@@ -110,8 +111,8 @@ def _layout(f: h5py.File, spec: ProcessSpec, inputs: FloatArray, model_version: 
                     "model_version": model_version, "formtwin_version": formtwin.__version__,
                     "units": "mm, N, s, MPa; angles in degrees"})
     d = f.create_dataset("inputs", data=inputs)
-    d.attrs.update({"names": json.dumps(spec.inputs.names),
-                    "units": json.dumps([v.internal_unit for v in spec.inputs])})
+    d.attrs.update({"names": json.dumps(spec.run_inputs.names),
+                    "units": json.dumps([v.internal_unit for v in spec.run_inputs])})
     f.create_dataset("time", data=spec.time).attrs["units"] = "s"
     f.create_dataset("curves", shape=(n, spec.n_t), dtype="f8", fillvalue=np.nan,
                      compression="gzip", shuffle=True).attrs["units"] = "N"
@@ -150,7 +151,8 @@ def open_for_run(path: Path, spec: ProcessSpec, inputs: FloatArray,
 def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "imported") -> DoeDataset:
     """Read a user's FE results: one row per run.
 
-    Columns: the spec's input names (in the spec file's units, as in Table 1), ``angle_stage1``
+    Columns: the spec's input names (in the spec file's units, as in Table 1), optionally
+    its control names (missing: the nominal setting), ``angle_stage1``
     and ``angle_stage2`` (degrees), an optional ``status`` (``ok`` or a failure reason), and
     the force curve as columns ``F@<time in ms>`` (N). The curve is linearly interpolated
     onto the spec's grid, which its times must cover.
@@ -179,9 +181,10 @@ def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "import
         raise DatasetError(f"{p}: curve times [{t_csv[0] * 1e3:g}, {t_csv[-1] * 1e3:g}] ms do "
                            f"not cover the spec window [{spec.time[0] * 1e3:g}, "
                            f"{spec.time[-1] * 1e3:g}] ms")
-    scale = np.array([v.scale for v in spec.inputs])
+    box = spec.run_inputs
+    scale = np.array([v.scale for v in box])
     n = len(rows) - 1
-    inputs, angles = np.empty((n, spec.n_inputs)), np.empty((n, 2))
+    inputs, angles = np.empty((n, len(box))), np.empty((n, 2))
     curves = np.empty((n, spec.n_t))
     ok = np.ones(n, dtype=bool)
     reason = np.full(n, "", dtype=object)
@@ -199,7 +202,7 @@ def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "import
 
         status = row[col["status"]].strip() if "status" in col and col["status"] < len(row) \
             else "ok"
-        inputs[r] = [number(name) for name in spec.inputs.names]
+        inputs[r] = [number(v.name) if v.name in col else v.nominal / v.scale for v in box]
         if status != "ok":
             ok[r], reason[r] = False, status or "failed"
             angles[r], curves[r] = np.nan, np.nan
@@ -213,11 +216,11 @@ def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "import
             raise DatasetError(f"{p}: line {line}, column {bad[0]!r} is not finite")
         curves[r] = np.interp(spec.time, t_csv, values)
     inputs *= scale
-    outside = (inputs < spec.inputs.lo - 1e-12 * np.abs(spec.inputs.lo)) | (
-        inputs > spec.inputs.hi + 1e-12 * np.abs(spec.inputs.hi))
+    outside = (inputs < box.lo - 1e-12 * np.abs(box.lo)) | (
+        inputs > box.hi + 1e-12 * np.abs(box.hi))
     if outside.any():
         r, c = np.argwhere(outside)[0]
-        v = spec.inputs.variables[c]
+        v = box.variables[c]
         raise DatasetError(f"{p}: line {r + 2}, column {v.name!r} = {inputs[r, c] / v.scale:g} "
                            f"{v.unit} is outside [{v.lo / v.scale:g}, {v.hi / v.scale:g}]")
     return DoeDataset(spec=spec, inputs=inputs, curves=curves, angles=angles, ok=ok,

@@ -87,8 +87,9 @@ def analytic_dataset(n: int, seed: int = 0, spec: ProcessSpec | None = None,
 
     spec = spec or load_spec()
     sim = AnalyticBending(spec, failure_clearance=failure_clearance)
-    U = qmc.LatinHypercube(d=spec.n_inputs, rng=np.random.default_rng(seed)).random(n)
-    X = qmc.scale(U, spec.inputs.lo, spec.inputs.hi)
+    box = spec.run_inputs
+    U = qmc.LatinHypercube(d=len(box), rng=np.random.default_rng(seed)).random(n)
+    X = qmc.scale(U, box.lo, box.hi)
     curves, angles = sim.run_batch(X)
     ok = np.all(np.isfinite(curves), axis=1)
     reason = np.array(["" if good else sim.failure_reason(x)

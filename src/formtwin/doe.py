@@ -1,8 +1,13 @@
 """Designs of experiments and the parallel, resumable runner.
 
 The paper's design is the 2^10 full factorial (the corners of the box of the ten inputs)
-plus a Latin hypercube of 6000 points. :func:`run_design` evaluates any
-:class:`~formtwin.simulator.Simulator` over a design through a
+plus a Latin hypercube of 6000 points (7024 runs). formtwin's designs span the model-run
+inputs ``(x, theta, u)`` (:attr:`~formtwin.spec.ProcessSpec.run_inputs`: Table 1 plus the
+press setting), so the demonstrator's full factorial has 2^11 corners; with
+:data:`LHS_POINTS` = 5000 Latin-hypercube points the default design has 7048 runs.
+
+:func:`run_design` evaluates any :class:`~formtwin.simulator.Simulator` over a design
+through a
 ``concurrent.futures.Executor`` — a local process pool by default, or a Dask cluster
 (``client.get_executor()``) — in chunks (one task costs ~1-2 ms of overhead), and writes
 each chunk to the dataset file as it arrives, so an interrupted run resumes where it
@@ -11,8 +16,8 @@ stopped. A run that raises is recorded as a failure with its reason.
 >>> from formtwin.spec import load_spec
 >>> spec = load_spec()
 >>> X = paper_design(spec, n_lhs=10, seed=1)
->>> X.shape, bool(((X >= spec.inputs.lo) & (X <= spec.inputs.hi)).all())
-((1034, 10), True)
+>>> X.shape, bool(((X >= spec.run_inputs.lo) & (X <= spec.run_inputs.hi)).all())
+((2058, 11), True)
 """
 
 from __future__ import annotations
@@ -40,22 +45,28 @@ log = logging.getLogger(__name__)
 
 
 def full_factorial(spec: ProcessSpec) -> FloatArray:
-    """The ``2^d`` corners of the input box, ``(2^d, d)``, in internal units."""
-    d = spec.n_inputs
+    """The ``2^d`` corners of the box of the run inputs, ``(2^d, d)``, in internal units."""
+    box = spec.run_inputs
+    d = len(box)
     levels = (np.arange(2**d)[:, None] >> np.arange(d)[None, ::-1]) & 1
-    out: FloatArray = spec.inputs.lo + levels * (spec.inputs.hi - spec.inputs.lo)
+    out: FloatArray = box.lo + levels * (box.hi - box.lo)
     return out
 
 
 def latin_hypercube(spec: ProcessSpec, n: int, seed: int = 0) -> FloatArray:
     """A seeded, optimised (random-CD) Latin hypercube of ``n`` points, ``(n, d)``."""
-    sampler = qmc.LatinHypercube(d=spec.n_inputs, optimization="random-cd",
+    box = spec.run_inputs
+    sampler = qmc.LatinHypercube(d=len(box), optimization="random-cd",
                                  rng=np.random.default_rng(seed))
-    out: FloatArray = qmc.scale(sampler.random(n), spec.inputs.lo, spec.inputs.hi)
+    out: FloatArray = qmc.scale(sampler.random(n), box.lo, box.hi)
     return out
 
 
-def paper_design(spec: ProcessSpec, n_lhs: int = 6000, seed: int = 0) -> FloatArray:
+#: Latin-hypercube points of the default design (2^11 corners + 5000 = 7048 runs)
+LHS_POINTS = 5000
+
+
+def paper_design(spec: ProcessSpec, n_lhs: int = LHS_POINTS, seed: int = 0) -> FloatArray:
     """The paper's design: full factorial corners, then ``n_lhs`` Latin-hypercube points."""
     return np.vstack([full_factorial(spec), latin_hypercube(spec, n_lhs, seed)])
 
@@ -121,8 +132,9 @@ def run_design(
     """
     spec = simulator.spec
     X = np.ascontiguousarray(X, dtype=np.float64)
-    if X.ndim != 2 or X.shape[1] != spec.n_inputs:
-        raise ValueError(f"design has shape {X.shape}, expected (n, {spec.n_inputs})")
+    if X.ndim != 2 or X.shape[1] != spec.n_run_inputs:
+        raise ValueError(f"design has shape {X.shape}, expected (n, {spec.n_run_inputs}) "
+                         f"({', '.join(spec.run_inputs.names)})")
     p = Path(path)
     t0 = time.perf_counter()
     with open_for_run(p, spec, X, simulator.version) as f:

@@ -87,7 +87,9 @@ _FORMAT = "formtwin.measurement/1"
 class ProcessModel(Protocol):
     """What the tracker needs of a process model (a metamodel or a fast stand-in).
 
-    ``X`` holds model inputs, state then parameters (``spec.inputs``), internal units.
+    ``X`` holds model inputs, state then parameters (``spec.inputs``), internal units,
+    optionally followed by the controls (``spec.run_inputs``); the stage-1 curve does not
+    depend on the controls, the final angle does (``u`` None: the nominal setting).
     """
 
     @property
@@ -96,11 +98,12 @@ class ProcessModel(Protocol):
         ...
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
-        """Stage-1 force curves (N, n_t), N, for inputs ``X`` (N, 10)."""
+        """Stage-1 force curves (N, n_t), N, for inputs ``X`` (N, 10) or (N, 11)."""
         ...
 
-    def predict_angles(self, X: FloatArray) -> FloatArray:
-        """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10)."""
+    def predict_angles(self, X: FloatArray, u: FloatArray | float | None = None) -> FloatArray:
+        """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10) at the
+        controls ``u`` (scalar or (N,); None: nominal), or ``X`` (N, 11) with ``u`` None."""
         ...
 
 

@@ -1,10 +1,10 @@
 """The seam between process models and everything that runs them.
 
-A simulator maps one point of the input box (state ``x`` then parameters ``theta``, in
-internal units, shape ``(n_inputs,)``) to the stage-1 force curve on the spec's time grid
-(N, shape ``(n_t,)``) and the bend angles after stage 1 and stage 2 (degrees, after
-springback, shape ``(2,)``). A run that fails returns ``ok=False`` and a reason instead of
-raising, so one bad point never stops a design of experiments.
+A simulator maps one point of the input box (state ``x``, parameters ``theta`` and the
+press settings ``u``, in internal units, shape ``(n_run_inputs,)``) to the stage-1 force
+curve on the spec's time grid (N, shape ``(n_t,)``) and the bend angles after stage 1 and
+stage 2 (degrees, after springback, shape ``(2,)``). A run that fails returns ``ok=False``
+and a reason instead of raising, so one bad point never stops a design of experiments.
 
 :class:`SimulatorModel` makes any simulator a process model for the tracker (curves and
 angles of a batch of particles), so nothing above this seam names a physics module.
@@ -55,7 +55,7 @@ class Simulator(Protocol):
         ...
 
     def run(self, inputs: FloatArray) -> RunResult:
-        """Run one input point ``(n_inputs,)`` in internal units."""
+        """Run one input point ``(n_run_inputs,)`` in internal units."""
         ...
 
 
@@ -82,7 +82,7 @@ class SimulatorModel:
         return self.simulator.spec
 
     def _run(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
-        X = np.asarray(X, dtype=np.float64)
+        X = self.spec.run_columns(X)
         last = self._last
         if last is not None and last[0].shape == X.shape and np.array_equal(last[0], X):
             return last[1], last[2]
@@ -97,9 +97,11 @@ class SimulatorModel:
         return curves, angles
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
-        """Stage-1 force curves (N, n_t), N, for inputs ``X`` (N, 10)."""
+        """Stage-1 force curves (N, n_t), N, for inputs ``X`` (N, 10) ``[x, theta]`` (the
+        controls act after stage 1) or (N, 11) ``[x, theta, u]``."""
         return self._run(X)[0]
 
-    def predict_angles(self, X: FloatArray) -> FloatArray:
-        """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10)."""
-        return self._run(X)[1]
+    def predict_angles(self, X: FloatArray, u: FloatArray | float | None = None) -> FloatArray:
+        """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10) at the
+        controls ``u`` (scalar or (N,); None: nominal), or ``X`` (N, 11) with ``u`` None."""
+        return self._run(self.spec.run_columns(X, u))[1]

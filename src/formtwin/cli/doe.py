@@ -24,8 +24,8 @@ def register(sub: Any) -> None:
                      default="bending", help="process model (default: %(default)s; "
                      "calculix needs ccx)")
     run.add_argument("--spec", help="process spec TOML (default: the demonstrator)")
-    run.add_argument("--lhs", type=int, default=6000, help="Latin-hypercube points "
-                     "(default: %(default)s)")
+    run.add_argument("--lhs", type=int, default=None, help="Latin-hypercube points "
+                     "(default: 5000, formtwin.doe.LHS_POINTS)")
     run.add_argument("--no-corners", action="store_true", help="leave out the 2^d corners")
     run.add_argument("--seed", type=int, default=0, help="design seed (default: %(default)s)")
     run.add_argument("--workers", type=int, help="local worker processes (default: all cores)")
@@ -43,11 +43,12 @@ def register(sub: Any) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from formtwin.defaults import physics_model
-    from formtwin.doe import latin_hypercube, paper_design, run_design
+    from formtwin.doe import LHS_POINTS, latin_hypercube, paper_design, run_design
 
     spec = load_spec(args.spec)
-    X = latin_hypercube(spec, args.lhs, args.seed) if args.no_corners else paper_design(
-        spec, args.lhs, args.seed)
+    n_lhs = LHS_POINTS if args.lhs is None else args.lhs
+    X = latin_hypercube(spec, n_lhs, args.seed) if args.no_corners else paper_design(
+        spec, n_lhs, args.seed)
     executor = f"dask {args.scheduler}" if args.scheduler else "processes"
     data = run_design(physics_model(args.physics, spec), X, Path(args.out), executor=executor,
                       chunk_size=args.chunk, workers=args.workers, seed=args.seed,

@@ -5,14 +5,9 @@
 :func:`calibrate` stores the statistics of k-fold residuals with the metamodel.
 """
 
-from formtwin.metamodel.model import (
-    Approximation,
-    Dataset,
-    Metamodel,
-    Prediction,
-    Reduction,
-)
+from formtwin.metamodel.model import Metamodel, Prediction
 from formtwin.metamodel.pod import POD
+from formtwin.metamodel.protocols import Approximation, Dataset, Reduction
 from formtwin.metamodel.rbf import KERNELS, RBF, loo_objective, loo_residuals
 from formtwin.metamodel.residuals import ResidualModel
 from formtwin.metamodel.validate import (

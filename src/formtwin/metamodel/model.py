@@ -8,6 +8,12 @@ bend angles separately (as the paper does). Inputs are first mapped per dimensio
 unit design box ``(x - lo) / (hi - lo)`` of the spec (the scaler); the approximation may
 then learn its own per-dimension length scales.
 
+The DOE spans the run inputs ``(x, theta, u)`` (``spec.run_inputs``; ``u`` the press
+settings, e.g. the stage-2 depth). The curves and the stage-1 angle happen before the
+settings act, so their models take ``(x, theta)`` only; the final angle's model takes
+``(x, theta, u)``. :meth:`Metamodel.final_angle` evaluates the final angle of a cloud of
+particles at several settings at once (for a controller choosing ``u``).
+
 The file format (:meth:`Metamodel.save`) is a numpy ``.npz`` readable with
 ``allow_pickle=False``: the spec's TOML text, the scaler, the source dataset's model
 version and the arrays of every fitted part.
@@ -20,13 +26,14 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, TypeVar, runtime_checkable
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
 from formtwin.metamodel.pod import POD
+from formtwin.metamodel.protocols import Approximation, Dataset, Reduction
 from formtwin.metamodel.rbf import RBF
 from formtwin.metamodel.residuals import ResidualModel
 from formtwin.spec import ProcessSpec, parse_spec
@@ -47,92 +54,6 @@ _BOX_TOL = 1e-9
 DEFAULT_KERNEL = "cubic"
 DEFAULT_CENTRES = 1000
 DEFAULT_ANGLE_CENTRES = 500
-
-
-class Dataset(Protocol):
-    """What :meth:`Metamodel.fit` needs of a DOE dataset (:class:`formtwin.dataset.DoeDataset`)."""
-
-    @property
-    def spec(self) -> ProcessSpec:
-        """The process definition of the runs."""
-        ...
-
-    @property
-    def spec_text(self) -> str:
-        """The spec as TOML text (stored with the metamodel)."""
-        ...
-
-    @property
-    def inputs(self) -> FloatArray:
-        """(n, 10) run inputs, internal units."""
-        ...
-
-    @property
-    def curves(self) -> FloatArray:
-        """(n, n_t) stage-1 force curves, N."""
-        ...
-
-    @property
-    def angles(self) -> FloatArray:
-        """(n, 2) bend angles after stage 1 and 2, degrees."""
-        ...
-
-    @property
-    def ok(self) -> BoolArray:
-        """(n,) which runs succeeded."""
-        ...
-
-    @property
-    def model_version(self) -> str:
-        """Version of the process model that made the runs."""
-        ...
-
-
-@runtime_checkable
-class Reduction(Protocol):
-    """Reduces curves (n, n_t) to coefficients (n, r) and back (e.g. :class:`POD`)."""
-
-    kind: str
-
-    @property
-    def n_modes(self) -> int:
-        """Number of modes kept."""
-        ...
-
-    def fit(self, curves: FloatArray) -> Reduction:
-        """Fit the reduction to ``curves`` (n, m); return it."""
-        ...
-
-    def transform(self, curves: FloatArray) -> FloatArray:
-        """Coefficients (n, n_modes) of ``curves`` (n, m)."""
-        ...
-
-    def inverse_transform(self, coeffs: FloatArray) -> FloatArray:
-        """Curves (n, m) of coefficients ``coeffs`` (n, n_modes)."""
-        ...
-
-    def state(self) -> dict[str, np.ndarray]:
-        """Arrays that rebuild the fitted reduction (saved with the metamodel)."""
-        ...
-
-
-@runtime_checkable
-class Approximation(Protocol):
-    """Maps unit-box inputs (n, d) to outputs (n, k) (e.g. :class:`RBF`)."""
-
-    kind: str
-
-    def fit(self, U: FloatArray, Y: FloatArray) -> Approximation:
-        """Fit to inputs ``U`` (n, d) and targets ``Y`` (n, k); return it."""
-        ...
-
-    def predict(self, U: FloatArray) -> FloatArray:
-        """Predictions (N, k) at inputs ``U`` (N, d)."""
-        ...
-
-    def state(self) -> dict[str, np.ndarray]:
-        """Arrays that rebuild the fitted approximation (saved with the metamodel)."""
-        ...
 
 
 #: kinds that :meth:`Metamodel.load` can rebuild
@@ -242,21 +163,23 @@ class Metamodel:
         X = np.asarray(dataset.inputs, dtype=np.float64)[ok]
         curves = np.asarray(dataset.curves, dtype=np.float64)[ok]
         angles = np.asarray(dataset.angles, dtype=np.float64)[ok]
-        if X.shape[0] < spec.n_inputs + 2:
+        n_run, n_in = spec.n_run_inputs, spec.n_inputs
+        if X.shape[0] < n_run + 2:
             raise ValueError(f"Metamodel.fit: {X.shape[0]} successful runs, expected at "
-                             f"least {spec.n_inputs + 2}")
-        if X.shape[1] != spec.n_inputs or curves.shape[1] != spec.n_t or angles.shape[1] != 2:
+                             f"least {n_run + 2}")
+        if X.shape[1] != n_run or curves.shape[1] != spec.n_t or angles.shape[1] != 2:
             raise ValueError(f"Metamodel.fit: inputs {X.shape}, curves {curves.shape}, angles "
-                             f"{angles.shape}; expected (n, {spec.n_inputs}), (n, {spec.n_t}),"
-                             " (n, 2)")
+                             f"{angles.shape}; expected (n, {n_run}), (n, {spec.n_t}), (n, 2)")
         self._spec, self.spec_text = spec, dataset.spec_text or spec.text
         self._model_version = str(dataset.model_version)
-        self.lo, self.hi = spec.inputs.lo, spec.inputs.hi
+        self.lo, self.hi = spec.run_inputs.lo, spec.run_inputs.hi
         U = self.scale(X)
         coeffs = self.reduction.fit(curves).transform(curves)
-        self.curve_model = copy.deepcopy(self.approximation).fit(U, coeffs)
+        self.curve_model = copy.deepcopy(self.approximation).fit(U[:, :n_in], coeffs)
+        # stage 1 (curve, first angle) before the press settings act; the final angle after
         self.angle_models = tuple(
-            copy.deepcopy(self.angle_approximation).fit(U, angles[:, j:j + 1]) for j in range(2))
+            copy.deepcopy(self.angle_approximation).fit(U[:, :n], angles[:, j:j + 1])
+            for j, n in enumerate((n_in, n_run)))
         self.n_train = X.shape[0]
         self.residuals = None  # they described the previous fit
         self.fit_seconds = time.perf_counter() - t0
@@ -266,48 +189,88 @@ class Metamodel:
 
     # --------------------------------------------------------------- evaluation
     def scale(self, X: FloatArray) -> FloatArray:
-        """Inputs (N, 10), internal units -> the unit design box (N, 10)."""
-        out: FloatArray = (X - self.lo) / (self.hi - self.lo)
+        """Inputs (N, d), internal units -> the unit design box (N, d); ``d`` the first
+        ``d`` run inputs (10 ``[x, theta]`` or 11 ``[x, theta, u]``)."""
+        d = X.shape[-1]
+        out: FloatArray = (X - self.lo[:d]) / (self.hi[:d] - self.lo[:d])
         return out
 
-    def _inputs(self, X: FloatArray) -> FloatArray:
+    def _inputs(self, X: FloatArray, u: FloatArray | float | None = None) -> FloatArray:
+        return self.spec.run_columns(X, u)
+
+    def _unit_in(self, X: FloatArray) -> FloatArray:
+        """Unit-box ``(x, theta)`` (N, 10) of inputs (N, 10) or (N, 11) (controls unused)."""
         X = np.asarray(X, dtype=np.float64)
         if X.ndim == 1:
             X = X[None, :]
-        d = self.spec.n_inputs
-        if X.ndim != 2 or X.shape[1] != d:
-            raise ValueError(f"Metamodel inputs of shape {X.shape}, expected (N, {d}) "
-                             f"with columns {', '.join(self.spec.inputs.names)}")
-        return X
+        sp = self.spec
+        if X.ndim != 2 or X.shape[1] not in (sp.n_inputs, sp.n_run_inputs):
+            raise ValueError(f"Metamodel inputs of shape {X.shape}, expected (N, {sp.n_inputs})"
+                             f" or (N, {sp.n_run_inputs}) with columns "
+                             f"{', '.join(sp.run_inputs.names)}")
+        return self.scale(X[:, :sp.n_inputs])
 
-    def outside(self, X: FloatArray) -> BoolArray:
-        """True (N,) where an input lies outside the DOE box (beyond rounding)."""
-        U = self.scale(self._inputs(X))
+    def outside(self, X: FloatArray, u: FloatArray | float | None = None) -> BoolArray:
+        """True (N,) where an input (with its controls) lies outside the DOE box."""
+        U = self.scale(self._inputs(X, u))
         out: BoolArray = np.any((U < -_BOX_TOL) | (U > 1.0 + _BOX_TOL), axis=1)
         return out
 
     def _curves(self, U: FloatArray) -> FloatArray:
         assert self.curve_model is not None
-        return self.reduction.inverse_transform(self.curve_model.predict(U))
+        return self.reduction.inverse_transform(self.curve_model.predict(U[:, :self.spec.n_inputs]))
 
     def _angles(self, U: FloatArray) -> FloatArray:
-        return np.hstack([m.predict(U) for m in self.angle_models])
+        n_in = self.spec.n_inputs
+        return np.hstack([self.angle_models[0].predict(U[:, :n_in]),
+                          self.angle_models[1].predict(U)])
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
-        """Force curves (N, n_t), N, at inputs ``X`` (N, 10) or (10,), internal units."""
-        U = self.scale(self._inputs(X))
+        """Force curves (N, n_t), N, at inputs ``X`` (N, 10) ``[x, theta]`` or (N, 11)
+        (the controls act after stage 1), internal units."""
+        U = self._unit_in(X)
+        assert self.curve_model is not None
         with single_blas_thread():
-            return self._curves(U)
+            return self.reduction.inverse_transform(self.curve_model.predict(U))
 
-    def predict_angles(self, X: FloatArray) -> FloatArray:
-        """Bend angles (N, 2), degrees, at inputs ``X`` (N, 10) or (10,), internal units."""
-        U = self.scale(self._inputs(X))
+    def predict_angles(self, X: FloatArray, u: FloatArray | float | None = None) -> FloatArray:
+        """Bend angles (N, 2), degrees, at inputs ``X`` (N, 10) and controls ``u`` (scalar,
+        (N,) or (N, n_controls); None: nominal), or at ``X`` (N, 11) with ``u`` None."""
+        U = self.scale(self._inputs(X, u))
         with single_blas_thread():
             return self._angles(U)
 
-    def predict(self, X: FloatArray) -> Prediction:
-        """Curves, angles and the outside-box flag at inputs ``X`` (N, 10) or (10,)."""
-        U = self.scale(self._inputs(X))
+    def final_angle(self, X: FloatArray, u: FloatArray) -> FloatArray:
+        """Final bend angle (N, n_u), degrees, of each input ``X`` (N, 10) ``[x, theta]`` at
+        each setting of the one control ``u`` (n_u,), in one evaluation of its model.
+
+        >>> from formtwin.defaults import analytic_dataset
+        >>> mm = Metamodel(POD(n_modes=5), RBF(length_scales="box")).fit(
+        ...     analytic_dataset(200, seed=1))
+        >>> X = analytic_dataset(3, seed=2).inputs[:, :10]
+        >>> a = mm.final_angle(X, np.array([-0.05, 0.0, 0.05]))
+        >>> a.shape, bool(np.allclose(a[:, 1], mm.predict_angles(X, 0.0)[:, 1]))
+        ((3, 3), True)
+        """
+        Xi = np.asarray(X, dtype=np.float64)
+        uu = np.asarray(u, dtype=np.float64).reshape(-1)
+        if len(self.spec.controls) != 1:
+            raise ValueError(f"final_angle needs exactly one control input; the spec has "
+                             f"{len(self.spec.controls)}")
+        if Xi.ndim != 2 or Xi.shape[1] != self.spec.n_inputs:
+            raise ValueError(f"X of shape {Xi.shape}, expected (N, {self.spec.n_inputs})")
+        n, k = Xi.shape[0], uu.size
+        full = np.empty((n * k, Xi.shape[1] + 1))
+        full[:, :-1] = np.repeat(Xi, k, axis=0)
+        full[:, -1] = np.tile(uu, n)
+        with single_blas_thread():
+            out: FloatArray = self.angle_models[1].predict(self.scale(full)).reshape(n, k)
+        return out
+
+    def predict(self, X: FloatArray, u: FloatArray | float | None = None) -> Prediction:
+        """Curves, angles and the outside-box flag at inputs ``X`` (N, 10) with controls
+        ``u`` (None: nominal) or at ``X`` (N, 11)."""
+        U = self.scale(self._inputs(X, u))
         with single_blas_thread():
             curves, angles = self._curves(U), self._angles(U)
         outside: BoolArray = np.any((U < -_BOX_TOL) | (U > 1.0 + _BOX_TOL), axis=1)

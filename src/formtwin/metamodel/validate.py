@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.figures import pyplot
-from formtwin.metamodel.model import Dataset, Metamodel
+from formtwin.metamodel.model import Metamodel
+from formtwin.metamodel.protocols import Dataset
 from formtwin.metamodel.residuals import ResidualModel
 from formtwin.spec import ProcessSpec
 
@@ -155,7 +156,7 @@ def residual_model(cv: CrossValidation, interior: bool = True) -> ResidualModel:
     """
     rows = np.ones(cv.inputs.shape[0], dtype=bool)
     if interior:
-        lo, hi = cv.spec.inputs.lo, cv.spec.inputs.hi
+        lo, hi = cv.spec.run_inputs.lo, cv.spec.run_inputs.hi
         tol = 1e-9 * (hi - lo)
         inside = np.all((cv.inputs > lo + tol) & (cv.inputs < hi - tol), axis=1)
         if inside.sum() >= 2 * cv.curves.shape[1]:

@@ -26,7 +26,9 @@ smooth). The stage-1 force is the sum of
   a spike at ``t = 0`` that grows as ``punch_end_distance - thickness`` shrinks.
 
 The angles after stage 1 and stage 2 are geometric angles (deeper punch, shorter lever ->
-more bending) minus an elastic springback ``~ sigma_y R / (E t)``, reduced by coining.
+more bending) minus an elastic springback ``~ sigma_y R / (E t)``, reduced by coining;
+the stage-2 depth setting ``u`` (the spec's control ``stage2_depth``, if any) adds
+``_GAIN_U u`` to the final angle.
 
 All inputs are internal units (mm, N, s, MPa); see :mod:`formtwin.spec`.
 
@@ -51,7 +53,7 @@ from formtwin.spec import ProcessSpec
 FloatArray = NDArray[np.float64]
 
 #: bumped whenever the formula changes, so datasets made with an older formula are detected
-VERSION = "analytic-1"
+VERSION = "analytic-2"
 
 # fixed geometry and material constants of the stand-in (mm, s, MPa)
 _STROKE_HALF = 5.0          # P: half stroke, mm
@@ -69,6 +71,7 @@ _THICKEN = 1.22             # bent sheet thickness / sheet thickness at the bend
 _BETA_MAX = np.pi / 2.0     # bend angle reached at full travel, rad
 _F_SLIDE = 40.0             # normal load of the tool-tool sliding contact, N
 _V_SLIDE = 2.0              # speed scale of the friction sign change, mm/s
+_GAIN_U = 20.0              # final angle per mm of stage-2 depth setting, deg/mm
 
 
 def _softplus(z: FloatArray) -> FloatArray:
@@ -99,16 +102,19 @@ class AnalyticBending:
     version: str = VERSION
 
     def _columns(self, X: FloatArray) -> dict[str, FloatArray]:
-        idx = self.spec.inputs.index
-        return {name: X[:, idx[name]][:, None] for name in idx}
+        idx = self.spec.run_inputs.index
+        out = {name: X[:, idx[name]][:, None] for name in idx}
+        out.setdefault("stage2_depth", np.zeros((X.shape[0], 1)))
+        return out
 
     def run_batch(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Run a batch of input points.
 
         Parameters
         ----------
-        X : ndarray, shape (n, 10)
-            Inputs (state x then parameters theta), internal units.
+        X : ndarray, shape (n, 11) or (n, 10)
+            Inputs (state x, parameters theta, controls u; without u: nominal u),
+            internal units.
 
         Returns
         -------
@@ -117,11 +123,7 @@ class AnalyticBending:
         angles : ndarray, shape (n, 2)
             Bend angle after stage 1 and stage 2, degrees. Failed runs are NaN.
         """
-        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        if X.shape[1] != self.spec.n_inputs:
-            raise ValueError(f"inputs have {X.shape[1]} columns, expected "
-                             f"{self.spec.n_inputs} ({', '.join(self.spec.inputs.names)})")
-        c = self._columns(X)
+        c = self._columns(self.spec.run_columns(X))
         t = self.spec.time[None, :]
         sy, q = c["yield_stress"], c["rate_exponent"]
         eps0 = 10.0 ** c["log_rate"]
@@ -171,7 +173,7 @@ class AnalyticBending:
         ang1 = geo1 * (1.0 - spring * relief) + 2.0 * (mu_tt - 0.3)
         rate2 = 1.0 + (3.0 / eps0) ** q
         ang2 = 90.0 + 0.25 * (ang1 - 44.0) - 250.0 * h_al \
-            - 4.0 * (sy * rate2 / 300.0 - 1.0) - 1.5 * (q - 0.7)
+            - 4.0 * (sy * rate2 / 300.0 - 1.0) - 1.5 * (q - 0.7) + _GAIN_U * c["stage2_depth"]
         angles = np.hstack([ang1, ang2])
 
         if self.failure_clearance is not None:
@@ -181,7 +183,7 @@ class AnalyticBending:
         return curves, angles
 
     def failure_reason(self, x: FloatArray) -> str:
-        """Why the run at ``x`` (shape ``(10,)``) fails, or ``""`` if it does not."""
+        """Why the run at ``x`` (shape ``(11,)`` or ``(10,)``) fails, or ``""`` if it does not."""
         if self.failure_clearance is None:
             return ""
         idx = self.spec.inputs.index
@@ -193,7 +195,8 @@ class AnalyticBending:
         return ""
 
     def run(self, inputs: FloatArray) -> RunResult:
-        """Run one input point ``(10,)`` in internal units (the :class:`Simulator` protocol)."""
+        """Run one input point ``(11,)`` = ``(x, theta, u)`` in internal units (the
+        :class:`Simulator` protocol)."""
         x = np.asarray(inputs, dtype=np.float64).reshape(-1)
         reason = self.failure_reason(x)
         if reason:

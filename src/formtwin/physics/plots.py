@@ -52,8 +52,8 @@ def plot_bending(model: BendingModel, inputs: FloatArray, out: str | Path) -> Pa
     ----------
     model
         The bending model.
-    inputs : (n_inputs,)
-        Input point in internal units.
+    inputs : (n_run_inputs,)
+        Input point ``(x, theta, u)`` in internal units.
     out
         Image file to write.
     """
@@ -100,7 +100,8 @@ def plot_bending(model: BendingModel, inputs: FloatArray, out: str | Path) -> Pa
 
 
 def plot_sensitivity(model: BendingModel, out: str | Path) -> Path:
-    """Stage-1 force of each of the ten inputs at its minimum and maximum (others central).
+    """Stage-1 force of each run input (Table 1 and the press setting) at its minimum and
+    maximum (others central).
 
     The centre is :meth:`BendingModel.centre`; each panel's title gives the two bend angles
     at the minimum and the maximum.
@@ -111,9 +112,13 @@ def plot_sensitivity(model: BendingModel, out: str | Path) -> Path:
     centre = model.centre()
     base = model.run(centre)
     t_ms = 1e3 * spec.time
-    fig, axes = plt.subplots(2, 5, figsize=(19, 7.5), sharex=True)
-    for ax, var in zip(axes.ravel(), spec.inputs, strict=True):
-        i = spec.inputs.index[var.name]
+    box = spec.run_inputs
+    n_col = -(-len(box) // 2)
+    fig, axes = plt.subplots(2, n_col, figsize=(3.8 * n_col, 7.5), sharex=True)
+    for ax in axes.ravel()[len(box):]:
+        ax.set_visible(False)
+    for ax, var in zip(axes.ravel(), box, strict=False):
+        i = box.index[var.name]
         ax.plot(t_ms, base.curve, color="0.4", ls="--", lw=1, label="centre")
         angles = []
         for value, colour, tag in ((var.lo, "tab:blue", "min"), (var.hi, "tab:red", "max")):
@@ -133,8 +138,8 @@ def plot_sensitivity(model: BendingModel, out: str | Path) -> Path:
         ax.set_xlabel("time (ms)")
     for ax in axes[:, 0]:
         ax.set_ylabel("punch force (N)")
-    fig.suptitle("formtwin.physics.bending: each Table-1 input from min to max, "
-                 "the others at the centre")
+    fig.suptitle("formtwin.physics.bending: each Table-1 input and the stage-2 setting from "
+                 "min to max, the others at the centre")
     fig.tight_layout()
     path = Path(out)
     fig.savefig(path, dpi=100)

@@ -5,11 +5,15 @@ Stroke (press -> formtwin), schema ``formtwin.stroke/1``::
     {"schema": "formtwin.stroke/1", "part_id": "P-000123", "cycle": 123,
      "timestamp": "2026-11-21T23:59:59.123Z",
      "force_N": [101 numbers: stage-1 punch force on the spec's time grid, N],
-     "angles_deg": [a1, a2]}            # optional, measured angles, monitoring only
+     "angles_deg": [a1, a2],            # optional, measured angles, monitoring only
+     "u": 0.05}                         # optional, the product's press setting(s) in
+                                        # internal units (mm): a number or one per control;
+                                        # absent: the nominal setting
 
 Estimate (formtwin -> results topic), schema ``formtwin.estimate/1``: the part id, cycle and
 timestamp of the stroke, the tracker step index, the names of the 18 estimated quantities with
-their posterior mean and std, predicted angles with std, ESS, loglik and flags.
+their posterior mean and std, predicted angles with std (at the stroke's setting ``u``, echoed
+as ``u`` when the stroke gave one), ESS, loglik and flags.
 
 Error (formtwin -> errors topic), schema ``formtwin.error/1``: a reason code from
 :data:`REASONS`, a human-readable detail, the part id when known.
@@ -109,7 +113,8 @@ class Limits:
 
 @dataclass(frozen=True)
 class Stroke:
-    """One validated stroke: ``force_N`` has shape ``(n_t,)``, ``angles_deg`` ``(2,)`` or None."""
+    """One validated stroke: ``force_N`` has shape ``(n_t,)``, ``angles_deg`` ``(2,)`` or None,
+    ``u`` the press settings ``(n_controls,)`` or None (nominal)."""
 
     part_id: str
     cycle: int
@@ -117,6 +122,7 @@ class Stroke:
     force_N: FloatArray
     angles_deg: FloatArray | None
     digest: str
+    u: FloatArray | None = None
 
     def to_message(self) -> dict[str, Any]:
         """The stroke as a ``formtwin.stroke/1`` JSON object."""
@@ -125,6 +131,8 @@ class Stroke:
                                "force_N": [float(v) for v in self.force_N]}
         if self.angles_deg is not None:
             msg["angles_deg"] = [float(v) for v in self.angles_deg]
+        if self.u is not None:
+            msg["u"] = [float(v) for v in self.u]
         return msg
 
 
@@ -243,8 +251,15 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
         if angles.size != 2:
             raise MessageError("wrong_length", f"angles_deg has {angles.size} values, "
                                "expected 2", part_id)
+    u = None
+    if doc.get("u") is not None:
+        raw = doc["u"]
+        if isinstance(raw, bool) or not isinstance(raw, int | float | list):
+            raise MessageError("bad_field", f"u must be a number or a list of numbers, got "
+                               f"{raw!r:.40}", part_id)
+        u = _number_list({"u": raw if isinstance(raw, list) else [raw]}, "u", part_id)
     return Stroke(part_id=part_id, cycle=cycle, timestamp=str(ts), force_N=force,
-                  angles_deg=angles, digest=stroke_digest(force))
+                  angles_deg=angles, digest=stroke_digest(force), u=u)
 
 
 def estimate_message(stroke: Stroke, estimate: dict[str, Any], seq: int,
@@ -259,6 +274,8 @@ def estimate_message(stroke: Stroke, estimate: dict[str, Any], seq: int,
     msg["flags"] = dict(flags)
     if stroke.angles_deg is not None:
         msg["measured_angles_deg"] = [float(v) for v in stroke.angles_deg]
+    if stroke.u is not None:
+        msg["u"] = [float(v) for v in stroke.u]
     return msg
 
 

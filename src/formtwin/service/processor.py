@@ -80,8 +80,9 @@ class MonitorLike(Protocol):
 class TrackerLike(Protocol):
     """What the processor needs of :class:`formtwin.tracker.Tracker`."""
 
-    def step(self, curve: FloatArray) -> Any:
-        """Assimilate one curve; return its estimate (state untouched on ValueError)."""
+    def step(self, curve: FloatArray, u: Any = None) -> Any:
+        """Assimilate one curve (press setting ``u``, None: nominal); return its estimate
+        (state untouched on ValueError)."""
         ...
 
     def state_bytes(self) -> bytes:
@@ -295,7 +296,7 @@ class Processor:
             except MessageError as err:
                 return self._reject(err, payload, topic, now)
         try:
-            est = self.tracker.step(stroke.force_N)
+            est = self.tracker.step(stroke.force_N, stroke.u)
         except ValueError as exc:  # the tracker's contract: state untouched
             return self._reject(MessageError("tracker_rejected", str(exc)[:300],
                                              stroke.part_id), payload, topic, now)

@@ -3,7 +3,8 @@
 A stream is a sequence of :class:`~formtwin.service.messages.Stroke`. It is read from
 
 * ``.npz`` (``allow_pickle=False``): ``curves (n, n_t)`` N, optional ``angles (n, 2)``
-  degrees, ``part_ids (n,)`` strings and ``cycles (n,)`` integers;
+  degrees, ``part_ids (n,)`` strings, ``cycles (n,)`` integers and ``u (n, n_controls)``
+  press settings (sent as each stroke's ``u``);
 * ``.nc`` (NetCDF, e.g. a study realisation or a DOE dataset): the variable ``curves``
   (``product``/``run`` x ``time``; a ``source`` dimension is selected with ``source``), and
   ``angles`` and ``ok`` when present (products with ``ok = False`` are skipped);
@@ -70,7 +71,7 @@ def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
     rng = np.random.default_rng(np.random.SeedSequence([seed, 7]))
     run = draw_production_run(spec, n, rng, deviation=deviation)
     X, theta_d = run.inputs, run.theta_d
-    curves, angles = model.predict_curves(X), model.predict_angles(X)
+    curves, angles = model.predict_curves(X), model.predict_angles(run.run_inputs)
     if deviation:
         curves = DeviationModel.from_spec(spec).apply(curves, np.tile(theta_d, (n, 1)))
     curves = curves + noise_N * rng.standard_normal(curves.shape)
@@ -87,12 +88,14 @@ def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
 
 
 def _strokes(curves: FloatArray, angles: FloatArray | None, part_ids: list[str],
-             cycles: NDArray[np.int64], stamps: list[str]) -> Iterator[Stroke]:
+             cycles: NDArray[np.int64], stamps: list[str],
+             u: FloatArray | None = None) -> Iterator[Stroke]:
     for i in range(curves.shape[0]):
         a = None if angles is None or not np.all(np.isfinite(angles[i])) else angles[i]
         c = np.asarray(curves[i], dtype=np.float64)
         yield Stroke(part_id=part_ids[i], cycle=int(cycles[i]), timestamp=stamps[i],
-                     force_N=c, angles_deg=a, digest=stroke_digest(c))
+                     force_N=c, angles_deg=a, digest=stroke_digest(c),
+                     u=None if u is None else np.asarray(u[i], dtype=np.float64).reshape(-1))
 
 
 def _defaults(n: int, stem: str) -> tuple[list[str], NDArray[np.int64], list[str]]:
@@ -131,7 +134,8 @@ def read_stream(path: str | Path, source: str = "gFE") -> list[Stroke]:
                 cycles = np.asarray(z["cycles"], dtype=np.int64)
             if "timestamps" in z:
                 stamps = [str(s) for s in z["timestamps"]]
-        return list(_strokes(curves, angles, ids, cycles, stamps))
+            u = np.asarray(z["u"], dtype=np.float64) if "u" in z else None
+        return list(_strokes(curves, angles, ids, cycles, stamps, u))
     if suffix == ".nc":
         import xarray as xr
 

@@ -41,7 +41,8 @@ log = logging.getLogger(__name__)
 class Realisation:
     """Truth and measurements of one pseudo production run of ``n`` products.
 
-    ``x (n, 7)``, ``theta (3,)``, ``theta_d (8,)``, ``mu (7,)``; per source in
+    ``x (n, 7)``, ``theta (3,)``, ``theta_d (8,)``, ``mu (7,)``, ``u (n, n_controls)`` the
+    press settings (known to the tracker; nominal in the study); per source in
     :data:`SOURCES`: ``curves[source] (n, n_t)`` N, ``angles[source] (n, 2)`` degrees and
     ``ok[source] (n,)``.
     """
@@ -54,6 +55,7 @@ class Realisation:
     curves: dict[str, FloatArray]
     angles: dict[str, FloatArray]
     ok: dict[str, BoolArray]
+    u: FloatArray
 
     @property
     def n(self) -> int:
@@ -64,6 +66,11 @@ class Realisation:
     def inputs(self) -> FloatArray:
         """Model inputs ``(n, 10)``: state then constant parameters."""
         return np.hstack([self.x, np.tile(self.theta, (self.n, 1))])
+
+    @property
+    def run_inputs(self) -> FloatArray:
+        """Model-run inputs ``(n, 11)``: state, parameters, press settings."""
+        return np.hstack([self.inputs, self.u])
 
     def truth(self) -> FloatArray:
         """True augmented state ``(n, 18)``: x, theta, theta_d."""
@@ -82,8 +89,10 @@ class Realisation:
                 "angles": (("source", "product", "angle"),
                            np.stack([self.angles[s] for s in SOURCES])),
                 "ok": (("source", "product"), np.stack([self.ok[s] for s in SOURCES])),
+                "u": (("product", "control"), self.u),
             },
             coords={"state": list(spec.state.names), "param": list(spec.params.names),
+                    "control": list(spec.controls.names),
                     "deviation": list(spec.deviation.names), "source": list(SOURCES),
                     "time": spec.time, "angle": list(ANGLE_NAMES),
                     "product": np.arange(self.n)},
@@ -93,8 +102,9 @@ class Realisation:
 
     @classmethod
     def from_dataset(cls, ds: xr.Dataset) -> Realisation:
-        """Inverse of :meth:`to_dataset`."""
+        """Inverse of :meth:`to_dataset` (files without ``u``: zero columns)."""
         src = [str(s) for s in ds["source"].values]
+        n = int(ds["x"].shape[0])
         return cls(
             index=int(ds.attrs["realisation"]),
             mu=ds["mu"].values, theta=ds["theta"].values, theta_d=ds["theta_d"].values,
@@ -102,6 +112,7 @@ class Realisation:
             curves={s: ds["curves"].values[i] for i, s in enumerate(src)},
             angles={s: ds["angles"].values[i] for i, s in enumerate(src)},
             ok={s: ds["ok"].values[i].astype(bool) for i, s in enumerate(src)},
+            u=ds["u"].values if "u" in ds else np.zeros((n, 0)),
         )
 
 
@@ -124,14 +135,14 @@ def make_realisation(
     if path.exists():
         with xr.open_dataset(path, engine="h5netcdf") as ds:
             real = Realisation.from_dataset(ds.load())
-        if real.n == n:
+        if real.n == n and real.u.shape[1] == len(spec.controls):
             return real
         log.info("%s holds %d products, %d wanted: regenerating", path, real.n, n)
     rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
     run = draw_production_run(spec, n, rng)
     mu, theta, theta_d, x, inputs = run.mu, run.theta, run.theta_d, run.x, run.inputs
     fe_path = folder / f"fe_{index}.nc"
-    run_design(physics, inputs, fe_path, executor=executor, seed=seed)
+    run_design(physics, run.run_inputs, fe_path, executor=executor, seed=seed)
     fe = DoeDataset.load(fe_path)
     g = DeviationModel.from_spec(spec)
     mm_curves = metamodel.predict_curves(inputs)
@@ -139,11 +150,11 @@ def make_realisation(
               "FE": fe.curves, "gFE": g.apply(np.nan_to_num(fe.curves),
                                               np.tile(theta_d, (n, 1)))}
     curves["gFE"][~fe.ok] = np.nan
-    mm_angles = metamodel.predict_angles(inputs)
+    mm_angles = metamodel.predict_angles(run.run_inputs)
     angles = {"MM": mm_angles, "gMM": mm_angles, "FE": fe.angles, "gFE": fe.angles}
     all_ok = np.ones(n, dtype=bool)
     ok = {"MM": all_ok, "gMM": all_ok, "FE": fe.ok.copy(), "gFE": fe.ok.copy()}
-    real = Realisation(index, mu, theta, theta_d, x, curves, angles, ok)
+    real = Realisation(index, mu, theta, theta_d, x, curves, angles, ok, run.u)
     folder.mkdir(parents=True, exist_ok=True)
     real.to_dataset(spec).to_netcdf(path, engine="h5netcdf")
     log.info("realisation %d: %d products, %d physics failures", index, n, int((~fe.ok).sum()))

@@ -177,7 +177,8 @@ def _run(task: Task, out: Path) -> None:
                            int(ss.generate_state(1)[0]))
     tracker = build_tracker(model, config, measurement)
     ok = real.ok[series.data]
-    est = tracker.run(real.curves[series.data][ok])
+    u = real.u[ok] if real.u.shape[1] == len(spec.controls) and len(spec.controls) else None
+    est = tracker.run(real.curves[series.data][ok], u=u)
     n, d = real.n, len(spec.augmented)
     mean, std = np.full((n, d), np.nan), np.full((n, d), np.nan)
     ang_mean, ang_std = np.full((n, 2), np.nan), np.full((n, 2), np.nan)

@@ -12,7 +12,7 @@
 from formtwin.estimates import HEALTH, Estimate, Estimates, Fit
 from formtwin.tracker.build import build_measurement, build_tracker
 from formtwin.tracker.config import COMPARE, LIKELIHOODS, TrackerConfig
-from formtwin.tracker.core import Tracker, validate_curve
+from formtwin.tracker.core import Tracker, validate_controls, validate_curve
 from formtwin.tracker.fit import FitRule
 from formtwin.tracker.ssm import CHUNK, BendingSSM
 from formtwin.tracker.state import TrackerState
@@ -20,4 +20,4 @@ from formtwin.tracker.state import TrackerState
 __all__ = ["BendingSSM", "CHUNK", "COMPARE", "HEALTH", "LIKELIHOODS", "Estimate", "Estimates",
            "Fit", "FitRule", "Tracker",
            "TrackerConfig", "TrackerState", "build_measurement", "build_tracker",
-           "validate_curve"]
+           "validate_controls", "validate_curve"]

@@ -32,6 +32,7 @@ from formtwin.estimates import Estimate, Estimates
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.spec import ProcessSpec
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
@@ -40,6 +41,31 @@ from formtwin.tracker.ssm import BendingSSM
 FloatArray = NDArray[np.float64]
 
 log = logging.getLogger(__name__)
+
+
+def validate_controls(u: Any, spec: ProcessSpec) -> FloatArray | None:
+    """The press setting ``u`` of a product as (n_controls,) internal units, or None.
+
+    ``None`` stays None (the nominal setting). Raises ``ValueError`` naming the control
+    for a wrong count, a non-number or a value outside its bounds (the metamodel would
+    extrapolate).
+    """
+    if u is None:
+        return None
+    box = spec.controls
+    try:
+        arr = np.asarray(u, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"u = {u!r}: expected a number per control "
+                         f"({', '.join(box.names) or 'none'})") from None
+    if arr.size != len(box):
+        raise ValueError(f"u has {arr.size} values, expected {len(box)} "
+                         f"({', '.join(box.names) or 'no controls in this spec'})")
+    for v, val in zip(box, arr, strict=True):
+        if not (np.isfinite(val) and v.lo - 1e-12 <= val <= v.hi + 1e-12):
+            raise ValueError(f"u: {v.name} = {val / v.scale:g} {v.unit}, expected a value in "
+                             f"[{v.lo / v.scale:g}, {v.hi / v.scale:g}] {v.unit}")
+    return arr
 
 
 def validate_curve(curve: Any, n_t: int) -> FloatArray:
@@ -127,14 +153,19 @@ class Tracker:
         ``None`` before the first step."""
         return self.filter.x
 
-    def step(self, curve: Any) -> Estimate:
+    def step(self, curve: Any, u: Any = None) -> Estimate:
         """Assimilate the force curve (n_t,) N of the next product; return its estimate.
 
-        Raises ``ValueError`` for a malformed curve. If anything fails during the step
-        (the curve check, or the model raising), the tracker is left exactly as before:
+        ``u`` is the product's press setting (the spec's controls, internal units: a
+        number, or a sequence of one per control; None: the nominal setting). It does not
+        act on the stage-1 curve; the predicted angles are those at ``u``.
+
+        Raises ``ValueError`` for a malformed curve or setting. If anything fails during
+        the step (the checks, or the model raising), the tracker is left exactly as before:
         particles, weights, step count and RNG state.
         """
         y = validate_curve(curve, self.spec.n_t)
+        uu = validate_controls(u, self.spec)
         f = self.filter
         saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
         scale = self.ssm.scale_logpost if self.config.learn_scale else None
@@ -144,7 +175,7 @@ class Tracker:
             if scale is not None:
                 self.ssm.update_scale(logw_prev)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
-            return self._estimate(s, np.exp(saved[1]), c)
+            return self._estimate(s, np.exp(saved[1]), c, uu)
         except BaseException:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
             self.rng.bit_generator.state = saved[3]
@@ -152,15 +183,24 @@ class Tracker:
                 self.ssm.set_scale_logpost(scale)
             raise
 
-    def _estimate(self, s: Step, v: FloatArray, scale: float = 1.0) -> Estimate:
+    def final_angle(self, u: Any) -> FloatArray:
+        """Final angle (N, n_u), degrees, of the current particles (:attr:`particles`,
+        equally weighted after the last step) at each setting ``u`` (n_u,) of the control."""
+        if self.filter.x is None:
+            raise RuntimeError("final_angle: no particles yet (call step first)")
+        return self.ssm.final_angle(self.filter.x, np.asarray(u, dtype=np.float64))
+
+    def _estimate(self, s: Step, v: FloatArray, scale: float = 1.0,
+                  u: FloatArray | None = None) -> Estimate:
         """The estimate of step ``s``; ``v`` (N,) the predictive weights of its particles,
-        ``scale`` the predictive mean of the likelihood's covariance factor."""
+        ``scale`` the predictive mean of the likelihood's covariance factor, ``u`` the
+        product's press setting (None: nominal) for the predicted angles."""
         m = self.config.angle_particles
         if m is None or m >= s.x.shape[0]:
             xa, wa = s.x, s.w
         else:
             xa, wa = s.x[systematic(s.w, self.rng, m)], np.full(m, 1.0 / m)
-        angles = self.ssm.predict_angles(xa)
+        angles = self.ssm.predict_angles(xa, u)
         ok = np.all(np.isfinite(angles), axis=1)
         w = np.where(ok, wa, 0.0)
         if w.sum() > 0:
@@ -180,8 +220,11 @@ class Tracker:
                         mu_mean=mu[0] if mu else None,
                         mu_std=mu[1] if mu else None, fit=fit)
 
-    def run(self, curves: Iterable[Any], progress: bool = False) -> Estimates:
+    def run(self, curves: Iterable[Any], progress: bool = False,
+            u: Any = None) -> Estimates:
         """Assimilate curves (n, n_t) one product at a time; return stacked estimates.
+
+        ``u`` (n,) or (n, n_controls): each product's press setting (None: nominal).
 
         ``progress`` shows a tqdm bar (only on a terminal). BLAS is limited to one thread
         for the run (:func:`formtwin._threads.single_blas_thread`); callers of :meth:`step`
@@ -193,8 +236,8 @@ class Tracker:
             from tqdm import tqdm
             it = tqdm(curves, desc="tracking", unit="product", disable=not sys.stderr.isatty())
         with single_blas_thread():  # once per run: entering it costs ~0.25 ms
-            for c in it:
-                items.append(self.step(c))
+            for i, c in enumerate(it):
+                items.append(self.step(c, None if u is None else u[i]))
         return Estimates.stack(items, self.names)
 
     # ------------------------------------------------------------------ state

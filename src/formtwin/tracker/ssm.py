@@ -245,10 +245,25 @@ class BendingSSM:
             out[:, self.n_in:self.n_aug] = 0.0
         return out
 
-    def predict_angles(self, x: FloatArray) -> FloatArray:
-        """Angles (N, 2) of particles ``x`` (N, 18) or (N, 32), in blocks of particles."""
-        return np.concatenate([self.model.predict_angles(x[i: i + CHUNK, : self.n_in])
+    def predict_angles(self, x: FloatArray, u: float | FloatArray | None = None) -> FloatArray:
+        """Angles (N, 2) of particles ``x`` (N, 18) or (N, 32) at the press settings ``u``
+        (a scalar or (n_controls,) for all particles; None: nominal), in blocks."""
+        return np.concatenate([self.model.predict_angles(x[i: i + CHUNK, : self.n_in], u)
                                for i in range(0, x.shape[0], CHUNK)])
+
+    def final_angle(self, x: FloatArray, u: FloatArray) -> FloatArray:
+        """Final angle (N, n_u), degrees, of particles ``x`` (N, 18) or (N, 32) at each of
+        the settings ``u`` (n_u,) of the one control (e.g. for choosing ``u``)."""
+        uu = np.asarray(u, dtype=np.float64).reshape(-1)
+        final = getattr(self.model, "final_angle", None)
+        xin = x[:, : self.n_in]
+        if final is not None:
+            return np.concatenate([final(xin[i: i + CHUNK], uu)
+                                   for i in range(0, x.shape[0], CHUNK)])
+        rep = np.repeat(xin, uu.size, axis=0)
+        a = self.model.predict_angles(rep, np.tile(uu, x.shape[0]))[:, 1]
+        out: FloatArray = a.reshape(x.shape[0], uu.size)
+        return out
 
     def simulate(self, n: int, rng: np.random.Generator) -> tuple[ProductionRun, FloatArray]:
         """A production run of ``n`` products as this model assumes it, and its curves.

@@ -13,9 +13,14 @@ gap); just above the sheet thickness, so the flap is pressed flat ("set") agains
 face. Horizontal alignment moves the punch by ``+x`` (away from the die face), vertical
 alignment by ``+y``.
 
-Stage 2 (angle only): the same clamp; the die radius continues to a vertical face; a
-wiping punch with a vertical face at ``r_die + gap2`` from the die's vertical face and a
-nose radius comes down on the same crank and bends the flap to 90 deg.
+Stage 2 (angle only), as the line does it: the same clamp; the die radius continues to a
+vertical face; a punch with a vertical face at ``gap2`` from the die's vertical face
+(``gap2`` well above the sheet thickness: the flap is never ironed between the faces) and
+a nose radius comes down on the same crank to a set depth: its lowest point reaches
+``punch2_bdc - u`` at bottom dead centre, ``u`` the press setting (stage-2 depth offset).
+The nose stops on the flap (stroke-controlled, like air bending), so the final angle is
+the loaded angle at that depth minus the springback, and keeps the stage-1 shape, the
+material and the thickness.
 """
 
 from __future__ import annotations
@@ -49,10 +54,13 @@ class FlapGeometry:
         Stage-1 punch: vertical faces at ``x_left, x_right`` bounding its 45 deg face, the
         nose radius at the lower (right) end and the heel radius at the upper (left) end.
     gap2, r_punch2_nose
-        Stage-2 punch: normal gap between its vertical face and the die's vertical face, and
-        its nose radius.
+        Stage-2 punch: normal gap between its vertical face and the die's vertical face
+        (0.5 mm: a clearance of 0.2 mm above the 0.3 mm sheet), and its nose radius.
     punch2_bdc
-        Height of the stage-2 punch's lowest point at bottom dead centre.
+        Height of the stage-2 punch's lowest point at bottom dead centre for the nominal
+        setting ``u = 0``; the setting ``u`` (mm) lowers it to ``punch2_bdc - u``.
+    release_height2
+        Ram height above bottom dead centre at which stage 2 starts and ends.
     stroke, rod, strokes_per_min
         Crank: stroke (2 x crank radius), connecting rod length, rate.
     width
@@ -78,9 +86,10 @@ class FlapGeometry:
     punch1_x_right: float = 2.2
     r_punch1_nose: float = 0.3
     r_punch1_heel: float = 0.1
-    gap2: float = 0.33
+    gap2: float = 0.5
     r_punch2_nose: float = 0.3
-    punch2_bdc: float = -1.9
+    punch2_bdc: float = -1.2
+    release_height2: float = 3.0
     stroke: float = 20.0
     rod: float = 100.0
     strokes_per_min: float = 90.0
@@ -95,9 +104,11 @@ class FlapGeometry:
         """Crank angular speed (rad/s)."""
         return 2.0 * math.pi * self.strokes_per_min / 60.0
 
-    def release_time(self) -> float:
-        """Time (s) after bottom dead centre at which the ram is at ``release_height``."""
-        R, L, h = 0.5 * self.stroke, self.rod, self.release_height
+    def release_time(self, height: float | None = None) -> float:
+        """Time (s) after bottom dead centre at which the ram is at ``height`` (mm; default
+        ``release_height``)."""
+        R, L = 0.5 * self.stroke, self.rod
+        h = self.release_height if height is None else height
         # invert h = R (1 - cos a) + L - sqrt(L^2 - R^2 sin^2 a) by bisection on a
         lo, hi = 0.0, 0.5 * math.pi
         for _ in range(60):
@@ -134,10 +145,10 @@ class FlapGeometry:
         pts = pts + np.array([dx, dy])
         return [(pts, np.array([self.r_punch1_nose, self.r_punch1_heel]))]
 
-    def punch2(self) -> list[tuple[FloatArray, FloatArray]]:
-        """Stage-2 wiping punch at bottom dead centre."""
+    def punch2(self, u: float = 0.0) -> list[tuple[FloatArray, FloatArray]]:
+        """Stage-2 punch at bottom dead centre for the depth setting ``u`` (mm, + deeper)."""
         x0 = self.r_die + self.gap2
-        y0 = self.punch2_bdc
+        y0 = self.punch2_bdc - u
         pts = np.array([[x0 + 3.0, y0], [x0, y0], [x0, y0 + 8.0]])
         return [(pts, np.array([self.r_punch2_nose]))]
 
@@ -190,22 +201,26 @@ class ToolSet:
 
     ``ptype (n_p,)`` 0 segment / 1 arc, ``pdata (n_p, 6)``, ``tstart (n_tools + 1,)`` the
     primitive range of each tool, ``owner (n_tools,)`` 1 if the tool moves with the punch,
-    ``names`` for plots.
+    ``face (n_tools,)`` the sheet face the tool touches (+1 upper, -1 lower), ``names`` for
+    plots.
     """
 
     ptype: IntArray
     pdata: FloatArray
     tstart: IntArray
     owner: IntArray
+    face: FloatArray
     names: tuple[str, ...]
 
 
-def make_toolset(tools: list[tuple[str, int, list[tuple[FloatArray, FloatArray]]]]) -> ToolSet:
-    """Flatten ``[(name, owner, [(points, radii), ...]), ...]`` into a :class:`ToolSet`."""
+def make_toolset(tools: list[tuple[str, int, int, list[tuple[FloatArray, FloatArray]]]]
+                 ) -> ToolSet:
+    """Flatten ``[(name, owner, face, [(points, radii), ...]), ...]`` into a
+    :class:`ToolSet` (``face`` +1: the tool touches the sheet's upper face, -1 the lower)."""
     ptype: list[int] = []
     pdata: list[list[float]] = []
     tstart = [0]
-    for _, _, chains in tools:
+    for _, _, _, chains in tools:
         for pts, radii in chains:
             for kind, data in rounded_polyline(pts, radii):
                 ptype.append(kind)
@@ -213,8 +228,9 @@ def make_toolset(tools: list[tuple[str, int, list[tuple[FloatArray, FloatArray]]
         tstart.append(len(ptype))
     return ToolSet(np.array(ptype, dtype=np.int64), np.array(pdata, dtype=np.float64),
                    np.array(tstart, dtype=np.int64),
-                   np.array([o for _, o, _ in tools], dtype=np.int64),
-                   tuple(n for n, _, _ in tools))
+                   np.array([o for _, o, _, _ in tools], dtype=np.int64),
+                   np.array([f for _, _, f, _ in tools], dtype=np.float64),
+                   tuple(n for n, _, _, _ in tools))
 
 
 def tool_outline(ts: ToolSet, k: int, dy: float = 0.0, n_arc: int = 12) -> FloatArray:

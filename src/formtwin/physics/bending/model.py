@@ -2,7 +2,8 @@
 
 A run: stage 1 load (crank down to bottom dead centre at ``t = 0`` against the press
 spring), stage-1 unload (crank up until the punch is clear: springback), stage 2 load and
-unload with the wiping punch; outputs the stage-1 spring force on the spec's time grid and
+unload with the stroke-controlled punch (depth set by the control ``u``);
+outputs the stage-1 spring force on the spec's time grid and
 the two bend angles after springback. See :mod:`.geometry` for the tools and
 ``docs/physics.md`` for the assumptions.
 """
@@ -27,7 +28,10 @@ from formtwin.spec import ProcessSpec, load_spec
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-VERSION = "bending-1.2"
+VERSION = "bending-2.0"
+
+#: the control input (spec ``[[control]]``) that sets the stage-2 depth, mm
+CONTROL = "stage2_depth"
 
 
 @dataclass(frozen=True)
@@ -128,6 +132,15 @@ class Sheet:
         return cls(X, thickness, 0.5 * yl, 0.5 * wl, 0.5 * (xg + 1), 0.5 * wg)
 
     @property
+    def phi0(self) -> FloatArray:
+        """Reference direction (rad) of the sheet at each node ``(n_nodes,)``: the mean of
+        its elements' directions (the normal ``(-sin, cos)`` points to the upper face)."""
+        d = np.diff(self.X, axis=0)
+        a = np.arctan2(d[:, 1], d[:, 0])
+        out: FloatArray = np.r_[a[0], 0.5 * (a[:-1] + a[1:]), a[-1]]
+        return out
+
+    @property
     def positions(self) -> FloatArray:
         """Current node positions ``(n_nodes, 2)``."""
         return np.asarray(self.X + self.u.reshape(-1, 3)[:, :2], dtype=np.float64)
@@ -174,7 +187,7 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     n = sheet.u.size
     if tools is None:
         tools = ToolSet(np.zeros(1, np.int64), np.zeros((1, 6)), np.zeros(1, np.int64),
-                        np.zeros(0, np.int64), ())
+                        np.zeros(0, np.int64), np.zeros(0), ())
     n_tools = tools.owner.size
     n_nodes = sheet.X.shape[0]
     pen = np.repeat((penalty * sheet.tributary())[:, None], 2, axis=1)
@@ -188,19 +201,24 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     mu = np.zeros(n_tools) if mu is None else mu
     t0 = float(targets[0]) if t_start is None else t_start
     pa = np.array([crank(t0, press)[0]])
+    phi = sheet.phi0 + sheet.u[2::3]
     ct_t = np.zeros((n_nodes, n_tools))
-    ct_rel = np.repeat(sheet.positions[:, None, :], n_tools, axis=1)
+    ct_rel = np.repeat(sheet.positions[:, None, :], n_tools, axis=1)  # the face points
+    ct_rel[:, :, 0] -= 0.5 * sheet.thickness * np.sin(phi)[:, None] * tools.face[None, :]
+    ct_rel[:, :, 1] += 0.5 * sheet.thickness * np.cos(phi)[:, None] * tools.face[None, :]
     ct_rel[:, :, 1] -= pa[0] * (tools.owner == 1)[None, :]
     ct_act = np.zeros((n_nodes, n_tools), dtype=np.int64)
     rec_u = np.zeros((targets.size, n))
     rec_f = np.zeros((targets.size, 8))
     rec_r = np.zeros((targets.size, n))
     counters = np.zeros(4, dtype=np.int64)
-    status = run_history(
-        targets, lam, lam_fix, t0, sheet.X, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg,
-        sheet.wg, material.array, sheet.u, pa, sheet.sig, sheet.epb, sheet.eps, sheet.rate,
-        tools.ptype, tools.pdata, tools.tstart, tools.owner, mu, pen, ct_t, ct_rel, ct_act,
-        press, fref, fix, fix_ref, disc.opts(dt_max, rate_tau), rec_u, rec_f, rec_r, counters)
+    mesh = (sheet.X, sheet.phi0, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg,
+            material.array)
+    state = (sheet.u, pa, sheet.sig, sheet.epb, sheet.eps, sheet.rate)
+    tool_arrays = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, pen)
+    status = run_history(targets, lam, lam_fix, t0, mesh, state, tool_arrays,
+                         (ct_t, ct_rel, ct_act), (press, fref, fix, fix_ref),
+                         disc.opts(dt_max, rate_tau), (rec_u, rec_f, rec_r, counters))
     return History(targets, rec_u, rec_f, rec_r, int(status), counters)
 
 
@@ -244,26 +262,29 @@ class BendingModel:
         base = disc if disc is not None else Discretisation()
         self.disc = Discretisation(**{**base.__dict__, **overrides})
         self.version = VERSION
-        self._ix = self.spec.inputs.index
+        self._ix = self.spec.run_inputs.index
 
     def centre(self) -> FloatArray:
-        """Centre of Table 1: ``mu_mid`` for the state, box centre for the parameters."""
-        mid = np.r_[self.spec.state.mu_mid, 0.5 * (self.spec.params.lo + self.spec.params.hi)]
+        """Centre of Table 1 ``(n_run_inputs,)``: ``mu_mid`` for the state, box centre for the
+        parameters, nominal controls."""
+        sp = self.spec
+        mid = np.r_[sp.state.mu_mid, 0.5 * (sp.params.lo + sp.params.hi), sp.controls.nominal]
         return np.asarray(mid, dtype=np.float64)
 
     def run(self, inputs: FloatArray) -> RunResult:
-        """Run one input point ``(n_inputs,)`` (internal units).
+        """Run one input point ``(n_run_inputs,)`` = ``(x, theta, u)`` (internal units).
 
         Never raises for a point that does not converge or has non-finite values (returns
         a failure record with the reason); raises ``ValueError`` for a wrongly shaped input.
         """
         n_t = self.spec.time.size
         x = np.asarray(inputs, dtype=np.float64)
-        if x.shape != (self.spec.n_inputs,):
-            raise ValueError(f"inputs: expected shape ({self.spec.n_inputs},) in the order "
-                             f"{', '.join(self.spec.inputs.names)}; got {x.shape}")
+        names = self.spec.run_inputs.names
+        if x.shape != (len(names),):
+            raise ValueError(f"inputs: expected shape ({len(names)},) in the order "
+                             f"{', '.join(names)}; got {x.shape}")
         if not np.all(np.isfinite(x)):
-            bad = [n for n, v in zip(self.spec.inputs.names, x, strict=True) if not np.isfinite(v)]
+            bad = [n for n, v in zip(names, x, strict=True) if not np.isfinite(v)]
             return RunResult.failure(n_t, f"non-finite input: {', '.join(bad)}")
         try:
             stage1, stage2, _ = self.simulate(x)
@@ -297,10 +318,10 @@ class BendingModel:
         crank_par = [0.5 * g.stroke, g.rod, g.omega]
         # ---- stage 1
         tools1 = make_toolset([
-            ("die", 0, g.die1()), ("holder", 0, g.holder(thick)),
-            ("punch", 1, g.punch1(float(x[ix["punch_end_distance"]]),
-                                  float(x[ix["horizontal_alignment"]]),
-                                  float(x[ix["vertical_alignment"]])))])
+            ("die", 0, -1, g.die1()), ("holder", 0, +1, g.holder(thick)),
+            ("punch", 1, +1, g.punch1(float(x[ix["punch_end_distance"]]),
+                                      float(x[ix["horizontal_alignment"]]),
+                                      float(x[ix["vertical_alignment"]])))])
         t_rel = g.release_time()
         grid = np.asarray(self.spec.time, dtype=np.float64)
         targets1 = np.r_[grid, np.linspace(grid[-1], t_rel, 8)[1:]]
@@ -320,10 +341,10 @@ class BendingModel:
         if h1.status != OK:
             return s1, {"status": -1}, sheet
         # ---- stage 2
-        g2 = FlapGeometry(**{**g.__dict__, "release_height": 3.0})
-        t2 = g2.release_time()
-        tools2 = make_toolset([("die", 0, g.die2()), ("holder", 0, g.holder(thick)),
-                               ("punch", 1, g.punch2())])
+        u = float(x[ix[CONTROL]]) if CONTROL in ix else 0.0
+        t2 = g.release_time(g.release_height2)
+        tools2 = make_toolset([("die", 0, -1, g.die2()), ("holder", 0, +1, g.holder(thick)),
+                               ("punch", 1, +1, g.punch2(u))])
         targets2 = np.linspace(-t2, t2, 21)
         press2 = np.array([0.0, 0.0, 1.0, *crank_par])
         tic = time.perf_counter()

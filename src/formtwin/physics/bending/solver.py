@@ -54,14 +54,23 @@ def crank(t, press):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def assemble(t, u, p, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
-             sig, epb, eps, rate, sig_t, epb_t, eps_t,
-             ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t, ct_act_t,
-             press, fext, Kb, R, col, row, out):
+def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyped-def]
+             tools, contact, ct_trial, press, fext, Kb, R, col, row, out):
     """Residual ``R = f_int - f_contact - f_ext`` and band tangent ``Kb``.
 
+    ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``trial = (sig_t, epb_t, eps_t)``
+    (written), ``tools = (ptype, pdata, tstart, towner, tface, tmu, pen)``, ``contact =
+    (ct_t, ct_rel, ct_act)`` (committed), ``ct_trial = (ct_t_t, ct_act_t)`` (written).
+    Contact acts on the sheet's face: the point ``x + f (t/2) n(phi0 + theta)`` of each node
+    (``f = tface[k]``: +1 upper, -1 lower face, ``n`` the sheet's normal), so the normal
+    and friction forces there also load the node's rotation with their moment about it.
     ``col = dR/dp``, ``row = dG/du``; ``out = [G, dG/dp, F_v, F_lat, spring/measured force]``.
     """
+    X, phi0, thick, ylay, wlay, xg, wg, mat = mesh
+    sig_t, epb_t, eps_t = trial
+    ptype, pdata, tstart, towner, tface, tmu, pen = tools
+    ct_t, ct_rel, ct_act = contact
+    ct_t_t, ct_act_t = ct_trial
     n_dof = u.shape[0]
     n_el = X.shape[0] - 1
     Kb[:, :] = 0.0
@@ -81,9 +90,10 @@ def assemble(t, u, p, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unty
             for b in range(6):
                 Kb[i0 + a, b - a + BW] += Ke[a, b]
     J = np.zeros((2, 2))
+    K3 = np.zeros((3, 3))
     n_nodes = X.shape[0]
     n_tools = towner.shape[0]
-    Jp = np.zeros((n_nodes, 2, 2))
+    Jp = np.zeros((n_nodes, 2, 3))
     fv = 0.0
     flat = 0.0
     half = 0.5 * thick
@@ -92,10 +102,14 @@ def assemble(t, u, p, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unty
         for nd in range(n_nodes):
             ct_act_t[nd, k] = 0
             ct_t_t[nd, k] = 0.0
-            px = X[nd, 0] + u[3 * nd]
-            py = X[nd, 1] + u[3 * nd + 1] - ty
-            dist, sd, nx, ny, rho = closest_point(px, py, tstart[k], tstart[k + 1], ptype, pdata)
-            gap = sd - half
+            phi = phi0[nd] + u[3 * nd + 2]
+            sf, cf = math.sin(phi), math.cos(phi)
+            rx, ry = -tface[k] * half * sf, tface[k] * half * cf  # node -> face point
+            drx_dth, dry_dth = -tface[k] * half * cf, -tface[k] * half * sf
+            px = X[nd, 0] + u[3 * nd] + rx
+            py = X[nd, 1] + u[3 * nd + 1] - ty + ry
+            dist, gap, nx, ny, rho = closest_point(px, py, tstart[k], tstart[k + 1], ptype,
+                                                   pdata)
             if gap >= 0.0 or gap < -thick:
                 continue
             tt_n = ct_t[nd, k] if ct_act[nd, k] == 1 else 0.0
@@ -105,26 +119,39 @@ def assemble(t, u, p, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unty
                                             pen[nd, 1], tmu[k], tt_n, drx, dry, J)
             ct_act_t[nd, k] = 1
             ct_t_t[nd, k] = tt
+            # force (fx, fy) at the face point and its moment about the node, and their
+            # derivatives by (u_x, u_y, theta) of the node
+            jx = J[0, 0] * drx_dth + J[0, 1] * dry_dth
+            jy = J[1, 0] * drx_dth + J[1, 1] * dry_dth
+            for b in range(2):
+                K3[0, b] = J[0, b]
+                K3[1, b] = J[1, b]
+                K3[2, b] = rx * J[1, b] - ry * J[0, b]
+            K3[0, 2] = jx
+            K3[1, 2] = jy
+            K3[2, 2] = drx_dth * fy - dry_dth * fx + rx * jy - ry * jx
             i0 = 3 * nd
             R[i0] -= fx
             R[i0 + 1] -= fy
-            for a in range(2):
-                for b in range(2):
-                    Kb[i0 + a, b - a + BW] -= J[a, b]
+            R[i0 + 2] -= rx * fy - ry * fx
+            for a in range(3):
+                for b in range(3):
+                    Kb[i0 + a, b - a + BW] -= K3[a, b]
             if towner[k] == 1:
                 fv -= fy
                 flat -= fx
                 col[i0] += J[0, 1]
                 col[i0 + 1] += J[1, 1]
+                col[i0 + 2] += rx * J[1, 1] - ry * J[0, 1]
                 for a in range(2):
-                    for b in range(2):
-                        Jp[nd, a, b] += J[a, b]
+                    for b in range(3):
+                        Jp[nd, a, b] += K3[a, b]
     c, v = crank(t, press)
     sdir = -math.tanh(v / press[V_EPS])
     mtt = sdir * press[MU_TT] * (1.0 if flat >= 0.0 else -1.0)
     dgdp = press[K_SPRING]
     for nd in range(n_nodes):
-        for b in range(2):
+        for b in range(3):
             row[3 * nd + b] = Jp[nd, 1, b] + mtt * Jp[nd, 0, b]
         dgdp -= Jp[nd, 1, 1] + mtt * Jp[nd, 0, 1]
     meas = fv + sdir * press[MU_TT] * abs(flat)
@@ -156,25 +183,21 @@ def _fix(R, Kb, col, row, free):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def newton(t, u, pa, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
-           sig, epb, eps, rate, sig_t, epb_t, eps_t,
-           ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t, ct_act_t,
-           press, fext, free, opts, Kb, R, col, row, out, counters):
+def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyped-def]
+           tools, contact, ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters):
     """Newton iterations with a backtracking line search at time ``t``.
 
     Starts from the predictor in ``u, pa[0]``; ``free[i] = 0`` marks a prescribed dof
-    (its value is already set in ``u``). Returns the number of iterations, or -1 if not
-    converged within ``opts[MAX_IT]``.
+    (its value is already set in ``u``). The groups are those of :func:`assemble`.
+    Returns the number of iterations, or -1 if not converged within ``opts[MAX_IT]``.
     """
     n = u.shape[0]
     spring = press[K_SPRING] > 0.0
     x1 = np.zeros(n)
     x2 = np.zeros(n)
     u0 = np.zeros(n)
-    assemble(t, u, pa[0], X, thick, ylay, wlay, xg, wg, mat,
-             sig, epb, eps, rate, sig_t, epb_t, eps_t,
-             ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t,
-             ct_act_t, press, fext, Kb, R, col, row, out)
+    assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial, press,
+             fext, Kb, R, col, row, out)
     norm = _fix(R, Kb, col, row, free)
     if spring:
         norm = math.sqrt(norm * norm + out[0] * out[0])
@@ -221,10 +244,8 @@ def newton(t, u, pa, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyp
             for i in range(n):
                 u[i] = u0[i] + alpha * x1[i]
             pa[0] = p0 + alpha * dp
-            assemble(t, u, pa[0], X, thick, ylay, wlay, xg, wg, mat,
-                     sig, epb, eps, rate, sig_t, epb_t, eps_t,
-                     ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t,
-                     ct_act_t, press, fext, Kb, R, col, row, out)
+            assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
+                     press, fext, Kb, R, col, row, out)
             counters[3] += 1
             norm = _fix(R, Kb, col, row, free)
             if spring:
@@ -244,12 +265,14 @@ def lam_at(t, targets, lam):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
-                u, pa, sig, epb, eps, rate,
-                ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act,
-                press, fref, fix_idx, fix_ref, opts,
-                rec_u, rec_f, rec_r, counters):
-    """Advance the state ``(u, pa, sig, epb, eps, rate, ct_*)`` in place through ``targets``.
+def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-untyped-def]
+                tools, contact, loads, opts, record):
+    """Advance the state and the contact state in place through ``targets``.
+
+    Grouped arguments: ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``state =
+    (u, pa, sig, epb, eps, rate)``, ``tools = (ptype, pdata, tstart, towner, tface, tmu,
+    pen)``, ``contact = (ct_t, ct_rel, ct_act)``, ``loads = (press, fref, fix_idx,
+    fix_ref)``, ``record = (rec_u, rec_f, rec_r, counters)``.
 
     Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam_fix(t) * fix_ref``
     (both piecewise linear through their values at ``targets``). At each
@@ -258,6 +281,12 @@ def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, ma
     ``rec_r``. ``counters = [steps, iterations, cuts, assemblies]``. Returns a status code
     (0 = converged).
     """
+    X, phi0, thick = mesh[0], mesh[1], mesh[2]
+    u, pa, sig, epb, eps, rate = state
+    towner, tface = tools[3], tools[4]
+    ct_t, ct_rel, ct_act = contact
+    press, fref, fix_idx, fix_ref = loads
+    rec_u, rec_f, rec_r, counters = record
     n = u.shape[0]
     n_el = X.shape[0] - 1
     n_tools = towner.shape[0]
@@ -265,8 +294,10 @@ def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, ma
     sig_t = np.empty_like(sig)
     epb_t = np.empty_like(epb)
     eps_t = np.empty_like(eps)
+    trial = (sig_t, epb_t, eps_t)
     ct_t_t = np.zeros((n_nodes, n_tools))
     ct_act_t = np.zeros((n_nodes, n_tools), dtype=np.int64)
+    ct_trial = (ct_t_t, ct_act_t)
     Kb = np.zeros((n, 2 * BW + 1))
     R = np.zeros(n)
     col = np.zeros(n)
@@ -307,11 +338,8 @@ def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, ma
                     pt[0] = pa[0] + (c_new - c_old)
             else:
                 pt[0] = c_new
-            its = newton(tn, u_trial, pt, X, thick, ylay, wlay, xg, wg, mat,
-                         sig, epb, eps, rate, sig_t, epb_t, eps_t,
-                         ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act,
-                         ct_t_t, ct_act_t, press, fext, free, opts, Kb, R, col, row, out,
-                         counters)
+            its = newton(tn, u_trial, pt, mesh, sig, epb, eps, rate, trial, tools, contact,
+                         ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters)
             if its < 0:
                 counters[2] += 1
                 dt = 0.5 * h
@@ -335,12 +363,14 @@ def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, ma
                         epb[e, g, k] = epb_t[e, g, k]
                         eps[e, g, k] = eps_t[e, g, k]
             for nd in range(n_nodes):
+                phi = phi0[nd] + u_trial[3 * nd + 2]
                 for k in range(n_tools):
                     ct_act[nd, k] = ct_act_t[nd, k]
                     ct_t[nd, k] = ct_t_t[nd, k]
                     ty = pt[0] if towner[k] == 1 else 0.0
-                    ct_rel[nd, k, 0] = X[nd, 0] + u_trial[3 * nd]
-                    ct_rel[nd, k, 1] = X[nd, 1] + u_trial[3 * nd + 1] - ty
+                    h = 0.5 * thick * tface[k]  # the face point of the node (tool frame)
+                    ct_rel[nd, k, 0] = X[nd, 0] + u_trial[3 * nd] - h * math.sin(phi)
+                    ct_rel[nd, k, 1] = X[nd, 1] + u_trial[3 * nd + 1] - ty + h * math.cos(phi)
             for i in range(n):
                 du_prev[i] = u_trial[i] - u[i]
                 u[i] = u_trial[i]
@@ -353,10 +383,8 @@ def run_history(targets, lam, lam_fix, t_start, X, thick, ylay, wlay, xg, wg, ma
                 dt = min(2.0 * dt, opts[DT_MAX])
                 easy = 0
         # record (re-assemble at the converged state for forces and reactions)
-        assemble(t, u, pa[0], X, thick, ylay, wlay, xg, wg, mat,
-                 sig, epb, eps, rate, sig_t, epb_t, eps_t,
-                 ptype, pdata, tstart, towner, tmu, pen, ct_t, ct_rel, ct_act, ct_t_t,
-                 ct_act_t, press, fext, Kb, R, col, row, out)
+        assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
+                 press, fext, Kb, R, col, row, out)
         for i in range(n):
             rec_u[j, i] = u[i]
             rec_r[j, i] = R[i]
