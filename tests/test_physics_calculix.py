@@ -161,7 +161,8 @@ def test_coarse_two_stage_run_is_flap_bending(spec) -> None:  # type: ignore[no-
     assert -0.006 <= peak_t <= 0.002 and c.max() > 2 * c[50]  # setting near BDC
     assert np.all(np.abs(c[t > 0.012]) < 1.0)  # released
     assert 40.0 < r.angles[0] < 50.0  # 45 deg die face, springback
-    assert 75.0 < r.angles[1] < 95.0  # wiped towards the vertical die face, springback
+    # stroke-controlled stage 2 (geometry of bending-2.0): the nose stops on the flap
+    assert 68.0 < r.angles[1] < 78.0
     assert r.info["seconds"] > 0 and "ccx-" in model.version
 
 
