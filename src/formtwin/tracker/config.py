@@ -68,8 +68,10 @@ class TrackerConfig:
     sensor_noise : std of the force sensor, N (a floor of 1 % of the largest principal std
         applies anyway, see :mod:`formtwin.measurement`).
     learn_scale : learn a factor ``c`` on the likelihood's covariance online: a posterior
-        over :data:`SCALES`, updated by each product's evidence under each ``c``; the
-        particles are weighted by the posterior mixture. Gaussian likelihood only.
+        over :data:`SCALES`, updated by each product's innovation likelihood under each
+        ``c`` (see :meth:`~formtwin.tracker.BendingSSM.update_scale`); the particles are
+        weighted by the posterior mixture. Gaussian likelihood only. Off: on the physics
+        data it drives ``c`` to the smallest value and hurts (docs/likelihood.md).
     """
 
     n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))

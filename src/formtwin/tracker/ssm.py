@@ -215,14 +215,36 @@ class BendingSSM:
 
     def update_scale(self, logw_prev: FloatArray) -> None:
         """Bayes' rule for the scale after a step whose predicted particles had normalised
-        log-weights ``logw_prev`` (N,): ``p(c | Z_i) ~ p(c | Z_i-1) p(z_i | Z_i-1, c)``,
-        the evidence under each ``c`` estimated with the same particles."""
-        if "scaled" not in self._last:
+        log-weights ``logw_prev`` (N,): ``p(c | Z_i) ~ p(c | Z_i-1) p(z_i | Z_i-1, c)``.
+
+        The predictive ``p(z_i | Z_i-1, c)`` is taken Gaussian, moment-matched to the
+        predicted cloud (the innovation likelihood of adaptive Kalman filtering): residual
+        mean ``e`` and covariance ``P`` of ``obs - model`` over the particles, and
+        ``z_i - model ~ N(e, c Sigma + P)``. (The particle mixture ``sum_k w_k N(r_k; 0, c
+        Sigma)`` instead rewards small ``c`` whenever one particle lands near the data.)
+        """
+        if "scaled" not in self._last or "r" not in self._last:
             return
-        ev = logsumexp(logw_prev[:, None] + self._last.pop("scaled"), axis=0)
-        if not np.any(np.isfinite(ev)):
+        ll = self._last.pop("scaled")
+        good = np.all(np.isfinite(ll), axis=1) & np.all(np.isfinite(self._last["r"]), axis=1)
+        w = np.exp(logw_prev - logsumexp(logw_prev)) * good
+        if w.sum() <= 0:
             return  # a collapsed step says nothing about the scale
-        logp = self.scale_logpost + np.where(np.isfinite(ev), ev, -np.inf)
+        w = w / w.sum()
+        r = np.where(good[:, None], self._last["r"], 0.0)
+        e = w @ r
+        d = (r - e) * np.sqrt(w)[:, None]
+        if "white" not in self._scale:  # Sigma = L L^T; whiten by L^-1
+            L = np.linalg.cholesky(self.measurement.covariance())
+            self._scale["white"] = np.linalg.inv(L)
+        Wt = self._scale["white"]
+        dw = d @ Wt.T
+        gam, V = np.linalg.eigh(dw.T @ dw)  # whitened P = V diag(gam) V^T
+        ev2 = (V.T @ (Wt @ e)) ** 2
+        c = np.array(SCALES)[:, None]
+        g = np.maximum(gam, 0.0)[None, :]
+        ev = -0.5 * (np.sum(np.log(c + g), axis=1) + np.sum(ev2 / (c + g), axis=1))
+        logp = self.scale_logpost + ev
         self.set_scale_logpost(logp - logsumexp(logp))
 
     def residuals(self, x: FloatArray, y: FloatArray) -> FloatArray:
