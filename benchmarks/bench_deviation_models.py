@@ -53,9 +53,9 @@ class WithDeviation:
         """The metamodel's curves."""
         return self.model.predict_curves(X)
 
-    def predict_angles(self, X: np.ndarray) -> np.ndarray:
-        """The metamodel's angles."""
-        return self.model.predict_angles(X)
+    def predict_angles(self, X: np.ndarray, u: Any = None) -> np.ndarray:
+        """The metamodel's angles (at press settings ``u``, None: nominal)."""
+        return self.model.predict_angles(X, u)
 
 
 @lru_cache(maxsize=1)
