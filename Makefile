@@ -45,6 +45,11 @@ fe-deps:
 	        apt-get install -y -qq -o DPkg::Lock::Timeout=300 calculix-ccx; \
 	else echo "fe-deps: ccx missing and not root: CalculiX tests will skip"; fi
 
+# closed-loop control of the final angle (physics model as the plant; heavy: ~15000 physics
+# runs): fixed u, run-to-run EWMA, feedforward from the estimates, oracle
+control-study: $(STAMP)
+	OMP_NUM_THREADS=1 $(BIN)/formtwin control-study --out benchmarks/.cache/control
+
 live-demo: $(STAMP) system-deps
 	OMP_NUM_THREADS=1 $(BIN)/python -m formtwin.service.livedemo
 

@@ -17,6 +17,7 @@ COMMANDS: tuple[str, ...] = (
     "doe",
     "metamodel",
     "study",
+    "control",
     "demo",
     "serve",
     "replay",

@@ -1,0 +1,51 @@
+"""Benchmark: the closed-loop control study of the final angle (issue 13).
+
+Run ``flock /tmp/formtwin-heavy.lock python benchmarks/bench_control.py`` (heavy: 3 physics
+runs per product, 1000 products x 5 datasets; ``make control-study`` runs the same study
+through the command line into the same folder, whose per-dataset results this script
+reuses). Plant: the physics model (bending) under series-6 conditions; model: the
+metamodel of the bundled physics DOE (what a fresh clone gets, fitted into the study
+folder). See :mod:`formtwin.study.control` and ``docs/control.md``.
+
+Figures (``benchmarks/results/bench_control.json``): per controller (fixed, ewma,
+feedforward, feedforward_open, oracle) the mean error, std, RMSE and share within
++-0.5 deg of the final angle over the scored products; ``angle2_std_ratio_ff_vs_fixed``
+(target <= 0.5), ``angle2_std_ratio_ff_vs_oracle`` (<= 1.5), ``angle2_std_ratio_ff_vs_ewma``
+(<= 0.8); the feedforward's interval coverage and prediction error; the plant
+interpolation's largest error at the feedforward's own settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from formtwin._bench import CACHE, write_result
+from formtwin.defaults import default_metamodel, physics_model
+from formtwin.study.control import ControlStudySettings
+from formtwin.study.control_run import run_control_study
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--out", default=str(CACHE / "control"))
+    p.add_argument("--products", type=int, default=1000)
+    p.add_argument("--datasets", type=int, default=5)
+    p.add_argument("--workers", type=int, default=2)
+    args = p.parse_args()
+    out = Path(args.out)
+    metamodel, mm_path = default_metamodel(out / "model", "bending")
+    physics = physics_model("bending", metamodel.spec)
+    settings = ControlStudySettings(products=args.products, datasets=args.datasets,
+                                    workers=args.workers)
+    t0 = time.perf_counter()
+    figures = run_control_study(metamodel, physics, settings, out)
+    figures["wall_s"] = round(time.perf_counter() - t0, 1)
+    model = {"name": "metamodel of the bundled physics DOE", "physics": "bending",
+             "physics_version": metamodel.model_version, "metamodel_file": str(mm_path)}
+    write_result("control", figures, model=model)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,65 @@
+"""``formtwin control-study``: the final angle in closed loop (no control, run-to-run EWMA,
+feedforward from the estimates, oracle) with the physics model as the plant."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from formtwin.cli.options import add_tracker_options, tracker_config
+
+#: TrackerConfig fields the study sets itself (series 6: deviation estimated, mu mid-range)
+FIXED = ("estimate_deviation", "mu", "learn_mu", "seed")
+
+
+def register(sub: Any) -> None:
+    """Add the ``control-study`` command to the subparsers ``sub``."""
+    p = sub.add_parser("control-study", help="closed-loop study of the final angle: fixed u, "
+                       "run-to-run EWMA, feedforward, oracle (physics model as the plant)")
+    p.add_argument("--out", default="out/control", help="folder (default: %(default)s)")
+    p.add_argument("--metamodel", help="metamodel file (default: fitted from the bundled DOE)")
+    p.add_argument("--products", type=int, default=1000, help="products per dataset")
+    p.add_argument("--datasets", type=int, default=5, help="datasets")
+    p.add_argument("--burn-in", type=int, default=100, help="first products not scored")
+    p.add_argument("--target", type=float, help="final angle wanted, deg (default: the "
+                   "metamodel's at the mid-range state and nominal setting)")
+    p.add_argument("--max-step", type=float, default=0.25,
+                   help="largest change of u per product, share of its range")
+    p.add_argument("--delay", type=int, default=1,
+                   help="products between a product and the use of its measured angle by "
+                   "the run-to-run controller (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="master seed")
+    p.add_argument("--workers", type=int, help="physics worker processes")
+    add_tracker_options(p, exclude=FIXED)
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the study and print its summary; returns the exit code."""
+    from dataclasses import replace
+
+    from formtwin.defaults import default_metamodel, physics_model
+    from formtwin.study.control import ControlStudySettings
+    from formtwin.study.control_run import run_control_study
+
+    out = Path(args.out)
+    metamodel, _ = default_metamodel(out / "model", "bending", args.metamodel)
+    physics = physics_model("bending", metamodel.spec)
+    tracker = replace(tracker_config(args), estimate_deviation=True, mu=None, learn_mu=False)
+    settings = ControlStudySettings(
+        products=args.products, datasets=args.datasets, burn_in=args.burn_in,
+        tracker=tracker, target=args.target, max_step=args.max_step, r2r_delay=args.delay,
+        seed=args.seed, workers=args.workers)
+    print(f"control study into {out}: {settings.datasets} datasets x {settings.products} "
+          f"products, N = {tracker.n_particles}", flush=True)
+    s = run_control_study(metamodel, physics, settings, out)
+    for c in ("fixed", "ewma", "feedforward", "feedforward_open", "oracle"):
+        v = s[c]
+        print(f"  {c:16s} mean error {v['mean_error_deg']:+.3f} deg, std {v['std_deg']:.3f} "
+              f"deg, within +-0.5 deg {v['within_band_share']:.1%}")
+    print(f"  std ratio feedforward / fixed {s['angle2_std_ratio_ff_vs_fixed']}, "
+          f"/ EWMA {s['angle2_std_ratio_ff_vs_ewma']}, / oracle "
+          f"{s['angle2_std_ratio_ff_vs_oracle']}")
+    print(f"  -> {out / 'control_study.json'}, {out / 'control_study.png'}")
+    return 0

@@ -1,0 +1,255 @@
+"""Closed-loop study of the final angle: no control, run-to-run EWMA, feedforward, oracle.
+
+The plant is the physics model under the realistic conditions of the paper's series 6:
+state means mu drawn in ``[mu_min, mu_max]`` and unknown to the tracker (it assumes the
+mid-range), states drifting by eq. 4-5, machine parameters drawn once per dataset, and the
+measured stage-1 curve distorted by the deviation model (``g(FE)``, theta_d drawn), tracked
+with the deviation estimated. Per dataset (``products`` products):
+
+* ``fixed``: ``u`` at its nominal value (no control);
+* ``ewma``: run-to-run EWMA on the measured final angles of earlier products
+  (:class:`~formtwin.control.EwmaRunToRun`; gain from the metamodel, ``lam`` the best of
+  :data:`R2R_LAMS` on the first dataset, measurements ``r2r_delay`` products late);
+* ``feedforward``: after each product's curve, :class:`~formtwin.control.Feedforward` over
+  the tracker's particles (the metamodel's final angle at each candidate ``u``), aiming at
+  the target minus a trim: an EWMA of its prediction error on the measured angles of
+  earlier products (the estimates can be biased: mu unknown, deviation estimated);
+  ``feedforward_open`` is the same without the trim;
+* ``oracle``: the same choice knowing the true state and machine parameters (the
+  metamodel's angle at the true inputs): what a perfect estimate could give.
+
+The physics model's final angle of every product is computed at three settings (the
+actuator's limits and the nominal) and interpolated quadratically in ``u``
+(:class:`PlantAngles`); ``interp_check`` products are also run at the chosen feedforward
+setting to measure the interpolation error. Each controller respects the actuator's limits
+and maximum step. Scores: over the products after ``burn_in``, pooled over datasets.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.control import Actuator, EwmaRunToRun, Feedforward
+from formtwin.dataset import DoeDataset
+from formtwin.deviation import DeviationModel
+from formtwin.doe import run_design
+from formtwin.measurement import ProcessModel
+from formtwin.production import ProductionRun, draw_production_run
+from formtwin.simulator import Simulator
+from formtwin.tracker import TrackerConfig, build_tracker
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+#: the controllers compared
+CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open")
+#: EWMA weights tried for the run-to-run controller (the best on the first dataset is used)
+R2R_LAMS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
+
+
+@dataclass(frozen=True)
+class ControlStudySettings:
+    """Sizes and settings of the control study.
+
+    Attributes
+    ----------
+    products, datasets : products per dataset, datasets (issue: 1000 x 5).
+    burn_in : first products of each dataset not scored (the filter's convergence).
+    tracker : tracker settings (deviation estimated, mu mid-range: series 6).
+    target : final angle wanted, degrees; ``None``: the metamodel's at the mid-range state,
+        mid machine parameters and nominal setting, rounded to 0.1 deg.
+    max_step : largest change of ``u`` per product as a share of its range.
+    r2r_delay : products between a product and the use of its measured angle (1: the
+        previous product's angle sets this one's ``u``).
+    band : half-width of the tolerance band scored, degrees.
+    interp_check : products per dataset also run at their feedforward setting.
+    trim_lam : EWMA weight of the feedforward's trim (its prediction error on earlier
+        products' measured angles, ``r2r_delay`` late); 0: open-loop feedforward only.
+    seed : master seed.
+    workers : physics worker processes.
+    """
+
+    products: int = 1000
+    datasets: int = 5
+    burn_in: int = 100
+    tracker: TrackerConfig = field(default_factory=lambda: TrackerConfig(
+        n_particles=500, estimate_deviation=True))
+    target: float | None = None
+    max_step: float = 0.25
+    r2r_delay: int = 1
+    band: float = 0.5
+    interp_check: int = 20
+    trim_lam: float = 0.2
+    seed: int = 0
+    workers: int | None = None
+
+
+class PlantAngles:
+    """The plant's final angle of each product as a quadratic in ``u`` through its values
+    at three settings.
+
+    Parameters
+    ----------
+    u3 : (3,) the settings run (distinct).
+    a3 : (n, 3) the final angles there, degrees (NaN where the run failed).
+    """
+
+    def __init__(self, u3: FloatArray, a3: FloatArray) -> None:
+        self.u3 = np.asarray(u3, dtype=np.float64)
+        self.a3 = np.asarray(a3, dtype=np.float64)
+
+    def __call__(self, i: int, u: float) -> float:
+        """Final angle of product ``i`` at setting ``u`` (Lagrange interpolation)."""
+        (u0, u1, u2), (a0, a1, a2) = self.u3, self.a3[i]
+        return float(a0 * (u - u1) * (u - u2) / ((u0 - u1) * (u0 - u2))
+                     + a1 * (u - u0) * (u - u2) / ((u1 - u0) * (u1 - u2))
+                     + a2 * (u - u0) * (u - u1) / ((u2 - u0) * (u2 - u1)))
+
+
+def plant_run(spec: Any, physics: Simulator, settings: ControlStudySettings, k: int,
+              folder: Path
+              ) -> tuple[ProductionRun, FloatArray, NDArray[np.bool_], PlantAngles]:
+    """Dataset ``k``: its truth, the measured curves ``g(FE)`` (n, n_t) (NaN where the
+    physics failed), the ok mask (n,) and the plant's angles."""
+    rng = np.random.default_rng(np.random.SeedSequence([settings.seed, k]))
+    run = draw_production_run(spec, settings.products, rng)  # mu, theta, theta_d drawn
+    c = spec.controls
+    u3 = np.array([c.lo[0], c.nominal[0], c.hi[0]])
+    n = run.n
+    X = np.vstack([spec.run_columns(run.inputs, float(u)) for u in u3])
+    data: DoeDataset = run_design(physics, X, folder / f"plant_{k}.h5",
+                                  executor="processes", workers=settings.workers,
+                                  seed=settings.seed)
+    ok: NDArray[np.bool_] = np.asarray(data.ok.reshape(3, n).all(axis=0), dtype=bool)
+    a3 = data.angles[:, 1].reshape(3, n).T.copy()
+    a3[~ok] = np.nan
+    curves = data.curves[n: 2 * n].copy()  # the nominal runs (u acts after stage 1)
+    g = DeviationModel.from_spec(spec)
+    measured = g.apply(np.nan_to_num(curves), np.tile(run.theta_d, (n, 1)))
+    measured[~ok] = np.nan
+    return run, measured, ok, PlantAngles(u3, a3)
+
+
+def metamodel_final(metamodel: ProcessModel, X: FloatArray, u: FloatArray) -> FloatArray:
+    """Final angles (N, n_u) of the metamodel at inputs ``X`` (N, 10) and settings ``u``."""
+    uu = np.asarray(u, dtype=np.float64).reshape(-1)
+    rep = np.repeat(X, uu.size, axis=0)
+    a = metamodel.predict_angles(rep, np.tile(uu, X.shape[0]))[:, 1]
+    out: FloatArray = a.reshape(X.shape[0], uu.size)
+    return out
+
+
+def default_target(metamodel: ProcessModel) -> float:
+    """The metamodel's final angle at the mid-range state and mid machine parameters at the
+    nominal setting, rounded to 0.1 deg."""
+    spec = metamodel.spec
+    x = np.r_[spec.state.mu_mid, 0.5 * (spec.params.lo + spec.params.hi)][None, :]
+    return round(float(metamodel_final(metamodel, x, spec.controls.nominal[:1])[0, 0]), 1)
+
+
+def r2r_gain(metamodel: ProcessModel, rng: np.random.Generator, n: int = 200) -> float:
+    """Mean slope d(final angle)/du of the metamodel over random inputs, deg per unit."""
+    spec = metamodel.spec
+    lo, hi = spec.inputs.lo, spec.inputs.hi
+    X = lo + (hi - lo) * rng.random((n, lo.size))
+    c = spec.controls
+    a = metamodel_final(metamodel, X, np.array([c.lo[0], c.hi[0]]))
+    return float(np.mean((a[:, 1] - a[:, 0]) / (c.hi[0] - c.lo[0])))
+
+
+def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
+                k: int, folder: Path, target: float, gain: float, lam: float | None
+                ) -> dict[str, Any]:
+    """All controllers on dataset ``k``: per controller the settings ``u`` (n,) and the
+    plant's final angles (n,); plus the feedforward's predicted means and intervals."""
+    spec = metamodel.spec
+    run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
+    n = run.n
+    c = spec.controls
+    act = Actuator(float(c.lo[0]), float(c.hi[0]),
+                   settings.max_step * float(c.hi[0] - c.lo[0]))
+    ff = Feedforward(target, act)
+    nominal = float(c.nominal[0])
+    u = {name: np.full(n, nominal) for name in CONTROLLERS}
+    # feedforward from the tracker (series 6: deviation estimated, mu mid-range), with and
+    # without the trim: an EWMA of the measured minus predicted angle of earlier products
+    tracker = build_tracker(metamodel, replace(settings.tracker, seed=settings.seed + k))
+    pred = np.full((n, 3), np.nan)  # mean, interval lo, hi (trimmed feedforward)
+    prev, prev_open, bias = nominal, nominal, 0.0
+    for i in range(n):
+        j = i - settings.r2r_delay  # the newest product whose angle is known now
+        if settings.trim_lam > 0 and j >= 0 and ok[j] and np.isfinite(pred[j, 0]):
+            err = plant(j, u["feedforward"][j]) - pred[j, 0]
+            bias = settings.trim_lam * err + (1 - settings.trim_lam) * bias
+        if ok[i]:
+            tracker.step(curves[i])
+            s = replace(ff, target=target - bias).choose(tracker.final_angle, u_prev=prev)
+            prev = s.u
+            pred[i] = (s.angle_mean + bias, s.interval[0] + bias, s.interval[1] + bias)
+            prev_open = ff.choose(tracker.final_angle, u_prev=prev_open).u
+        u["feedforward"][i], u["feedforward_open"][i] = prev, prev_open
+    # oracle: the true inputs, one particle
+    prev = nominal
+    for i in range(n):
+        x = run.inputs[i: i + 1]
+
+        def truth(uu: FloatArray, x: FloatArray = x) -> FloatArray:
+            return metamodel_final(metamodel, x, uu)
+
+        s = ff.choose(truth, u_prev=prev)
+        prev = u["oracle"][i] = s.u
+    out: dict[str, Any] = {"ok": ok, "target": target, "pred": pred}
+    lams = R2R_LAMS if lam is None else (lam,)
+    best: tuple[float, float, FloatArray] | None = None
+    for lm in lams:
+        uu = r2r(plant, ok, n, target, gain, lm, act, nominal, settings.r2r_delay)
+        a = np.array([plant(i, uu[i]) for i in range(n)])
+        sd = float(np.nanstd(a[settings.burn_in:] - target))
+        if best is None or sd < best[0]:
+            best = (sd, lm, uu)
+    assert best is not None
+    u["ewma"], out["r2r_lam"] = best[2], best[1]
+    for name in CONTROLLERS:
+        out[f"u_{name}"] = u[name]
+        out[f"angle_{name}"] = np.where(ok, [plant(i, u[name][i]) for i in range(n)], np.nan)
+    if settings.interp_check > 0:  # physics at the feedforward's own settings
+        idx = np.flatnonzero(ok)[:: max(1, ok.sum() // settings.interp_check)]
+        idx = idx[: settings.interp_check]
+        X = spec.run_columns(run.inputs[idx], u["feedforward"][idx])
+        chk = run_design(physics, X, folder / f"check_{k}.h5", executor="processes",
+                         workers=settings.workers, seed=settings.seed)
+        out["interp_error"] = chk.angles[:, 1] - out["angle_feedforward"][idx]
+    return out
+
+
+def r2r(plant: PlantAngles, ok: NDArray[np.bool_], n: int, target: float, gain: float,
+        lam: float, act: Actuator, nominal: float, delay: int) -> FloatArray:
+    """Settings (n,) of the run-to-run EWMA controller on the plant's measured angles."""
+    ctl = EwmaRunToRun(target, gain, lam, act, u=nominal)
+    u = np.full(n, nominal)
+    for i in range(n):
+        j = i - delay  # the newest product whose angle is known before product i
+        if j >= 0 and ok[j]:
+            ctl.update(plant(j, u[j]), u[j])
+        u[i] = ctl.u
+    return u
+
+
+def scores(angles: FloatArray, target: float, band: float) -> dict[str, float]:
+    """Mean error, std, RMSE and share within ``+-band`` of angles (finite ones)."""
+    e = angles[np.isfinite(angles)] - target
+    return {"mean_error_deg": round(float(e.mean()), 4), "std_deg": round(float(e.std()), 4),
+            "rmse_deg": round(float(np.sqrt(np.mean(e * e))), 4),
+            "within_band_share": round(float(np.mean(np.abs(e) <= band)), 4),
+            "products": int(e.size)}
+
+
+__all__ = ["CONTROLLERS", "ControlStudySettings", "PlantAngles", "default_target",
+           "metamodel_final", "plant_run", "r2r", "r2r_gain", "run_dataset", "scores"]
