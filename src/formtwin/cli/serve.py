@@ -62,6 +62,16 @@ def add_monitor_options(p: argparse.ArgumentParser) -> None:
                    help="in-control average run length of each chart (default: %(default)g)")
 
 
+def _controller(args: argparse.Namespace, proc: Any) -> None:
+    """Attach feedforward control to ``proc`` when ``--target-angle`` is given."""
+    if args.target_angle is None:
+        return
+    from formtwin.service.control import ControlSettings, ServiceController
+
+    proc.controller = ServiceController(
+        proc.tracker, ControlSettings(args.target_angle, args.control_max_step), proc.store)
+
+
 def _monitor(args: argparse.Namespace, proc: Any) -> Any:
     """The service's charts (None with --no-monitor), attached to ``proc``."""
     if args.no_monitor:
@@ -191,6 +201,13 @@ def register(sub: Any) -> None:
     p.add_argument("--page-token-file", help="file holding the page token")
     add_check_options(p)
     add_monitor_options(p)
+    g = p.add_argument_group("feedforward control of the final angle")
+    g.add_argument("--target-angle", type=float, metavar="DEG",
+                   help="suggest each product's press setting u for this final angle "
+                   "(in the estimate message, 'control'); default: no suggestion")
+    g.add_argument("--control-max-step", type=float, default=0.25, metavar="SHARE",
+                   help="largest change of u per product, share of its range "
+                   "(default: %(default)s)")
     p.add_argument("--status-every", type=float, default=60.0, metavar="S",
                    help="print a status line every S seconds (0: never)")
     p.add_argument("--connect-timeout", type=float, default=10.0,
@@ -228,6 +245,7 @@ def _serve(args: argparse.Namespace) -> int:
     check = None if args.check is None else _Check(proc, args.check, stop)
     try:
         monitor = _monitor(args, proc)
+        _controller(args, proc)
         describe = getattr(proc.plausible, "describe", None)
         if describe is not None:
             print(describe(), flush=True)

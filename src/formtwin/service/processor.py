@@ -198,6 +198,9 @@ class Processor:
         self.store = store
         self.monitor = monitor
         self.health = health
+        #: feedforward control (:class:`formtwin.service.control.ServiceController`): the
+        #: suggested setting goes into the estimate message (``control``) before the commit
+        self.controller: Any = None
         self.plausible = plausible
         self.tracker = tracker
         self.limits = limits
@@ -229,7 +232,7 @@ class Processor:
     # ------------------------------------------------------------------ internals
     def _rollback(self) -> None:
         self.tracker.load_state_bytes(self._last_ckpt)
-        for m in (self.monitor, self.health):
+        for m in (self.monitor, self.health, self.controller):
             if m is not None:
                 m.rollback()
 
@@ -349,6 +352,8 @@ class Processor:
             msg["peak_force_N"] = float(np.max(stroke.force_N))
             msg["model_health"] = self.health.observe(msg, stroke.force_N)
             msg["flags"]["model_mismatch"] = msg["model_health"]["state"] == "model_mismatch"
+        if self.controller is not None:
+            msg["control"] = self.controller.observe(msg)
         if self.monitor is not None:
             msg["monitoring"] = self.monitor.observe(msg)
         got = self.store.commit_product(
