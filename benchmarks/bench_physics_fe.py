@@ -14,7 +14,8 @@ angle 1) and ``sensitivity_sign_agreement_final`` (angle 2): the fraction of inp
 CalculiX's own mesh error; the mesh errors; ccx version, meshes, seconds per FE run.
 Targets (issue 12): peak <= 0.05, plateau <= 0.03, angle 1 <= 0.5 deg, agreement 1.0.
 
-Every ccx run takes the shared heavy lock (``--lock``) by itself, so other jobs take turns;
+Every ccx run takes the shared heavy lock (``--lock``) by itself, so other jobs take turns
+(``--lock ''`` when the whole script runs under ``flock``);
 FE results are cached in ``benchmarks/.cache/fe_runs.json`` by model version, geometry and
 input, so a rerun after a beam-model change only runs the beam model.
 ``--reference PATH`` also writes the 9 cases' stage-1 figures (the FE reference for the
@@ -101,12 +102,14 @@ class FeCache:
         """Figures of one FE run (cached), the run under the heavy lock."""
         k = self.key(fe, x)
         if k not in self.data:
-            with open(lock, "a") as fh:
-                fcntl.flock(fh, fcntl.LOCK_EX)
+            with open(lock or os.devnull, "a") as fh:
+                if lock:
+                    fcntl.flock(fh, fcntl.LOCK_EX)
                 tic = time.process_time()
                 wall = time.perf_counter()
                 r = fe.run(x)
-                fcntl.flock(fh, fcntl.LOCK_UN)
+                if lock:
+                    fcntl.flock(fh, fcntl.LOCK_UN)
             rec: dict[str, Any] = {"ok": r.ok, "reason": r.reason,
                                    "cpu_s": time.process_time() - tic,
                                    "wall_s": time.perf_counter() - wall}
@@ -127,7 +130,9 @@ def main() -> None:
     parser.add_argument("--stage1-only", action="store_true", help="no stage 2 in CalculiX")
     parser.add_argument("--reference", help="also write the 9 cases' FE figures to this JSON")
     parser.add_argument("--lock", default=os.environ.get("FORMTWIN_HEAVY_LOCK",
-                                                         "/tmp/formtwin-heavy.lock"))
+                                                         "/tmp/formtwin-heavy.lock"),
+                        help="lock file each ccx run takes; '' when the whole script runs "
+                        "under `flock` (default: %(default)s)")
     args = parser.parse_args()
     coarse_n, fine_n = (int(v) for v in args.meshes.split(","))
     beam = BendingModel()
