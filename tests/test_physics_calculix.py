@@ -118,6 +118,11 @@ def test_deck_has_both_stages_and_compact_ids() -> None:
     np.testing.assert_allclose(die[die.shape[0] // 2 - 1], face1[0])  # the arc's end joins
     np.testing.assert_allclose(face1[0], face2[0])
     assert np.all(face2[: face2.shape[0] // 2, 0] <= FlapGeometry().r_die + 1e-9)
+    x = model.centre()
+    if x.size == 11:  # the spec's stage-2 depth u lowers the stage-2 punch
+        x[-1] += 0.1
+        low = model.deck(x).tools[4].nodes[:, 1].min()
+        assert low == pytest.approx(deck.tools[4].nodes[:, 1].min() - 0.1)
     one = CalculixModel(n_thick=2, stage2=False).deck(model.centre())
     assert one.text.count("*STEP") == 1 and "stage 1 only" in CalculixModel(
         stage2=False).version
