@@ -10,7 +10,9 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -189,3 +191,28 @@ def wait_for(predicate: object, timeout: float, what: object, poll: float = 0.05
 
 def log_has(path: Path, text: str) -> bool:
     return path.exists() and text in path.read_text(encoding="utf-8", errors="replace")
+
+
+def require_browser() -> tuple[str, Any]:
+    """Headless Chromium and playwright's sync API, or skip the test (call it first)."""
+    chromium = require_binary("chromium", ("/usr/bin/chromium",))
+    return chromium, pytest.importorskip("playwright.sync_api")
+
+
+@contextmanager
+def live_page(url: str, height: int = 900) -> Iterator[tuple[Any, list[str]]]:
+    """The live page at ``url`` in headless Chromium: ``(page, errors)``, with ``errors``
+    the page's JavaScript errors so far; the browser closes on exit."""
+    chromium, sync_api = require_browser()
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium, headless=True,
+                                     args=["--no-sandbox", "--disable-gpu",
+                                           "--disable-dev-shm-usage"])
+        try:
+            page = browser.new_page(viewport={"width": 1300, "height": height})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(url, timeout=30_000)
+            yield page, errors
+        finally:
+            browser.close()

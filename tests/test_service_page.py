@@ -10,13 +10,13 @@ import time
 import urllib.request
 from pathlib import Path
 
-import pytest
 from service_fixtures import (
     Mosquitto,
     free_port,
+    live_page,
     log_has,
     mosquitto,  # noqa: F401 - fixture
-    require_binary,
+    require_browser,
     serve_cmd,
     start_serve,
     wait_serving,
@@ -29,8 +29,7 @@ TOPIC = "plant/line1/press1/stroke"
 
 
 def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
-    chromium = require_binary("chromium", ("/usr/bin/chromium",))
-    sync_api = pytest.importorskip("playwright.sync_api")
+    require_browser()
     strokes = read_stream(make_stream(tmp_path / "s.npz", 50, seed=4))
     port = free_port()
     log = tmp_path / "serve.log"
@@ -42,60 +41,50 @@ def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  #
         wait_serving(proc, log)
         assert log_has(log, f"live page: http://127.0.0.1:{port}/")
         publish_strokes(strokes[:5], broker, TOPIC)
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=chromium, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu",
-                                               "--disable-dev-shm-usage"])
-            try:
-                page = browser.new_page(viewport={"width": 1300, "height": 900})
-                errors: list[str] = []
-                page.on("pageerror", lambda e: errors.append(str(e)))
-                page.goto(f"http://127.0.0.1:{port}/", timeout=30_000)
-                page.wait_for_function("Number(document.body.dataset.points || 0) >= 5",
-                                       timeout=30_000)
-                first = int(page.inner_text("#n-points"))
-                assert page.locator("canvas").count() >= 21  # 18 variables, 2 angles, ESS
-                page.wait_for_function(
-                    "document.getElementById('conn').textContent === 'live'", timeout=10_000)
-                # strokes arriving while the page is open: points appear and grow
-                feeder = threading.Thread(target=publish_strokes, daemon=True, kwargs=dict(
-                    strokes=strokes[5:40], broker=broker, topic=TOPIC, rate=20.0))
-                feeder.start()
-                page.wait_for_function("Number(document.body.dataset.points) >= 15",
-                                       timeout=30_000)
-                mid = int(page.inner_text("#n-points"))
-                page.wait_for_function("Number(document.body.dataset.points) >= 40",
-                                       timeout=30_000)
-                feeder.join(10)
-                last = int(page.inner_text("#n-points"))
-                assert first < mid < last == 40
-                assert page.inner_text("#last-part") == strokes[39].part_id
-                # the chart holds the data: the ESS chart has 40 x values
-                n_x = page.evaluate("window.formtwinLive.charts.at(-1).plot.data[0].length")
-                assert n_x == 40
-                _publish_raw(mosquitto.url, b"{not json")
-                page.wait_for_function(
-                    "document.getElementById('n-rejected').textContent === '1'",
-                    timeout=20_000)
-                assert "malformed_json: 1" in page.inner_text("#reasons")
-                assert page.inner_text("#n-accepted") == "40"
-                # the service is killed and restarted: the open page reloads and goes on
-                proc.send_signal(signal.SIGKILL)
-                proc.wait(10)
-                log2 = tmp_path / "serve2.log"
-                proc = start_serve(cmd, log2)
-                wait_serving(proc, log2)
-                publish_strokes(strokes[40:50], broker, TOPIC)
-                page.wait_for_function("Number(document.body.dataset.resets || 0) >= 1 && "
-                                       "Number(document.body.dataset.points) >= 50",
-                                       timeout=40_000)
-                assert page.inner_text("#n-accepted") == "50"
-                assert page.inner_text("#n-rejected") == "1"
-                assert page.inner_text("#last-part") == strokes[49].part_id
-                assert not errors, errors
-                page.screenshot(path=str(tmp_path / "live.png"))
-            finally:
-                browser.close()
+        with live_page(f"http://127.0.0.1:{port}/", height=900) as (page, errors):
+            page.wait_for_function("Number(document.body.dataset.points || 0) >= 5",
+                                   timeout=30_000)
+            first = int(page.inner_text("#n-points"))
+            assert page.locator("canvas").count() >= 21  # 18 variables, 2 angles, ESS
+            page.wait_for_function(
+                "document.getElementById('conn').textContent === 'live'", timeout=10_000)
+            # strokes arriving while the page is open: points appear and grow
+            feeder = threading.Thread(target=publish_strokes, daemon=True, kwargs=dict(
+                strokes=strokes[5:40], broker=broker, topic=TOPIC, rate=20.0))
+            feeder.start()
+            page.wait_for_function("Number(document.body.dataset.points) >= 15",
+                                   timeout=30_000)
+            mid = int(page.inner_text("#n-points"))
+            page.wait_for_function("Number(document.body.dataset.points) >= 40",
+                                   timeout=30_000)
+            feeder.join(10)
+            last = int(page.inner_text("#n-points"))
+            assert first < mid < last == 40
+            assert page.inner_text("#last-part") == strokes[39].part_id
+            # the chart holds the data: the ESS chart has 40 x values
+            n_x = page.evaluate("window.formtwinLive.charts.at(-1).plot.data[0].length")
+            assert n_x == 40
+            _publish_raw(mosquitto.url, b"{not json")
+            page.wait_for_function(
+                "document.getElementById('n-rejected').textContent === '1'",
+                timeout=20_000)
+            assert "malformed_json: 1" in page.inner_text("#reasons")
+            assert page.inner_text("#n-accepted") == "40"
+            # the service is killed and restarted: the open page reloads and goes on
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(10)
+            log2 = tmp_path / "serve2.log"
+            proc = start_serve(cmd, log2)
+            wait_serving(proc, log2)
+            publish_strokes(strokes[40:50], broker, TOPIC)
+            page.wait_for_function("Number(document.body.dataset.resets || 0) >= 1 && "
+                                   "Number(document.body.dataset.points) >= 50",
+                                   timeout=40_000)
+            assert page.inner_text("#n-accepted") == "50"
+            assert page.inner_text("#n-rejected") == "1"
+            assert page.inner_text("#last-part") == strokes[49].part_id
+            assert not errors, errors
+            page.screenshot(path=str(tmp_path / "live.png"))
         state = urllib.request.urlopen(f"http://127.0.0.1:{port}/api/state", timeout=10).read()
         assert re.search(rb'"accepted":\s*50', state)
     finally:

@@ -15,8 +15,9 @@ from service_fixtures import (
     Collector,
     Mosquitto,
     free_port,
+    live_page,
     mosquitto,  # noqa: F401 - fixture
-    require_binary,
+    require_browser,
     serve_cmd,
     start_serve,
     wait_for,
@@ -34,8 +35,7 @@ ALARMS = "plant/line1/press1/alarms"
 
 def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # noqa: F811
                                                        tmp_path: Path) -> None:
-    chromium = require_binary("chromium", ("/usr/bin/chromium",))
-    sync_api = pytest.importorskip("playwright.sync_api")
+    require_browser()
     # user-set limits: thickness in control at 300 um with a residual sigma of 1 nm (the
     # estimates are out of control), the stage-2 angle about its Phase-I level
     config = MonitorConfig({"thickness": InControl(mean=300.0, sigma=1e-3),
@@ -56,49 +56,39 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
         assert f"alarms -> {ALARMS}" in log.read_text()
         publish_strokes(strokes, BrokerConfig.from_url(mosquitto.url), TOPIC)
         wait_for(lambda: len(collector.get(ALARMS)) >= 3, 30, "alarms on the alarms topic")
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=chromium, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu",
-                                               "--disable-dev-shm-usage"])
-            try:
-                page = browser.new_page(viewport={"width": 1300, "height": 1400})
-                errors: list[str] = []
-                page.on("pageerror", lambda e: errors.append(str(e)))
-                page.goto(f"http://127.0.0.1:{port}/?token=tok-123", timeout=30_000)
-                page.wait_for_function("Number(document.body.dataset.points || 0) >= 20 && "
-                                       "Number(document.body.dataset.alarms || 0) >= 3",
-                                       timeout=30_000)
-                # one control chart per monitored variable, with its limits and alarms
-                keys = page.evaluate("window.formtwinLive.charts.map(c => c.key)")
-                assert "chart:thickness" in keys and "chart:angle_stage2" in keys
-                chart = page.evaluate(
-                    "window.formtwinLive.charts.find(c => c.key === 'chart:thickness')"
-                    ".plot.data")
-                seqs, stat, upper, lower, marks = chart
-                charted = [i for i, v in enumerate(upper) if v is not None]
-                assert len(charted) == 20 - 5  # after warm-up and Phase I
-                assert all(lower[i] == -upper[i] and stat[i] is not None for i in charted)
-                n_alarms = int(page.get_attribute("body", "data-alarms") or 0)
-                stored = _get(port, "api/alarms")
-                marked = {seqs[i] for i, v in enumerate(marks) if v is not None}
-                assert marked == {a["seq"] for a in stored if a["variable"] == "thickness"}
-                assert marked
-                assert n_alarms == len(stored) == len(collector.get(ALARMS))
-                assert page.inner_text("#n-alarms") == str(n_alarms)
-                # acknowledge the newest alarm on the page
-                newest = stored[-1]["id"]
-                page.click(f".alarm[data-id='{newest}'] button")
-                page.wait_for_function(
-                    f"document.querySelector(\".alarm[data-id='{newest}']\")"
-                    ".classList.contains('acked')", timeout=10_000)
-                assert page.inner_text("#n-alarms") == str(n_alarms - 1)
-                acked = [a for a in _get(port, "api/alarms") if a["acked_at"] is not None]
-                assert [a["id"] for a in acked] == [newest]
-                assert acked[0]["ack_note"] == "acknowledged on the live page"
-                assert not errors, errors
-                page.screenshot(path=str(tmp_path / "alarms.png"), full_page=True)
-            finally:
-                browser.close()
+        with live_page(f"http://127.0.0.1:{port}/?token=tok-123", height=1400) as (page, errors):
+            page.wait_for_function("Number(document.body.dataset.points || 0) >= 20 && "
+                                   "Number(document.body.dataset.alarms || 0) >= 3",
+                                   timeout=30_000)
+            # one control chart per monitored variable, with its limits and alarms
+            keys = page.evaluate("window.formtwinLive.charts.map(c => c.key)")
+            assert "chart:thickness" in keys and "chart:angle_stage2" in keys
+            chart = page.evaluate(
+                "window.formtwinLive.charts.find(c => c.key === 'chart:thickness')"
+                ".plot.data")
+            seqs, stat, upper, lower, marks = chart
+            charted = [i for i, v in enumerate(upper) if v is not None]
+            assert len(charted) == 20 - 5  # after warm-up and Phase I
+            assert all(lower[i] == -upper[i] and stat[i] is not None for i in charted)
+            n_alarms = int(page.get_attribute("body", "data-alarms") or 0)
+            stored = _get(port, "api/alarms")
+            marked = {seqs[i] for i, v in enumerate(marks) if v is not None}
+            assert marked == {a["seq"] for a in stored if a["variable"] == "thickness"}
+            assert marked
+            assert n_alarms == len(stored) == len(collector.get(ALARMS))
+            assert page.inner_text("#n-alarms") == str(n_alarms)
+            # acknowledge the newest alarm on the page
+            newest = stored[-1]["id"]
+            page.click(f".alarm[data-id='{newest}'] button")
+            page.wait_for_function(
+                f"document.querySelector(\".alarm[data-id='{newest}']\")"
+                ".classList.contains('acked')", timeout=10_000)
+            assert page.inner_text("#n-alarms") == str(n_alarms - 1)
+            acked = [a for a in _get(port, "api/alarms") if a["acked_at"] is not None]
+            assert [a["id"] for a in acked] == [newest]
+            assert acked[0]["ack_note"] == "acknowledged on the live page"
+            assert not errors, errors
+            page.screenshot(path=str(tmp_path / "alarms.png"), full_page=True)
         # without the token the service refuses to acknowledge
         req = urllib.request.Request(f"http://127.0.0.1:{port}/api/alarms/"
                                      f"{stored[0]['id']}/ack", method="POST", data=b"")

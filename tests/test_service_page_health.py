@@ -18,9 +18,10 @@ from service_fixtures import (
     Collector,
     Mosquitto,
     free_port,
+    live_page,
     log_has,
     mosquitto,  # noqa: F401 - fixture
-    require_binary,
+    require_browser,
     serve_cmd,
     start_serve,
     wait_for,
@@ -50,8 +51,7 @@ def physics_strokes(n: int) -> list[Stroke]:
 
 
 def test_mismatch_banner_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
-    chromium = require_binary("chromium", ("/usr/bin/chromium",))
-    sync_api = pytest.importorskip("playwright.sync_api")
+    require_browser()
     port = free_port()
     log = tmp_path / "serve.log"
     proc = start_serve(serve_cmd(mosquitto, tmp_path / "a.sqlite", "--particles", "200",
@@ -66,32 +66,22 @@ def test_mismatch_banner_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> No
         publish_strokes(physics_strokes(12), broker, TOPIC)
         wait_for(lambda: any(m.get("reason") == "model_mismatch"
                              for m in collector.get(errors_topic)), 60, "model_mismatch")
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=chromium, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu",
-                                               "--disable-dev-shm-usage"])
-            try:
-                page = browser.new_page(viewport={"width": 1300, "height": 820})
-                errors: list[str] = []
-                page.on("pageerror", lambda e: errors.append(str(e)))
-                page.goto(f"http://127.0.0.1:{port}/", timeout=30_000)
-                page.wait_for_function("document.body.dataset.health === 'model_mismatch'",
-                                       timeout=30_000)
-                text = page.inner_text("#banner")
-                assert "Model mismatch since product" in text
-                assert "the model does not explain the force curves" in text
-                assert "Expected:" in text and "chi-square with 101 degrees of freedom" in text
-                assert "Seen:" in text and "Likely causes:" in text
-                assert "a metamodel of another press" in text
-                # the ESS axis runs 0 .. N, whatever the ESS (1 of 200 here)
-                y_max = page.evaluate(
-                    "window.formtwinLive.charts.find(c => c.key === 'ess').plot.scales.y.max")
-                assert y_max == 200
-                assert not errors, errors
-                page.screenshot(path=str(SHOT if os.environ.get("FORMTWIN_DOCS_SHOTS")
-                                         else tmp_path / "banner.png"))
-            finally:
-                browser.close()
+        with live_page(f"http://127.0.0.1:{port}/", height=820) as (page, errors):
+            page.wait_for_function("document.body.dataset.health === 'model_mismatch'",
+                                   timeout=30_000)
+            text = page.inner_text("#banner")
+            assert "Model mismatch since product" in text
+            assert "the model does not explain the force curves" in text
+            assert "Expected:" in text and "chi-square with 101 degrees of freedom" in text
+            assert "Seen:" in text and "Likely causes:" in text
+            assert "a metamodel of another press" in text
+            # the ESS axis runs 0 .. N, whatever the ESS (1 of 200 here)
+            y_max = page.evaluate(
+                "window.formtwinLive.charts.find(c => c.key === 'ess').plot.scales.y.max")
+            assert y_max == 200
+            assert not errors, errors
+            page.screenshot(path=str(SHOT if os.environ.get("FORMTWIN_DOCS_SHOTS")
+                                     else tmp_path / "banner.png"))
         notes = [m for m in collector.get(errors_topic) if m.get("reason") == "model_mismatch"]
         assert len(notes) == 1  # once per episode
         state = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/api/state",
