@@ -82,7 +82,7 @@ def run_service_health(model: Any, config: TrackerConfig, curves: np.ndarray,
 def physics_curves(spec: Any, run: Any, name: str) -> np.ndarray:
     """The bending model's curves of a production run (cached), through ``g``."""
     CACHE.mkdir(parents=True, exist_ok=True)
-    data = run_design(physics_model("bending", spec), run.inputs, CACHE / name,
+    data = run_design(physics_model("bending", spec), run.run_inputs, CACHE / name,
                       progress=True)
     curves = np.where(data.ok[:, None], data.curves, np.nan)
     return DeviationModel.from_spec(spec).apply(
