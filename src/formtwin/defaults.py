@@ -13,7 +13,7 @@ loaded by :func:`load_model`.
 
 >>> data = analytic_dataset(50, seed=0)
 >>> data.inputs.shape, data.curves.shape, int(data.ok.sum())
-((50, 10), (50, 101), 50)
+((50, 11), (50, 101), 50)
 """
 
 from __future__ import annotations
