@@ -93,3 +93,30 @@ def test_track_reads_a_doe_dataset(tmp_path: Path) -> None:
     curves = read_curves(Path(path), 101)
     assert curves.shape == (6, 101)
     np.testing.assert_array_equal(np.isnan(curves).any(axis=1), ~data.ok)
+
+
+def test_track_predicts_angles_at_each_products_setting(tmp_path: Path) -> None:
+    """Settings u come with a DOE dataset (its last run-input column) or from --u; the
+    angles are predicted at them and the table says which u each row used."""
+    pytest.importorskip("h5py")
+    from formtwin.defaults import analytic_dataset
+
+    data = analytic_dataset(6, seed=1)
+    path = data.save(tmp_path / "doe.h5")
+    common = ["--metamodel", "analytic", "--curves", str(path), "--n-mc", "500",
+              "--particles", "64", "--no-deviation", "--seed", "3"]
+    assert main(["track", *common, "--out", str(tmp_path / "a.csv")]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "a.csv", encoding="utf-8")))
+    u_file = [float(r["u_stage2_depth"]) for r in rows]
+    np.testing.assert_allclose(u_file, data.inputs[:, -1])
+    assert main(["track", *common, "--u", "0", "--out", str(tmp_path / "b.csv")]) == 0
+    nominal = list(csv.DictReader(open(tmp_path / "b.csv", encoding="utf-8")))
+    assert [float(r["u_stage2_depth"]) for r in nominal] == [0.0] * 6
+    # same curves, same seed: the state is the same, the final angle moves with u
+    for r, q in zip(rows, nominal, strict=True):
+        assert r["mean_yield_stress"] == q["mean_yield_stress"]
+    gaps = [float(r["angle2_mean"]) - float(q["angle2_mean"]) for r, q in zip(rows, nominal, strict=True)]
+    assert np.corrcoef(gaps, u_file)[0, 1] > 0.9
+    np.savetxt(tmp_path / "u.csv", np.full(6, 0.5))  # 0.5 mm: beyond the +-0.1 mm box
+    assert main(["track", *common, "--u", str(tmp_path / "u.csv"),
+                 "--out", str(tmp_path / "c.csv")]) == 2

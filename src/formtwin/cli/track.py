@@ -37,6 +37,11 @@ def register(sub: Any) -> None:
                    help="estimates: .csv, or .parquet (needs pyarrow)")
     p.add_argument("--source", help="for a study realisation file (curves by source): which "
                    "curves to track (MM, gMM, FE, gFE)")
+    p.add_argument("--u", dest="settings",
+                   help="each product's press setting (the spec's controls, mm as in the MQTT "
+                        "payload): a number for every product, or a .csv/.npz file with one row "
+                        "per curve; default: read from a DOE dataset or study realisation "
+                        "file when it has them, else the nominal setting")
     p.add_argument("--measurement", type=Path,
                    help="measurement-model .npz; default: built by Monte Carlo on the model")
     add_tracker_options(p)
@@ -98,6 +103,54 @@ def read_curves(path: Path, n_t: int, source: str | None = None) -> NDArray[np.f
     return arr
 
 
+def read_settings(path: Path, n_controls: int, source: str | None = None
+                  ) -> NDArray[np.float64] | None:
+    """The press settings ``u`` (n, n_controls), internal units, stored with the curves.
+
+    A DOE dataset holds them as the last columns of its run inputs, a study realisation
+    (NetCDF) and an npz as a variable ``u``; a CSV of curves holds none (None).
+    """
+    suffix = path.suffix.lower()
+    arr: NDArray[np.float64] | None = None
+    if suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            arr = np.asarray(z["u"], dtype=np.float64) if "u" in z else None
+    elif suffix in (".h5", ".hdf5") and _is_doe_dataset(path):
+        from formtwin.dataset import DoeDataset
+
+        inputs = DoeDataset.load(path, complete=False).inputs
+        arr = inputs[:, inputs.shape[1] - n_controls:] if n_controls else None
+    elif suffix in (".nc", ".h5", ".hdf5", ".nc4"):
+        import xarray as xr
+
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            arr = np.asarray(ds["u"].values, dtype=np.float64) if "u" in ds else None
+    if arr is None or arr.size == 0:
+        return None
+    return arr.reshape(arr.shape[0], -1)
+
+
+def parse_settings(text: str, n: int, n_controls: int) -> NDArray[np.float64]:
+    """``--u``: one number for every product, or a .csv/.npz file of (n, n_controls) values."""
+    try:
+        return np.full((n, n_controls), float(text))
+    except ValueError:
+        pass
+    path = Path(text)
+    if not path.exists():
+        raise ValueError(f"--u {text}: neither a number nor an existing file")
+    if path.suffix.lower() == ".npz":
+        arr = read_settings(path, n_controls)
+        if arr is None:
+            raise ValueError(f"--u {path}: no array 'u' in the file")
+    else:
+        arr = np.loadtxt(path, delimiter=",", ndmin=2)
+    if arr.shape != (n, n_controls):
+        raise ValueError(f"--u {path}: settings have shape {arr.shape}, expected ({n}, "
+                         f"{n_controls}): one row per curve")
+    return arr
+
+
 def _is_doe_dataset(path: Path) -> bool:
     """Whether ``path`` is a DOE dataset written by :mod:`formtwin.dataset`."""
     import h5py
@@ -135,7 +188,7 @@ def _track(args: argparse.Namespace) -> int:
     from formtwin.defaults import load_model
     from formtwin.estimates import HEALTH
     from formtwin.measurement import MeasurementModel
-    from formtwin.tracker import build_tracker
+    from formtwin.tracker import build_tracker, validate_controls
 
     model = load_model(args.metamodel)
     spec = model.spec
@@ -143,13 +196,27 @@ def _track(args: argparse.Namespace) -> int:
     ok = np.all(np.isfinite(curves), axis=1)
     if not ok.all():
         print(f"skipping {int((~ok).sum())} curves with NaN/inf (failed runs)")
+    n_u = len(spec.controls)
+    u = (parse_settings(args.settings, len(curves), n_u) if args.settings is not None
+         else read_settings(args.curves, n_u, args.source))
+    if u is not None:
+        if u.shape != (len(curves), n_u):
+            raise ValueError(f"{args.curves}: settings u have shape {u.shape}, expected "
+                             f"({len(curves)}, {n_u})")
+        for i in np.flatnonzero(ok):  # every setting checked before the first step
+            try:
+                validate_controls(u[i], spec)
+            except ValueError as exc:
+                raise ValueError(f"row {i}: {exc}") from None
     config = tracker_config(args)
     measurement = MeasurementModel.load(args.measurement) if args.measurement else None
     tracker = build_tracker(model, config, measurement)
     with single_blas_thread():
-        est = tracker.run(curves[ok], progress=True)
+        est = tracker.run(curves[ok], progress=True, u=None if u is None else u[ok])
     cols = est.columns()
     cols["index"] = np.flatnonzero(ok)  # row number in the input file
+    if u is not None:  # the setting each product's angles were predicted at
+        cols.update({f"u_{v.name}": u[ok, j] for j, v in enumerate(spec.controls)})
     write_table(cols, args.out)
     if args.checkpoint:
         tracker.checkpoint(args.checkpoint)
