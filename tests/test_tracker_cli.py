@@ -113,9 +113,10 @@ def test_track_predicts_angles_at_each_products_setting(tmp_path: Path) -> None:
     nominal = list(csv.DictReader(open(tmp_path / "b.csv", encoding="utf-8")))
     assert [float(r["u_stage2_depth"]) for r in nominal] == [0.0] * 6
     # same curves, same seed: the state is the same, the final angle moves with u
+    gaps = []
     for r, q in zip(rows, nominal, strict=True):
         assert r["mean_yield_stress"] == q["mean_yield_stress"]
-    gaps = [float(r["angle2_mean"]) - float(q["angle2_mean"]) for r, q in zip(rows, nominal, strict=True)]
+        gaps.append(float(r["angle2_mean"]) - float(q["angle2_mean"]))
     assert np.corrcoef(gaps, u_file)[0, 1] > 0.9
     np.savetxt(tmp_path / "u.csv", np.full(6, 0.5))  # 0.5 mm: beyond the +-0.1 mm box
     assert main(["track", *common, "--u", str(tmp_path / "u.csv"),
