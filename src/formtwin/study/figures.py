@@ -63,7 +63,7 @@ def plot_timeseries(spec: ProcessSpec, real: Realisation, run: dict[str, FloatAr
     """Figs. 5-6 analogue: truth (black) against E +- 3 s (grey) for the last products."""
     plt = pyplot()
     s = SERIES[series - 1]
-    truth = real.truth()
+    truth = real.truth
     n_show = len(spec.augmented) if s.deviation else len(spec.inputs)
     labels = component_labels(spec)
     idx = list(range(n_show)) + [len(spec.augmented), len(spec.augmented) + 1]

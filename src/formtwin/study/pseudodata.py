@@ -27,7 +27,7 @@ from formtwin.dataset import DoeDataset
 from formtwin.deviation import DeviationModel
 from formtwin.doe import run_design
 from formtwin.measurement import ProcessModel
-from formtwin.production import draw_production_run
+from formtwin.production import ProductionRun, draw_production_run
 from formtwin.simulator import ANGLE_NAMES, Simulator
 from formtwin.spec import ProcessSpec
 
@@ -37,44 +37,19 @@ SOURCES = ("MM", "gMM", "FE", "gFE")
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class Realisation:
+@dataclass(frozen=True, kw_only=True)
+class Realisation(ProductionRun):
     """Truth and measurements of one pseudo production run of ``n`` products.
 
-    ``x (n, 7)``, ``theta (3,)``, ``theta_d (8,)``, ``mu (7,)``, ``u (n, n_controls)`` the
-    press settings (known to the tracker; nominal in the study); per source in
-    :data:`SOURCES`: ``curves[source] (n, n_t)`` N, ``angles[source] (n, 2)`` degrees and
-    ``ok[source] (n,)``.
+    The truth is the :class:`~formtwin.production.ProductionRun` (``mu``, ``theta``,
+    ``theta_d``, ``x``, ``u``: nominal in the study); per source in :data:`SOURCES`:
+    ``curves[source] (n, n_t)`` N, ``angles[source] (n, 2)`` degrees and ``ok[source] (n,)``.
     """
 
     index: int
-    mu: FloatArray
-    theta: FloatArray
-    theta_d: FloatArray
-    x: FloatArray
     curves: dict[str, FloatArray]
     angles: dict[str, FloatArray]
     ok: dict[str, BoolArray]
-    u: FloatArray
-
-    @property
-    def n(self) -> int:
-        """Number of products."""
-        return int(self.x.shape[0])
-
-    @property
-    def inputs(self) -> FloatArray:
-        """Model inputs ``(n, 10)``: state then constant parameters."""
-        return np.hstack([self.x, np.tile(self.theta, (self.n, 1))])
-
-    @property
-    def run_inputs(self) -> FloatArray:
-        """Model-run inputs ``(n, 11)``: state, parameters, press settings."""
-        return np.hstack([self.inputs, self.u])
-
-    def truth(self) -> FloatArray:
-        """True augmented state ``(n, 18)``: x, theta, theta_d."""
-        return np.hstack([self.inputs, np.tile(self.theta_d, (self.n, 1))])
 
     def to_dataset(self, spec: ProcessSpec) -> xr.Dataset:
         """The realisation as an xarray Dataset (written as NetCDF)."""
@@ -140,21 +115,22 @@ def make_realisation(
         log.info("%s holds %d products, %d wanted: regenerating", path, real.n, n)
     rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
     run = draw_production_run(spec, n, rng)
-    mu, theta, theta_d, x, inputs = run.mu, run.theta, run.theta_d, run.x, run.inputs
+    inputs = run.inputs
     fe_path = folder / f"fe_{index}.nc"
     run_design(physics, run.run_inputs, fe_path, executor=executor, seed=seed)
     fe = DoeDataset.load(fe_path)
     g = DeviationModel.from_spec(spec)
     mm_curves = metamodel.predict_curves(inputs)
-    curves = {"MM": mm_curves, "gMM": g.apply(mm_curves, np.tile(theta_d, (n, 1))),
+    curves = {"MM": mm_curves, "gMM": g.apply(mm_curves, np.tile(run.theta_d, (n, 1))),
               "FE": fe.curves, "gFE": g.apply(np.nan_to_num(fe.curves),
-                                              np.tile(theta_d, (n, 1)))}
+                                              np.tile(run.theta_d, (n, 1)))}
     curves["gFE"][~fe.ok] = np.nan
     mm_angles = metamodel.predict_angles(run.run_inputs)
     angles = {"MM": mm_angles, "gMM": mm_angles, "FE": fe.angles, "gFE": fe.angles}
     all_ok = np.ones(n, dtype=bool)
     ok = {"MM": all_ok, "gMM": all_ok, "FE": fe.ok.copy(), "gFE": fe.ok.copy()}
-    real = Realisation(index, mu, theta, theta_d, x, curves, angles, ok, run.u)
+    real = Realisation(mu=run.mu, theta=run.theta, theta_d=run.theta_d, x=run.x, u=run.u,
+                       index=index, curves=curves, angles=angles, ok=ok)
     folder.mkdir(parents=True, exist_ok=True)
     real.to_dataset(spec).to_netcdf(path, engine="h5netcdf")
     log.info("realisation %d: %d products, %d physics failures", index, n, int((~fe.ok).sum()))

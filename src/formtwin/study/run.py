@@ -215,7 +215,7 @@ def _score(spec: ProcessSpec, settings: StudySettings, tasks: list[Task],
         with np.load(task.out_path, allow_pickle=False) as f:
             run = {k: f[k] for k in f.files}
         data = series.data
-        scores = run_scores(spec, run, real.truth(),
+        scores = run_scores(spec, run, real.truth,
                             np.where(real.ok[data][:, None], real.angles[data], np.nan),
                             real.mu if series.mu_known else spec.state.mu_mid,
                             prior_angles[(real.index, series.mu_known)], series.deviation,
