@@ -72,7 +72,6 @@ def run_service_health(model: Any, config: TrackerConfig, curves: np.ndarray,
                 if entry["event"] == "opened":
                     opened.append(i + 1)
     finally:
-        health.close()
         store.close()
         for f in folder.glob(path.name + "*"):
             f.unlink()

@@ -288,10 +288,7 @@ def _serve(args: argparse.Namespace) -> int:
     finally:
         if page is not None:
             page.stop()
-        if monitor is not None:
-            monitor.close()
         proc.close()
-        proc.store.close()
     return 0
 
 

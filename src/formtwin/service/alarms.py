@@ -8,19 +8,20 @@ every accepted product the processor calls :meth:`ServiceMonitor.observe` *befor
 commit (after the service's model health, :mod:`formtwin.service.health`, whose opening
 ``model_mismatch`` episode becomes an alarm too, chart ``model_mismatch``): the chart
 statistics, their limits and the product's alarms go into the estimate message
-(``"monitoring"``), so they are stored in the same SQLite transaction as the
-product and the tracker checkpoint, published with the estimate, and shown on the page.
-After the commit, :meth:`ServiceMonitor.committed` copies the alarms into the ``alarms``
-table (one row per alarm, unique per product, variable and chart) where they are
-acknowledged.
+(``"monitoring"``), and :meth:`ServiceMonitor.write` puts them into the ``alarms`` table
+(one row per alarm, unique per product, variable and chart, where they are acknowledged),
+both in the SQLite transaction of the product and the tracker checkpoint
+(:meth:`~formtwin.service.store.Store.commit_product`): a kill at any instant leaves a
+product with all its alarm rows or neither. They are published with the estimate and shown
+on the page.
 
 Restart: the monitor's state is rebuilt by charting the stored estimates again in commit
-order (the charts are deterministic), and any alarm of a stored estimate missing from the
-``alarms`` table (a kill between the two writes) is added then. Nothing is lost.
+order (the charts are deterministic).
 
 The chart configuration is fixed with the store (``meta`` key ``monitor_config``, JSON):
 either calibrated at the store's first start on simulated in-control runs of the service's
-own model, measurement model and tracker settings (the spec's statistics mu, sigma, rho;
+own model, measurement model and tracker settings (:func:`in_control_runs`: the spec's
+statistics mu, sigma, rho, and measurement noise as the likelihood assumes it;
 :func:`~formtwin.monitoring.calibrate.calibrate`), or a user's file
 (:meth:`~formtwin.monitoring.MonitorConfig.to_json` format: in-control means, residual
 sigmas, chart limits).
@@ -31,15 +32,15 @@ from __future__ import annotations
 import logging
 import math
 import sqlite3
-import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from formtwin.monitoring.calibrate import ChartDesign, calibrate, simulate_in_control
+from formtwin.estimates import Estimates
+from formtwin.monitoring.calibrate import ChartDesign, calibrate
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker
@@ -85,6 +86,33 @@ class MonitorSource:
     seed: int = 0
 
 
+def in_control_runs(tracker: Tracker, n: int, runs: int, seed: int) -> list[Estimates]:
+    """Estimates of ``runs`` simulated in-control runs of ``n`` products, tracked as the
+    service tracks (``tracker``'s model, measurement model and settings, its seed varied
+    per run).
+
+    Each run is drawn as the tracker assumes the process
+    (:meth:`~formtwin.tracker.BendingSSM.simulate`: the config's mu, sigma, rho, machine
+    parameters and deviation uniform in their bounds) and its curves get measurement noise
+    as the likelihood assumes it, ``N(0, Sigma)`` (:meth:`~formtwin.measurement.
+    MeasurementModel.covariance`). Without that noise (as
+    :func:`~formtwin.monitoring.calibrate.simulate_in_control` draws them) every real curve
+    fits worse and spreads the posterior means more than in calibration: the health and
+    state charts then alarm on ~20 % of an in-control stream's products.
+    """
+    cov = tracker.measurement.covariance()
+    w, v = np.linalg.eigh(cov)
+    root = v * np.sqrt(np.clip(w, 0.0, None))  # Sigma = root @ root.T
+    out = []
+    for r, ss in enumerate(np.random.SeedSequence(seed).spawn(runs)):
+        t = Tracker(tracker.model, tracker.measurement,
+                    replace(tracker.config, seed=tracker.config.seed + 1000 + r))
+        rng = np.random.default_rng(ss)
+        _, curves = t.ssm.simulate(n, rng)
+        out.append(t.run(curves + rng.standard_normal(curves.shape) @ root.T))
+    return out
+
+
 def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> MonitorConfig:
     """The store's chart configuration: the stored one, or a new one from ``source``
     (stored in the store's ``meta``)."""
@@ -99,8 +127,7 @@ def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> Mon
     else:
         log.info("calibrating the charts on %d simulated in-control runs of %d products",
                  source.runs, source.products)
-        runs = simulate_in_control(tracker.model, tracker.measurement, tracker.config,
-                                   source.products, source.runs, source.seed)
+        runs = in_control_runs(tracker, source.products, source.runs, source.seed)
         c = tracker.config
         mu = tracker.spec.state.mu_mid if c.mu is None else np.asarray(c.mu)
         config = calibrate(runs, tracker.spec.state.names, mu, source.design)
@@ -130,31 +157,15 @@ class ServiceMonitor:
 
     def __init__(self, store: Store, config: MonitorConfig) -> None:
         self.config = config
-        self.path = store.path
-        self._lock = threading.Lock()
-        self._db = sqlite3.connect(str(self.path), isolation_level=None,
-                                   check_same_thread=False, timeout=30.0)
-        self._db.executescript(_DDL)
+        self.store = store
+        store.ensure_tables(_DDL)
         self.monitor = Monitor(config)
         self._saved: dict[str, Any] | None = None
-        self.recovered = 0
         for row in store.products(status="accepted"):  # rebuild the charts' state
             if row.estimate is None:
                 continue
             self.monitor.update_values(values_of(row.estimate, config),
                                        int(row.estimate.get("index", row.seq - 1)))
-            mon = row.estimate.get("monitoring")
-            if mon and mon.get("alarms"):
-                self.recovered += self._insert(row.seq, row.part_id, mon["alarms"],
-                                               row.received_at)
-        if self.recovered:
-            log.warning("%d alarms of stored products added to the alarms table",
-                        self.recovered)
-
-    def close(self) -> None:
-        """Close the table's connection."""
-        with self._lock:
-            self._db.close()
 
     # ------------------------------------------------------------------ processor hooks
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:
@@ -186,58 +197,47 @@ class ServiceMonitor:
             self.monitor = Monitor(self.config, self._saved)
             self._saved = None
 
-    def committed(self, seq: int, part_id: str, entry: dict[str, Any],
-                  now: float | None = None) -> list[dict[str, Any]]:
-        """Store the alarms of a committed product; return them with their ids (the
-        alarms-topic messages)."""
+    def write(self, cur: sqlite3.Cursor, seq: int, part_id: str, entry: dict[str, Any],
+              now: float) -> list[dict[str, Any]]:
+        """Insert the alarms of product ``seq`` with ``cur`` (inside the product's
+        transaction); return them with their ids (the alarms-topic messages)."""
+        out = []
+        for a in entry.get("alarms") or []:
+            row = (seq, part_id, int(a["index"]), str(a["variable"]), str(a["chart"]),
+                   str(a["side"]), _real(a["statistic"]), _real(a["limit"]), now)
+            cur.execute("INSERT INTO alarms(seq, part_id, product_index, variable, chart, "
+                        "side, statistic, limit_value, raised_at) VALUES (?,?,?,?,?,?,?,?,?)",
+                        row)
+            out.append(_alarm((int(cur.lastrowid or 0), *row, None, None)))
+        return out
+
+    def committed(self) -> None:
+        """The product of the last :meth:`observe` is in: forget its undo."""
         self._saved = None
-        alarms = entry.get("alarms") or []
-        if not alarms:
-            return []
-        t = time.time() if now is None else now
-        self._insert(seq, part_id, alarms, t)
-        return [a for a in self.alarms(since_seq=seq - 1) if a["seq"] == seq]
 
     # ------------------------------------------------------------------ the table
-    def _insert(self, seq: int, part_id: str, alarms: list[dict[str, Any]],
-                now: float) -> int:
-        with self._lock:
-            cur = self._db.executemany(
-                "INSERT OR IGNORE INTO alarms(seq, part_id, product_index, variable, chart, "
-                "side, statistic, limit_value, raised_at) VALUES (?,?,?,?,?,?,?,?,?)",
-                [(seq, part_id, int(a["index"]), str(a["variable"]), str(a["chart"]),
-                  str(a["side"]), _real(a["statistic"]), _real(a["limit"]), now)
-                 for a in alarms])
-            return int(cur.rowcount)
-
     def alarms(self, since_seq: int = 0, unacked: bool = False, limit: int = 1000
                ) -> list[dict[str, Any]]:
         """Stored alarms of products after ``since_seq`` (newest ``limit``, oldest first)."""
-        sql = ("SELECT id, seq, part_id, product_index, variable, chart, side, statistic, "
-               "limit_value, raised_at, acked_at, ack_note FROM alarms WHERE seq > ?")
+        sql = f"SELECT {_ALARM_COLS} FROM alarms WHERE seq > ?"
         if unacked:
             sql += " AND acked_at IS NULL"
         sql += " ORDER BY id DESC LIMIT ?"
-        with self._lock:
-            rows = self._db.execute(sql, (since_seq, int(limit))).fetchall()
-        keys = ("id", "seq", "part_id", "index", "variable", "chart", "side", "statistic",
-                "limit", "raised_at", "acked_at", "ack_note")
-        return [{k: _num(v) if isinstance(v, float) else v
-                 for k, v in zip(keys, r, strict=True)} for r in reversed(rows)]
+        rows = self.store.query(sql, (since_seq, int(limit)))
+        return [_alarm(r) for r in reversed(rows)]
 
     def acknowledge(self, alarm_id: int, note: str = "", now: float | None = None
                     ) -> dict[str, Any]:
         """Acknowledge an alarm; return it. ``KeyError`` for an unknown id; acknowledging
         twice keeps the first acknowledgement."""
         t = time.time() if now is None else now
-        with self._lock:
-            self._db.execute("UPDATE alarms SET acked_at = ?, ack_note = ? WHERE id = ? AND "
-                             "acked_at IS NULL", (t, note[:200], int(alarm_id)))
-            row = self._db.execute("SELECT seq FROM alarms WHERE id = ?",
-                                   (int(alarm_id),)).fetchone()
-        if row is None:
+        self.store.execute("UPDATE alarms SET acked_at = ?, ack_note = ? WHERE id = ? AND "
+                           "acked_at IS NULL", (t, note[:200], int(alarm_id)))
+        rows = self.store.query(f"SELECT {_ALARM_COLS} FROM alarms WHERE id = ?",
+                                (int(alarm_id),))
+        if not rows:
             raise KeyError(f"no alarm with id {alarm_id}")
-        return next(a for a in self.alarms(since_seq=int(row[0]) - 1) if a["id"] == alarm_id)
+        return _alarm(rows[0])
 
     def limits(self) -> dict[str, Any]:
         """What the page draws: the charted quantities, their charts and chart settings."""
@@ -250,6 +250,18 @@ class ServiceMonitor:
                 "means": {n: m for n, m in self.monitor.means.items()}}
 
 
+_ALARM_COLS = ("id, seq, part_id, product_index, variable, chart, side, statistic, "
+               "limit_value, raised_at, acked_at, ack_note")
+_ALARM_KEYS = ("id", "seq", "part_id", "index", "variable", "chart", "side", "statistic",
+               "limit", "raised_at", "acked_at", "ack_note")
+
+
+def _alarm(row: tuple[Any, ...]) -> dict[str, Any]:
+    """An alarm as a JSON-safe dict from its row (columns :data:`_ALARM_COLS`)."""
+    return {k: _num(v) if isinstance(v, float) else v
+            for k, v in zip(_ALARM_KEYS, row, strict=True)}
+
+
 def _num(v: float) -> float | None:
     """JSON-safe number."""
     return float(v) if math.isfinite(v) else None
@@ -260,4 +272,5 @@ def _real(v: Any) -> float:
     return math.nan if v is None else float(v)
 
 
-__all__ = ["MonitorSource", "ServiceMonitor", "monitor_config", "values_of"]
+__all__ = ["MonitorSource", "ServiceMonitor", "in_control_runs", "monitor_config",
+           "values_of"]

@@ -28,9 +28,9 @@ product).
 
 Like the charts of :mod:`formtwin.service.alarms`, the state goes into the estimate message
 before the commit (``model_health``: state, failures in the window, the window itself, the
-event of this product), so it is stored in the same transaction as the product. A restart
-takes the window from the last stored estimate; the episodes table is written after the
-commit and completed from the stored events at the next start.
+event of this product), and an opening or closing goes into the episodes table
+(:meth:`ModelHealth.write`), both in the transaction of the product. A restart takes the
+window from the last stored estimate.
 
 >>> r = HealthRule(k=2, m=3)
 >>> w = HealthWindow(r)
@@ -43,8 +43,6 @@ from __future__ import annotations
 import json
 import logging
 import sqlite3
-import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -194,7 +192,7 @@ class ModelHealth:
     Parameters
     ----------
     store : Store
-        The service's store (a second connection writes the ``health_episodes`` table).
+        The service's store (holds the ``health_episodes`` table).
     rule : HealthRule
         When an episode opens and closes.
     expected_peak : (lo, hi) or None
@@ -214,10 +212,8 @@ class ModelHealth:
         self.rule = HealthRule() if rule is None else rule
         self.expected_peak = expected_peak
         self.explain = explain
-        self._lock = threading.Lock()
-        self._db = sqlite3.connect(str(store.path), isolation_level=None,
-                                   check_same_thread=False, timeout=30.0)
-        self._db.executescript(_DDL)
+        self.store = store
+        store.ensure_tables(_DDL)
         self.window = HealthWindow(self.rule)
         self._recent: deque[dict[str, Any]] = deque(maxlen=self.rule.m)
         self._failing: deque[tuple[FloatArray, FloatArray | None]] = deque(maxlen=3)
@@ -225,8 +221,7 @@ class ModelHealth:
         self._restore(store)
 
     def _restore(self, store: Store) -> None:
-        """The state of the last stored product; episodes missing from the table (a kill
-        between the commit and the table write) are added."""
+        """The state of the last stored product."""
         rows = list(store.products(since_seq=max(store.next_seq() - 1 - self.rule.m, 0),
                                    status="accepted"))
         for row in rows:
@@ -235,18 +230,6 @@ class ModelHealth:
             entry = msg.get("model_health")
             if isinstance(entry, dict) and "window" in entry:
                 self.window = HealthWindow.from_dict(self.rule, entry["window"])
-        with self._lock:
-            events = self._db.execute(
-                "SELECT seq, part_id, received_at, json_extract(estimate, '$.model_health') "
-                "FROM products WHERE status = 'accepted' AND json_extract(estimate, "
-                "'$.model_health.event') IS NOT NULL ORDER BY seq").fetchall()
-        for seq, part_id, at, entry in events:
-            self._record(int(seq), str(part_id), json.loads(entry), float(at))
-
-    def close(self) -> None:
-        """Close the second connection."""
-        with self._lock:
-            self._db.close()
 
     @property
     def mismatch(self) -> bool:
@@ -300,34 +283,29 @@ class ModelHealth:
             self._failing = deque(failing, maxlen=3)
             self._undo = None
 
-    def committed(self, seq: int, part_id: str, entry: dict[str, Any],
-                  now: float | None = None) -> list[dict[str, Any]]:
-        """Record the event of a committed product; return its notices for the errors
-        topic (none, or one ``model_mismatch`` / ``model_fit_restored``)."""
-        self._undo = None
+    def write(self, cur: sqlite3.Cursor, seq: int, part_id: str, entry: dict[str, Any],
+              now: float) -> list[dict[str, Any]]:
+        """Record the event of product ``seq`` with ``cur`` (inside the product's
+        transaction); return its notices for the errors topic (none, or one
+        ``model_mismatch`` / ``model_fit_restored``)."""
         if entry.get("event") is None:
             return []
-        now = time.time() if now is None else now
-        self._record(seq, part_id, entry, now)
+        if entry["event"] == "opened":
+            cur.execute("INSERT INTO health_episodes(opened_seq, opened_part, opened_at, "
+                        "message) VALUES (?,?,?,?)", (seq, part_id, now, json.dumps(entry)))
+        else:
+            cur.execute("UPDATE health_episodes SET closed_seq = ?, closed_at = ? WHERE "
+                        "closed_seq IS NULL AND opened_seq < ?", (seq, now, seq))
         return [notice(entry, part_id, seq, now)]
 
-    def _record(self, seq: int, part_id: str, entry: dict[str, Any], now: float) -> None:
-        with self._lock:
-            if entry["event"] == "opened":
-                self._db.execute("INSERT OR IGNORE INTO health_episodes(opened_seq, "
-                                 "opened_part, opened_at, message) VALUES (?,?,?,?)",
-                                 (seq, part_id, now, json.dumps(entry)))
-            else:
-                self._db.execute("UPDATE health_episodes SET closed_seq = ?, closed_at = ? "
-                                 "WHERE closed_seq IS NULL AND opened_seq < ?",
-                                 (seq, now, seq))
+    def committed(self) -> None:
+        """The product of the last :meth:`observe` is in: forget its undo."""
+        self._undo = None
 
     def episodes(self) -> list[dict[str, Any]]:
         """All episodes, oldest first: ids, opening/closing product and the message."""
-        with self._lock:
-            rows = self._db.execute("SELECT id, opened_seq, opened_part, opened_at, "
-                                    "closed_seq, closed_at, message FROM health_episodes "
-                                    "ORDER BY id").fetchall()
+        rows = self.store.query("SELECT id, opened_seq, opened_part, opened_at, closed_seq, "
+                                "closed_at, message FROM health_episodes ORDER BY id")
         return [{**json.loads(r[6]), "id": r[0], "opened_seq": r[1], "opened_part": r[2],
                  "opened_at": r[3], "closed_seq": r[4], "closed_at": r[5]} for r in rows]
 

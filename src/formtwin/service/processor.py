@@ -8,7 +8,8 @@ For every message :meth:`Processor.handle`
    estimate is returned, nothing is counted twice), a different curve is a
    ``duplicate_part_id`` rejection; a cycle count not above the last one is ``out_of_order``;
 3. steps the tracker, optionally gates a single outlier (see :class:`OutlierGate`), and
-   commits product, estimate and tracker checkpoint in **one** SQLite transaction.
+   commits product, estimate, tracker checkpoint and the product's alarm and model-health
+   rows in **one** SQLite transaction.
 
 Because the checkpoint is committed with the product, a process killed at any instant
 restarts from a store in which estimates and tracker state agree: a product is either fully
@@ -71,9 +72,13 @@ class MonitorLike(Protocol):
         """Undo the last observe (the product was not committed)."""
         ...
 
-    def committed(self, seq: int, part_id: str, entry: dict[str, Any],
-                  now: float | None = None) -> list[dict[str, Any]]:
-        """Record the alarms of a committed product; return them."""
+    def write(self, cur: sqlite3.Cursor, seq: int, part_id: str, entry: dict[str, Any],
+              now: float) -> list[dict[str, Any]]:
+        """Insert the product's alarms inside its transaction; return them."""
+        ...
+
+    def committed(self) -> None:
+        """The last observed product is in (its undo is dropped)."""
         ...
 
 
@@ -225,9 +230,8 @@ class Processor:
         return tuple(str(n) for n in names)
 
     def close(self) -> None:
-        """Close the model health's connection (the store stays open: close it yourself)."""
-        if self.health is not None:
-            self.health.close()
+        """Close the store (a second close, e.g. ``proc.store.close()``, does nothing)."""
+        self.store.close()
 
     # ------------------------------------------------------------------ internals
     def _rollback(self) -> None:
@@ -356,10 +360,21 @@ class Processor:
             msg["control"] = self.controller.observe(msg)
         if self.monitor is not None:
             msg["monitoring"] = self.monitor.observe(msg)
+        alarms: list[dict[str, Any]] = []
+        notices: list[dict[str, Any]] = []
+
+        def within(cur: sqlite3.Cursor, seq: int) -> None:  # rows of the same transaction
+            if self.monitor is not None:
+                alarms[:] = self.monitor.write(cur, seq, stroke.part_id, msg["monitoring"], now)
+            if self.health is not None:
+                notices[:] = self.health.write(cur, seq, stroke.part_id, msg["model_health"],
+                                               now)
+
         got = self.store.commit_product(
             part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
             status="accepted", digest=stroke.digest, curve=stroke.force_N,
-            measured_angles=angles, estimate=msg, checkpoint=ckpt, received_at=now)
+            measured_angles=angles, estimate=msg, checkpoint=ckpt, received_at=now,
+            within=within)
         if got != seq:  # single writer: cannot happen unless the store is shared
             raise RuntimeError(f"store sequence {got} != expected {seq}: is another "
                                "service writing to the same store?")
@@ -368,19 +383,7 @@ class Processor:
         self._next_seq = seq + 1
         if self.gate is not None:
             self.gate.record(loglik, gated=False)
-        alarms: tuple[dict[str, Any], ...] = ()
-        if self.monitor is not None:
-            try:  # the product is in: a failure here only delays the alarms' table rows
-                alarms = tuple(self.monitor.committed(seq, stroke.part_id, msg["monitoring"],
-                                                      now))
-            except Exception:  # rebuilt from the stored estimate at the next start
-                log.exception("recording the alarms of part %s failed", stroke.part_id)
-        notices: tuple[dict[str, Any], ...] = ()
-        if self.health is not None:
-            try:  # as the alarms: the episodes table is completed at the next start
-                notices = tuple(self.health.committed(seq, stroke.part_id,
-                                                      msg["model_health"], now))
-            except Exception:
-                log.exception("recording the model health of part %s failed", stroke.part_id)
-        return Outcome("accepted", msg, stroke.part_id, seq, alarms, notices)
-
+        for m in (self.monitor, self.health):
+            if m is not None:
+                m.committed()
+        return Outcome("accepted", msg, stroke.part_id, seq, tuple(alarms), tuple(notices))

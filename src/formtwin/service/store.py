@@ -9,7 +9,10 @@ One file holds everything a restart needs:
 * ``checkpoint`` -- one row: the tracker's checkpoint file as bytes, written in the *same*
   transaction as the product it follows, so the stored estimates and the tracker state can
   never disagree after a crash;
-* ``meta`` -- the service configuration the store was created with.
+* ``meta`` -- the service configuration the store was created with;
+* tables of the service's parts (alarms, model-health episodes), created with
+  :meth:`Store.ensure_tables` and written by :meth:`Store.commit_product`'s ``within`` in the
+  product's own transaction.
 
 >>> import tempfile, os
 >>> d = tempfile.mkdtemp()
@@ -26,7 +29,7 @@ import logging
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -158,7 +161,8 @@ class Store:
             db.close()
 
     def close(self) -> None:
-        """Stop the background checkpoints (if any) and close the connection."""
+        """Stop the background checkpoints (if any) and close the connection (again: no
+        effect)."""
         self._stop.set()
         if self._ckpt_thread is not None:
             self._ckpt_thread.join(timeout=30.0)
@@ -181,12 +185,32 @@ class Store:
             self._db.execute("INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
                              (key, value))
 
+    # -- the service's parts' tables ---------------------------------------------------
+    def ensure_tables(self, ddl: str) -> None:
+        """Create tables (``CREATE TABLE IF NOT EXISTS`` statements) in the store."""
+        with self._lock:
+            self._db.executescript(ddl)
+
+    def query(self, sql: str, args: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
+        """All rows of a read-only statement."""
+        with self._lock:
+            return self._db.execute(sql, args).fetchall()
+
+    def execute(self, sql: str, args: Sequence[Any] = ()) -> int:
+        """Run one writing statement in its own transaction; the number of rows changed."""
+        with self._lock:
+            return int(self._db.execute(sql, args).rowcount)
+
     # -- writes -----------------------------------------------------------------------
     def commit_product(self, *, part_id: str, cycle: int, timestamp: str, status: str,
                        digest: str, curve: FloatArray, measured_angles: list[float] | None,
                        estimate: dict[str, Any] | None, checkpoint: bytes | None,
-                       received_at: float | None = None) -> int:
+                       received_at: float | None = None,
+                       within: Callable[[sqlite3.Cursor, int], None] | None = None) -> int:
         """Insert a product and replace the checkpoint in one transaction; return its seq.
+
+        ``within(cursor, seq)``, if given, writes the product's rows of other tables
+        (alarms, model-health events) in the same transaction: all of them are in, or none.
 
         Raises
         ------
@@ -209,6 +233,8 @@ class Store:
                 if checkpoint is not None:
                     cur.execute("INSERT OR REPLACE INTO checkpoint(id, seq, data) "
                                 "VALUES (1, ?, ?)", (seq, checkpoint))
+                if within is not None:
+                    within(cur, seq)
                 cur.execute("COMMIT")
             except BaseException:
                 cur.execute("ROLLBACK")
