@@ -157,6 +157,46 @@ def test_gate_skips_a_single_outlier(tmp_path: Path, payloads: list[bytes]) -> N
         p.store.close()
 
 
+@pytest.mark.parametrize("k", [3, 7])
+def test_restart_replays_the_products_after_the_checkpoint(
+        tmp_path: Path, payloads: list[bytes], k: int, caplog: pytest.LogCaptureFixture) -> None:
+    """The tracker's state is stored with every k-th accepted product; a restart replays
+    the curves stored after it (skipping a gated product, whose step was undone) and the
+    service continues bit for bit."""
+    import logging
+
+    gated = dataclasses.replace(SETTINGS, gate_k=50.0)
+    odd = json.loads(payloads[24])
+    odd["part_id"] += "-odd"
+    odd["cycle"] = json.loads(payloads[23])["cycle"] * 1000 + 1
+    odd["force_N"] = [3.0 * f + 300.0 for f in odd["force_N"]]
+    after = []
+    for p in payloads[24:30]:
+        m = json.loads(p)
+        m["cycle"] += odd["cycle"]
+        after.append(dumps(m))
+    stream = [*payloads[:24], dumps(odd), *after]
+    ref_proc = open_processor(tmp_path / "ref.sqlite", gated)  # checkpoint_every=10
+    ref = [proc_out.message for proc_out in map(ref_proc.handle, stream)]
+    assert ref[24]["reason"] == "outlier_gated"
+    proc = open_processor(tmp_path / "k.sqlite", gated, checkpoint_every=k)
+    got = run(proc, stream[:27])  # 24 accepted, the gated one, 2 accepted
+    ck = proc.store.checkpoint()
+    assert ck is not None and ck[0] == 24 // k * k  # seq of the k-th, 2k-th, ... product
+    proc.close()
+    with caplog.at_level(logging.INFO, logger="formtwin.service.runtime"):
+        proc = open_processor(tmp_path / "k.sqlite", gated, checkpoint_every=k)
+    assert f"replayed {27 - ck[0] - 1} products" in caplog.text  # the gated one skipped
+    assert not [r for r in caplog.records if r.levelname == "ERROR"]
+    got += run(proc, stream[27:])
+    keep = ("mean", "std", "angles_mean", "angles_std", "ess", "loglik", "seq")
+    assert [{x: m.get(x) for x in keep} for m in got] == \
+        [{x: m.get(x) for x in keep} for m in ref]
+    assert proc.store.counts() == {"accepted": 30, "gated": 1, "rejected": 0}
+    for p in (proc, ref_proc):
+        p.close()
+
+
 def test_export_parquet_and_csv(tmp_path: Path, payloads: list[bytes]) -> None:
     import pyarrow.parquet as pq
 

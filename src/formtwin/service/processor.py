@@ -7,31 +7,33 @@ For every message :meth:`Processor.handle`
 2. looks its part id up in the store: the same curve again is a *redelivery* (the stored
    estimate is returned, nothing is counted twice), a different curve is a
    ``duplicate_part_id`` rejection; a cycle count not above the last one is ``out_of_order``;
-3. steps the tracker, optionally gates a single outlier (see :class:`OutlierGate`), and
-   commits product, estimate, tracker checkpoint and the product's alarm and model-health
-   rows in **one** SQLite transaction.
+3. steps the tracker, optionally gates a single outlier
+   (:class:`~formtwin.service.gate.OutlierGate`), and commits product, estimate, the
+   product's alarm and model-health rows and, every ``checkpoint_every`` accepted
+   products, the tracker checkpoint in **one** SQLite transaction.
 
-Because the checkpoint is committed with the product, a process killed at any instant
-restarts from a store in which estimates and tracker state agree: a product is either fully
-in (and its redelivery is recognised) or not at all (and it is processed again from the
-same tracker state, giving bit-for-bit the same estimate).
+A process killed at any instant restarts from a store in which every product is either
+fully in (and its redelivery is recognised) or not at all; the tracker is restored from the
+last checkpoint and stepped again through the curves stored after it
+(:func:`formtwin.service.runtime.replay`: the steps are deterministic), so a product not
+yet in is processed from the same tracker state, giving bit-for-bit the same estimate.
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
-import math
 import sqlite3
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.service.gate import OutlierGate
 from formtwin.service.health import ModelHealth
 from formtwin.service.messages import (
     Limits,
@@ -99,55 +101,6 @@ class TrackerLike(Protocol):
         ...
 
 
-@dataclass
-class OutlierGate:
-    """Robust option: skip the update for a single outlier curve.
-
-    After the tracker has stepped, the step's log-likelihood ``loglik`` is compared with the
-    last ``window`` accepted ones: if it lies more than ``k`` robust standard deviations
-    (1.4826 x median absolute deviation) below their median, the step is undone (the tracker
-    is restored from the checkpoint of the previous product), the product is stored with
-    status ``gated`` and an ``outlier_gated`` error is published. Only *single* outliers
-    are gated: the product after a gated one is always accepted, so a genuine process
-    change is followed after one product. Nothing is gated before ``warmup`` accepted
-    products.
-
-    >>> g = OutlierGate(k=5.0, warmup=5)
-    >>> g.history = [-100.0, -101.0, -99.0, -100.5, -100.2, -99.5]
-    >>> g.is_outlier(-100.3), g.is_outlier(-400.0)
-    (False, True)
-    """
-
-    k: float = 8.0
-    window: int = 100
-    warmup: int = 20
-    history: list[float] = field(default_factory=list)
-    last_gated: bool = False
-
-    def threshold(self) -> float:
-        """Lowest loglik accepted now (``-inf`` during warm-up)."""
-        h = np.asarray(self.history[-self.window:], dtype=np.float64)
-        h = h[np.isfinite(h)]
-        if h.size < self.warmup:
-            return -math.inf
-        med = float(np.median(h))
-        mad = 1.4826 * float(np.median(np.abs(h - med)))
-        return med - self.k * max(mad, 1e-9)
-
-    def is_outlier(self, loglik: float) -> bool:
-        """True if ``loglik`` should be gated now (never twice in a row)."""
-        if self.last_gated:
-            return False
-        return not loglik >= self.threshold()
-
-    def record(self, loglik: float, gated: bool) -> None:
-        """Note the outcome of a product."""
-        self.last_gated = gated
-        if not gated and math.isfinite(loglik):  # as rebuilt from the store on restart
-            self.history.append(float(loglik))
-            del self.history[:-self.window]
-
-
 @dataclass(frozen=True)
 class Outcome:
     """Result of one message: ``kind`` is accepted, redelivered, gated or rejected;
@@ -193,14 +146,21 @@ class Processor:
     plausible : callable, optional
         Checks a parsed stroke before the tracker (:mod:`formtwin.service.plausibility`);
         raises :class:`MessageError` (no_stroke, clipped_sensor, peak_outside_window).
+    checkpoint_every : int
+        Store the tracker's state with every this many accepted products (1: each one).
+        The tracker must already be at the last stored product (restored and replayed).
     """
 
     def __init__(self, store: Store, tracker: TrackerLike, limits: Limits,
                  gate: OutlierGate | None = None,
                  on_outcome: Callable[[Outcome], None] | None = None,
                  monitor: MonitorLike | None = None, health: ModelHealth | None = None,
-                 plausible: Callable[[Stroke], None] | None = None) -> None:
+                 plausible: Callable[[Stroke], None] | None = None,
+                 checkpoint_every: int = 1) -> None:
+        if checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every = {checkpoint_every}, expected >= 1")
         self.store = store
+        self.checkpoint_every = checkpoint_every
         self.monitor = monitor
         self.health = health
         #: feedforward control (:class:`formtwin.service.control.ServiceController`): the
@@ -218,6 +178,11 @@ class Processor:
             gate.history = store.recent_logliks(gate.window)
             gate.last_gated = store.last_status() == "gated"
         self._last_ckpt = self.tracker.state_bytes()
+        ck = store.checkpoint()
+        #: accepted products stored after the last stored checkpoint
+        self._unsaved = int(store.query(
+            "SELECT COUNT(*) FROM products WHERE status = 'accepted' AND seq > ?",
+            (0 if ck is None else ck[0],))[0][0])
         self.redelivered = 0
 
     def tracker_names(self) -> tuple[str, ...]:
@@ -370,15 +335,17 @@ class Processor:
                 notices[:] = self.health.write(cur, seq, stroke.part_id, msg["model_health"],
                                                now)
 
+        save = self._unsaved + 1 >= self.checkpoint_every
         got = self.store.commit_product(
             part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
             status="accepted", digest=stroke.digest, curve=stroke.force_N,
-            measured_angles=angles, estimate=msg, checkpoint=ckpt, received_at=now,
-            within=within)
+            measured_angles=angles, estimate=msg, checkpoint=ckpt if save else None,
+            received_at=now, within=within)
         if got != seq:  # single writer: cannot happen unless the store is shared
             raise RuntimeError(f"store sequence {got} != expected {seq}: is another "
                                "service writing to the same store?")
-        self._last_ckpt = ckpt
+        self._last_ckpt = ckpt  # in memory: undoes a gated or failed step
+        self._unsaved = 0 if save else self._unsaved + 1
         self._last_cycle = stroke.cycle
         self._next_seq = seq + 1
         if self.gate is not None:

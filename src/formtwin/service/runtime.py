@@ -23,10 +23,11 @@ from scipy.stats import chi2
 
 from formtwin.defaults import load_model
 from formtwin.measurement import MeasurementModel
+from formtwin.service.gate import OutlierGate
 from formtwin.service.health import HealthRule, ModelHealth
 from formtwin.service.messages import Limits
 from formtwin.service.plausibility import Plausibility
-from formtwin.service.processor import OutlierGate, Processor
+from formtwin.service.processor import Processor
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker, TrackerConfig, build_measurement, build_tracker
 from formtwin.tracker.explain import best_distance2, default_starts
@@ -148,9 +149,33 @@ def measurement_path(store_path: Path) -> Path:
     return store_path.with_name(store_path.name + ".measurement.npz")
 
 
+def replay(store: Store, tracker: Tracker) -> int:
+    """Restore ``tracker`` from the store's last checkpoint (if any) and step it through
+    the curves (and press settings) of the accepted products stored after it, in commit
+    order; return how many were stepped. The steps are deterministic, so the tracker ends
+    in the state it had after the last stored product; an estimate the replay does not
+    reproduce (its log-likelihood) is logged as an error."""
+    ck = store.checkpoint()
+    if ck is not None:
+        tracker.load_state_bytes(ck[1])
+        log.info("restored tracker from checkpoint of product seq %d", ck[0])
+    n = 0
+    for row in store.products(since_seq=0 if ck is None else ck[0], status="accepted"):
+        stored = row.estimate or {}
+        u = stored.get("u")
+        est = tracker.step(row.curve, None if u is None else np.asarray(u, dtype=np.float64))
+        n += 1
+        if "loglik" in stored and float(est.loglik) != stored["loglik"]:
+            log.error("replaying product seq %d gave loglik %r, stored %r: the tracker does "
+                      "not continue bit for bit", row.seq, float(est.loglik), stored["loglik"])
+    if n:
+        log.info("replayed %d products stored after the checkpoint", n)
+    return n
+
+
 def open_processor(store_path: str | Path, settings: ServiceSettings,
-                   synchronous: str = "NORMAL", background_checkpoint_s: float = 1.0
-                   ) -> Processor:
+                   synchronous: str = "NORMAL", background_checkpoint_s: float = 1.0,
+                   checkpoint_every: int = 10) -> Processor:
     """Open (or create) a store and return a processor with the tracker restored.
 
     Parameters
@@ -163,6 +188,9 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
         SQLite ``synchronous`` (``NORMAL`` or ``FULL``), see :class:`Store`.
     background_checkpoint_s : float
         WAL checkpoint interval of the store's background thread (0: inside commits).
+    checkpoint_every : int
+        Store the tracker's state (~77 kB at N = 500) with every this many accepted
+        products; a restart replays at most ``checkpoint_every - 1`` steps (:func:`replay`).
     """
     path = Path(store_path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -179,17 +207,14 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
         # always the saved file, so the first run and every restart use identical numbers
         measurement = MeasurementModel.load(mpath)
         tracker = build_tracker(model, settings.tracker, measurement)
-        ck = store.checkpoint()
-        if ck is not None:
-            tracker.load_state_bytes(ck[1])
-            log.info("restored tracker from checkpoint of product seq %d", ck[0])
+        replay(store, tracker)
         gate = OutlierGate(k=settings.gate_k) if settings.gate_k > 0 else None
         plausible = Plausibility.from_model(model, settings.min_peak_N, settings.clip_samples,
                                             settings.peak_window_ms)
         health = ModelHealth(store, HealthRule(settings.health_k, settings.health_m),
                              plausible.expected_peak_N, explainer(tracker))
         return Processor(store, tracker, settings.limits(model.spec.n_t), gate,
-                         health=health, plausible=plausible)
+                         health=health, plausible=plausible, checkpoint_every=checkpoint_every)
     except BaseException:
         store.close()
         raise

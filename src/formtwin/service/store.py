@@ -6,9 +6,10 @@ One file holds everything a restart needs:
   curve (float64 bytes), its digest, the measured angles and the estimate (JSON);
 * ``rejections`` -- rejected messages, keyed by the SHA-256 of the raw payload so a
   redelivered bad message is counted once;
-* ``checkpoint`` -- one row: the tracker's checkpoint file as bytes, written in the *same*
-  transaction as the product it follows, so the stored estimates and the tracker state can
-  never disagree after a crash;
+* ``checkpoint`` -- one row: the tracker's state as bytes and the seq of the product it
+  follows, written in the *same* transaction as that product (the service writes it with
+  every k-th product and replays the curves stored after it at a restart), so the stored
+  estimates and the tracker state can never disagree after a crash;
 * ``meta`` -- the service configuration the store was created with;
 * tables of the service's parts (alarms, model-health episodes), created with
   :meth:`Store.ensure_tables` and written by :meth:`Store.commit_product`'s ``within`` in the
