@@ -189,7 +189,7 @@ class MqttService:
             for note in out.notices:  # model_mismatch: once per episode, errors topic
                 client.publish(self.topics.errors, dumps(note), qos=1)
             topic = self.topics.errors if out.is_error else self.topics.results
-            info = client.publish(topic, dumps(out.message), qos=1)
+            info = client.publish(topic, out.payload or dumps(out.message), qos=1)
         except Exception as exc:  # storage failure: never acknowledge, stop the service
             log.exception("processing a stroke failed; stopping without acknowledging it")
             self.fatal = exc

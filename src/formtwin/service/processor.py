@@ -39,6 +39,7 @@ from formtwin.service.messages import (
     Limits,
     MessageError,
     Stroke,
+    dumps,
     error_message,
     estimate_message,
     parse_stroke,
@@ -112,6 +113,7 @@ class Outcome:
     seq: int | None = None
     alarms: tuple[dict[str, Any], ...] = ()
     notices: tuple[dict[str, Any], ...] = ()  # model health, for the errors topic
+    payload: bytes | None = None  # ``message`` as JSON, when already encoded (stored so)
 
     @property
     def is_error(self) -> bool:
@@ -336,10 +338,11 @@ class Processor:
                                                now)
 
         save = self._unsaved + 1 >= self.checkpoint_every
+        payload = dumps(msg)  # once: stored and published as is
         got = self.store.commit_product(
             part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
             status="accepted", digest=stroke.digest, curve=stroke.force_N,
-            measured_angles=angles, estimate=msg, checkpoint=ckpt if save else None,
+            measured_angles=angles, estimate=payload, checkpoint=ckpt if save else None,
             received_at=now, within=within)
         if got != seq:  # single writer: cannot happen unless the store is shared
             raise RuntimeError(f"store sequence {got} != expected {seq}: is another "
@@ -353,4 +356,5 @@ class Processor:
         for m in (self.monitor, self.health):
             if m is not None:
                 m.committed()
-        return Outcome("accepted", msg, stroke.part_id, seq, tuple(alarms), tuple(notices))
+        return Outcome("accepted", msg, stroke.part_id, seq, tuple(alarms), tuple(notices),
+                       payload)

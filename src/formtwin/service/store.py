@@ -205,13 +205,15 @@ class Store:
     # -- writes -----------------------------------------------------------------------
     def commit_product(self, *, part_id: str, cycle: int, timestamp: str, status: str,
                        digest: str, curve: FloatArray, measured_angles: list[float] | None,
-                       estimate: dict[str, Any] | None, checkpoint: bytes | None,
+                       estimate: dict[str, Any] | bytes | None, checkpoint: bytes | None,
                        received_at: float | None = None,
                        within: Callable[[sqlite3.Cursor, int], None] | None = None) -> int:
         """Insert a product and replace the checkpoint in one transaction; return its seq.
 
-        ``within(cursor, seq)``, if given, writes the product's rows of other tables
-        (alarms, model-health events) in the same transaction: all of them are in, or none.
+        ``estimate`` is the estimate message, or its JSON as UTF-8 bytes (the payload the
+        service publishes, encoded once). ``within(cursor, seq)``, if given, writes the
+        product's rows of other tables (alarms, model-health events) in the same
+        transaction: all of them are in, or none.
 
         Raises
         ------
@@ -229,7 +231,7 @@ class Store:
                     "digest, curve, measured_angles, estimate) VALUES (?,?,?,?,?,?,?,?,?)",
                     (part_id, cycle, timestamp, now, status, digest, blob,
                      None if measured_angles is None else json.dumps(measured_angles),
-                     None if estimate is None else json.dumps(estimate, allow_nan=False)))
+                     _json(estimate)))
                 seq = int(cur.lastrowid or 0)
                 if checkpoint is not None:
                     cur.execute("INSERT OR REPLACE INTO checkpoint(id, seq, data) "
@@ -337,6 +339,15 @@ class Store:
             rows = self._db.execute("SELECT reason, COUNT(*) FROM rejections GROUP BY "
                                     "reason ORDER BY reason").fetchall()
         return {str(r): int(c) for r, c in rows}
+
+
+def _json(estimate: dict[str, Any] | bytes | None) -> str | None:
+    """The estimate column's text (JSON; bytes are taken as encoded JSON)."""
+    if estimate is None:
+        return None
+    if isinstance(estimate, bytes):
+        return estimate.decode("utf-8")
+    return json.dumps(estimate, allow_nan=False)
 
 
 def _utf8(text: str) -> str:
