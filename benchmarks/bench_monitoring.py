@@ -1,35 +1,40 @@
-"""Benchmark of the monitoring (EWMA + CUSUM charts, model-mismatch chart): detection delay
-for known changes and false alarms in control.
+"""Benchmark of the monitoring (EWMA, Shewhart-CUSUM and model-mismatch charts): detection
+delay for known changes and false alarms in control.
 
-Run ``python benchmarks/bench_monitoring.py`` (heavy: run it under
+Run ``python benchmarks/bench_monitoring.py`` (heavy, ~15 min: run it under
 ``flock /tmp/formtwin-heavy.lock``). Model: the metamodel of the bundled physics DOE
-(:func:`formtwin._bench.bundled_metamodel`, what a fresh clone gets); tracker: SIR with
-N = ``--particles``, the line's state means ``mu`` known (the spec's mid-range), deviation
-not estimated (``--deviation`` to estimate it), ``K_MC`` from 10^4 curves. The tracked
-series (posterior means, predicted angles, health statistics) are cached in
-``benchmarks/.cache/monitoring`` by their settings, so chart designs (``--lam``, ``--k``,
-``--arl0``, ``--no-tails``, ``--no-health-ar``) are compared on the same estimates.
+(:func:`formtwin._bench.bundled_metamodel`, what a fresh clone gets); tracker: the default
+:class:`~formtwin.tracker.TrackerConfig` (its likelihood) with N = ``--particles``, the
+line's state means ``mu`` known (the spec's mid-range), deviation not estimated
+(``--deviation`` to estimate it), ``K_MC`` from 10^4 curves. Every curve gets measurement
+noise as the likelihood assumes it, ``N(0, Sigma)``
+(:func:`~formtwin.monitoring.calibrate.measurement_noise`). The tracked series (posterior
+means, predicted angles, health statistics) are cached in ``benchmarks/.cache/monitoring``
+by their settings and a hash of the code that makes the estimates, so chart designs
+(``--k``, ``--arl0``, ``--widen-margin``, ...) are compared on the same estimates.
 
-1. Calibration: :func:`~formtwin.monitoring.calibrate.calibrate` on ``--calib-runs``
+1. Calibration: :func:`~formtwin.monitoring.calibrate.calibrate_series` on ``--calib-runs``
    simulated in-control runs of ``--calib-products`` products (AR(2) models of the state
    posterior means about mu, of the predicted angles about a Phase-I level, health
-   references and AR models of their normal scores), charts designed for ``--arl0`` per
-   chart.
+   references and AR models of their normal scores; limits for the design's ARL0 per
+   chart, widened where the calibration runs would have crossed them).
 2. False alarms: ``--ic-runs`` fresh in-control runs (other seeds, other machine
    parameters) of ``--ic-products`` products; every alarm counts.
    ``false_alarms_per_10k_products`` = alarms / charted products * 10^4 (charted: after
-   warm-up and Phase I).
-3. Changes (:mod:`formtwin.monitoring.scenarios`), each over ``--reps`` runs with the change
-   at product ``--at`` (after warm-up and Phase I) and ``--after`` products after it:
+   warm-up and Phase I), with its exact Poisson 95 % interval.
+3. Changes (:mod:`formtwin.monitoring.scenarios`), the change at product ``--at`` (after
+   warm-up and Phase I), each run ``--after`` products after it:
 
-   * ``step``: a 2-sigma step in the mean of one state variable (up and down in turn),
-     every variable in turn; ``detection_delay_median_products`` is the median over all
-     variables and runs of ``first alarm index - at + 1`` (alarms before ``at`` are
-     counted as false alarms, not as detections); a run without an alarm counts as
-     ``after + 1`` (``detected_share`` says how many were seen);
-   * ``drift``: the mean of one variable moving by ``--drift`` sigma per product;
+   * ``step``: a 2-sigma step in the mean of one state variable (up and down in turn,
+     ``--reps`` runs per variable), every variable in turn;
+     ``detection_delay_median_products`` is the median over all variables and runs of
+     ``first alarm index - at + 1`` (alarms before ``at`` are counted, not taken as
+     detections); a run without an alarm counts as ``after + 1`` (``detected_share`` and
+     ``within_30_share`` say how many were seen, per variable too);
+   * ``drift``: the mean of one variable moving by ``--drift`` sigma per product
+     (``--drift-reps`` runs per variable);
    * ``batch``: a new material batch, the four material means each stepping by
-     ``--batch`` sigma with random signs.
+     ``--batch`` sigma with random signs (2 x ``--drift-reps`` runs).
 """
 
 from __future__ import annotations
@@ -38,12 +43,14 @@ import argparse
 import hashlib
 import json
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import chi2
 
+import formtwin
 from formtwin._bench import CACHE, bundled_metamodel, write_result
 from formtwin._threads import single_blas_thread
 from formtwin.estimates import Estimates
@@ -51,6 +58,7 @@ from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.monitoring.calibrate import (
     ChartDesign,
     calibrate_series,
+    measurement_noise,
     series,
     simulate_in_control,
 )
@@ -92,10 +100,23 @@ def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
 
 def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, change: Change,
             n: int, seed: int) -> Estimates:
-    """Track one production run with ``change``."""
-    run = changed_run(model.spec, n, np.asarray(tcfg.mu), np.random.default_rng(seed),
-                      change)
-    return Tracker(model, mm, replace(tcfg, seed=seed)).run(model.predict_curves(run.inputs))
+    """Track one production run with ``change``, its curves with measurement noise."""
+    rng = np.random.default_rng(seed)
+    run = changed_run(model.spec, n, np.asarray(tcfg.mu), rng, change)
+    curves = model.predict_curves(run.inputs)
+    return Tracker(model, mm, replace(tcfg, seed=seed)).run(
+        curves + measurement_noise(mm, n, rng))
+
+
+def estimates_code() -> str:
+    """Hash of the package's source outside monitoring, service and cli: the code that
+    makes the estimates (a cached series is stale when it changes)."""
+    h = hashlib.sha256()
+    pkg = Path(formtwin.__file__).parent
+    for f in sorted(pkg.rglob("*.py")):
+        if f.relative_to(pkg).parts[0] not in ("monitoring", "service", "cli"):
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def delay(alarms: list[Alarm], at: int, n: int) -> tuple[int, int, str]:
@@ -106,28 +127,45 @@ def delay(alarms: list[Alarm], at: int, n: int) -> tuple[int, int, str]:
             first.variable if first else "")
 
 
-def summary(d: list[int], horizon: int) -> dict[str, Any]:
-    """Median, mean and detected share of delays (``horizon + 1`` = not detected)."""
+def summary(d: list[int], horizon: int, target: int = 30) -> dict[str, Any]:
+    """Median, mean, detected share (``horizon + 1`` = not detected) and share detected
+    within ``target`` products of delays."""
     a = np.asarray(d)
     return {"median": float(np.median(a)), "mean": round(float(a.mean()), 1),
-            "detected_share": round(float(np.mean(a <= horizon)), 3)}
+            "detected_share": round(float(np.mean(a <= horizon)), 3),
+            f"within_{target}_share": round(float(np.mean(a <= target)), 3)}
+
+
+def poisson_interval(k: int, level: float = 0.95) -> tuple[float, float]:
+    """Exact (Garwood) confidence interval of a Poisson mean from ``k`` events."""
+    a = (1.0 - level) / 2.0
+    lo = 0.0 if k == 0 else float(chi2.ppf(a, 2 * k)) / 2.0
+    return lo, float(chi2.ppf(1.0 - a, 2 * k + 2)) / 2.0
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--particles", type=int, default=500)
     p.add_argument("--deviation", action="store_true")
-    p.add_argument("--calib-runs", type=int, default=4)
+    p.add_argument("--calib-runs", type=int, default=16)
     p.add_argument("--calib-products", type=int, default=1500)
-    p.add_argument("--ic-runs", type=int, default=10)
+    p.add_argument("--ic-runs", type=int, default=30)
     p.add_argument("--ic-products", type=int, default=2000)
-    p.add_argument("--reps", type=int, default=6)
+    p.add_argument("--reps", type=int, default=10, help="runs per variable and step sign")
+    p.add_argument("--drift-reps", type=int, default=4,
+                   help="runs per variable for the drift; 2 x this for the batch")
     p.add_argument("--at", type=int, default=250)
     p.add_argument("--after", type=int, default=150)
     p.add_argument("--drift", type=float, default=0.02)
     p.add_argument("--batch", type=float, default=1.0)
     d0 = ChartDesign()
-    p.add_argument("--arl0", type=float, default=d0.arl0_per_chart)
+    p.add_argument("--arl0", type=float, default=d0.arl0_per_chart, help="CUSUM ARL0")
+    p.add_argument("--arl0-ewma", type=float, default=d0.arl0_ewma)
+    p.add_argument("--arl0-mismatch", type=float, default=d0.arl0_mismatch)
+    p.add_argument("--arl0-shewhart", type=float, default=d0.arl0_shewhart,
+                   help="0: no Shewhart limit")
+    p.add_argument("--widen-margin", type=float, default=d0.widen_margin, help="0: off")
+    p.add_argument("--angle-cusum", action="store_true")
     p.add_argument("--lam", type=float, default=d0.lam)
     p.add_argument("--k", type=float, default=d0.k)
     p.add_argument("--no-tails", action="store_true")
@@ -145,11 +183,15 @@ def main() -> None:
     mm = MeasurementModel.from_monte_carlo(model, mu=mu, n=tcfg.n_mc,
                                            rng=np.random.default_rng(args.seed))
     design = ChartDesign(lam=args.lam, k=args.k, k_mismatch=args.k_mismatch,
-                         arl0_per_chart=args.arl0, tails=not args.no_tails,
-                         health_ar=not args.no_health_ar, health_phase1=args.health_phase1)
+                         arl0_per_chart=args.arl0, arl0_ewma=args.arl0_ewma,
+                         arl0_mismatch=args.arl0_mismatch,
+                         arl0_shewhart=args.arl0_shewhart or None,
+                         widen_margin=args.widen_margin or None, angle_cusum=args.angle_cusum,
+                         tails=not args.no_tails, health_ar=not args.no_health_ar,
+                         health_phase1=args.health_phase1)
     key = {"model": info["doe_sha256_16"], "metamodel": info["metamodel"],
-           "particles": args.particles, "deviation": args.deviation, "seed": args.seed,
-           "at": args.at, "after": args.after}
+           "tracker": tcfg.to_dict(), "code": estimates_code(), "noise": "N(0, Sigma)",
+           "seed": args.seed, "at": args.at, "after": args.after}
     runs = Runs(CACHE / "monitoring", key)
     n = args.at + args.after
     t0 = time.perf_counter()
@@ -157,14 +199,17 @@ def main() -> None:
         calib_runs = [runs.get(f"calib{r}_{args.calib_products}", lambda r=r: simulate_in_control(
             model, mm, replace(tcfg, seed=tcfg.seed + r), args.calib_products, 1,
             seed=args.seed + r)[0]) for r in range(args.calib_runs)]
-        ic_runs = [runs.get(f"ic{r}_{args.ic_products}", lambda r=r: simulate_in_control(
-            model, mm, replace(tcfg, seed=tcfg.seed + 5000 + r), args.ic_products, 1,
-            seed=args.seed + 10_000 + r)[0]) for r in range(args.ic_runs)]
         scenarios: dict[str, list[tuple[Change, Series]]] = {}
-        for j, name in enumerate(spec.state.names):
-            for kind, size in (("step", 2.0), ("drift", args.drift)):
-                scenarios.setdefault(f"{kind}:{name}", [])
-                for r in range(args.reps):
+        ic_runs: list[Series] = []
+        for kind, size in (("step", 2.0), ("ic", 0.0), ("drift", args.drift)):
+            if kind == "ic":  # tracked between the steps and the drifts (cache order)
+                ic_runs = [runs.get(f"ic{r}_{args.ic_products}", lambda r=r: simulate_in_control(
+                    model, mm, replace(tcfg, seed=tcfg.seed + 5000 + r), args.ic_products, 1,
+                    seed=args.seed + 10_000 + r)[0]) for r in range(args.ic_runs)]
+                continue
+            for j, name in enumerate(spec.state.names):
+                scenarios[f"{kind}:{name}"] = []
+                for r in range(args.reps if kind == "step" else args.drift_reps):
                     ch = Change(kind, (name,), args.at, size * (1 if r % 2 == 0 else -1))
                     seed = args.seed + 100_000 + 1000 * j + 100 * (kind == "drift") + r
                     scenarios[f"{kind}:{name}"].append((ch, runs.get(
@@ -172,7 +217,7 @@ def main() -> None:
                         lambda ch=ch, seed=seed: changed(model, mm, tcfg, ch, n, seed))))
         rng = np.random.default_rng(args.seed + 7)
         scenarios["batch"] = []
-        for r in range(2 * args.reps):
+        for r in range(2 * args.drift_reps):
             ch = Change.batch(args.at, args.batch, rng)
             scenarios["batch"].append((ch, runs.get(
                 f"batch_{args.batch}_{r}", lambda ch=ch, r=r: changed(
@@ -196,11 +241,16 @@ def main() -> None:
     for a in ic_alarms:
         by_chart[f"{a.variable}/{a.chart}"] = by_chart.get(f"{a.variable}/{a.chart}", 0) + 1
     steps = block("step")
+    lo, hi = poisson_interval(len(ic_alarms))
+    config_cusums = list(config.quantities) if config.cusum_on is None else config.cusum_on
+    per_chart = config.ewma, config.cusum, config.mismatch
     figures: dict[str, Any] = {
         "detection_delay_median_products": steps["median"],
         "detection_delay_target": 30,
         "false_alarms_per_10k_products": round(len(ic_alarms) / charted * 1e4, 3),
         "false_alarms_target": 1,
+        "false_alarms_per_10k_products_95ci": [round(lo / charted * 1e4, 3),
+                                               round(hi / charted * 1e4, 3)],
         "false_alarms_in_control": len(ic_alarms),
         "charted_products_in_control": charted,
         "false_alarms_by_chart": by_chart,
@@ -213,17 +263,17 @@ def main() -> None:
         "settings": {"particles": args.particles, "deviation": args.deviation,
                      "calib_runs": args.calib_runs, "calib_products": args.calib_products,
                      "ic_runs": args.ic_runs, "ic_products": args.ic_products,
-                     "reps": args.reps, "at": args.at, "after": args.after,
-                     "design": {"lam": design.lam, "k": design.k,
-                                "k_mismatch": design.k_mismatch,
-                                "arl0_per_chart": design.arl0_per_chart,
-                                "order": design.order, "tails": design.tails,
-                                "health_ar": design.health_ar,
-                                "health_phase1": design.health_phase1, "warmup": design.warmup,
-                                "phase1": design.phase1},
-                     "charts": 2 * len(config.quantities) + len(config.health),
-                     "ewma_L": round(config.ewma.L, 4), "cusum_h": round(config.cusum.h, 4),
-                     "mismatch_h": round(config.mismatch.h, 4)},
+                     "reps": args.reps, "drift_reps": args.drift_reps, "at": args.at,
+                     "after": args.after,
+                     "design": asdict(design),
+                     "charts": {"ewma": len(config.quantities), "cusum": len(config_cusums),
+                                "shewhart": len(config_cusums) * (config.shewhart is not None),
+                                "mismatch": len(config.health)},
+                     "ewma_L": round(per_chart[0].L, 4), "cusum_h": round(per_chart[1].h, 4),
+                     "mismatch_h": round(per_chart[2].h, 4),
+                     "shewhart_limit": config.shewhart,
+                     "widen": {n: round(q.widen, 3) for n, q in
+                               (*config.quantities.items(), *config.health_models.items())}},
         "tracking_s": round(track_s, 1),
     }
     write_result("monitoring", figures, directory=args.out, model=info)

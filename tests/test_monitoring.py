@@ -11,7 +11,14 @@ import pytest
 
 from formtwin.defaults import AnalyticModel
 from formtwin.measurement import MeasurementModel
-from formtwin.monitoring.calibrate import ChartDesign, calibrate, series, simulate_in_control
+from formtwin.monitoring.calibrate import (
+    ChartDesign,
+    calibrate,
+    measurement_noise,
+    series,
+    simulate_in_control,
+    widen,
+)
 from formtwin.monitoring.charts import (
     Cusum,
     CusumState,
@@ -25,7 +32,7 @@ from formtwin.monitoring.charts import (
     ewma_limit,
 )
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
-from formtwin.monitoring.monitor import Monitor, MonitorConfig
+from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
 from formtwin.monitoring.scenarios import Change, changed_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker import Tracker, TrackerConfig
@@ -97,6 +104,13 @@ def test_two_sided_cusum_halves_the_arl_and_h_inverts_it() -> None:
     assert cusum_arl_two_sided(1.0, h) == pytest.approx(1e5, rel=1e-6)
     rl = _run_lengths(Cusum(0.5, 5.0), 400, np.random.default_rng(8))
     assert rl.mean() == pytest.approx(469, rel=0.15)  # 400 runs: s.e. 5 %, 3 s.e.
+
+
+def test_cusum_h_for_a_large_reference_value() -> None:
+    """k = 2.5 (a mismatch CUSUM that sees only large shifts): no overflow in Siegmund's
+    formula while h is searched, and h inverts the ARL."""
+    h = cusum_h(2.5, 1e7, two_sided=False)
+    assert cusum_arl_siegmund(2.5, h) == pytest.approx(1e7, rel=1e-6)
 
 
 def test_chart_parameters_are_checked() -> None:
@@ -182,6 +196,68 @@ def test_monitor_restored_from_its_json_state_continues_identically() -> None:
     assert whole.means["b"] == pytest.approx(np.mean([v["b"] for v in values[3:8]]))
 
 
+def test_shewhart_limit_and_cusum_only_on_the_named_quantities() -> None:
+    """A combined Shewhart-CUSUM on "a" only: one residual beyond the limit alarms at once
+    (chart "shewhart"); "b" has its EWMA alone; the config survives JSON."""
+    base = _toy_config()
+    config = MonitorConfig(base.quantities, base.health, base.health_models, Ewma(0.2, 50.0),
+                           Cusum(0.5, 50.0), base.mismatch, warmup=0, phase1=2,
+                           cusum_on=("a",), shewhart=4.0)
+    assert MonitorConfig.from_json(config.to_json()) == config
+    mon = Monitor(config)
+    quiet = {"a": 1.0, "b": 7.0, "ess": 50.0}
+    for _ in range(4):
+        assert mon.update_values(quiet) == ()
+    assert set(mon.last["a"]) == {"ewma", "cusum", "shewhart"} and set(mon.last["b"]) == {"ewma"}
+    (alarm,) = mon.update_values({**quiet, "a": 1.0 + 0.5 * 4.2})  # z = 4.2 > 4
+    assert (alarm.variable, alarm.chart, alarm.side) == ("a", "shewhart", "high")
+    assert alarm.statistic == pytest.approx(4.2)
+    with pytest.raises(ValueError, match="cusum_on"):
+        MonitorConfig(base.quantities, cusum_on=("zzz",))
+
+
+def test_widen_lifts_limits_until_the_calibration_runs_stay_inside() -> None:
+    """A calibration run where "a" leaves its in-control level for 40 products (an
+    excursion that lasts, as when the filter loses its particles): the Gaussian design
+    alarms on it; widen() raises a's factor until the run stays (about) a margin inside
+    every limit, and leaves the quiet quantity "b" alone."""
+    q = {"a": InControl(mean=1.0, sigma=0.5), "b": InControl(mean=7.0, sigma=2.0)}
+    config = MonitorConfig(q, ewma=Ewma(0.2, 3.5), cusum=Cusum(0.5, 8.0), warmup=0, phase1=0)
+    rng = np.random.default_rng(12)
+    a = 1.0 + 0.5 * rng.standard_normal(400)
+    a[200:240] += 1.5
+    run = {"a": a, "b": 7.0 + 2.0 * rng.standard_normal(400)}
+    assert _alarms(config, run)
+    wide = widen(config, [run], margin=1.2)
+    assert wide.quantities["a"].widen > 1.2 and wide.quantities["b"].widen == 1.0
+    assert _alarms(wide, run) == []
+    mon = Monitor(wide)
+    worst = 0.0
+    for i in range(400):
+        mon.update_values({k: float(v[i]) for k, v in run.items()})
+        worst = max([worst, *(abs(s) / lim for s, lim in mon.last.get("a", {}).values())])
+    assert worst <= 1.0 / 1.2 + 1e-9
+    assert InControl.from_dict(wide.quantities["a"].to_dict()) == wide.quantities["a"]
+
+
+def _alarms(config: MonitorConfig, run: dict[str, np.ndarray]) -> list[Alarm]:
+    mon = Monitor(config)
+    n = len(run["a"])
+    return [a for i in range(n) for a in mon.update_values({k: float(v[i])
+                                                            for k, v in run.items()})]
+
+
+def test_measurement_noise_has_the_likelihood_covariance(spec: ProcessSpec,
+                                                        model: AnalyticModel) -> None:
+    mm = MeasurementModel.from_monte_carlo(model, mu=spec.state.mu_mid, n=2000,
+                                           rng=np.random.default_rng(2))
+    draws = measurement_noise(mm, 40_000, np.random.default_rng(3))
+    cov = mm.covariance()
+    # sample covariance of 40 000 draws: s.e. of an entry ~ sqrt(2 / 40 000) of its scale
+    scale = np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
+    assert np.max(np.abs(np.cov(draws.T) - cov) / scale) < 0.04
+
+
 def test_monitor_rejects_missing_values_and_foreign_state() -> None:
     mon = Monitor(_toy_config())
     with pytest.raises(ValueError, match="lack"):
@@ -217,8 +293,10 @@ def test_step_in_a_state_mean_is_detected(spec: ProcessSpec, line: tuple[
                        spec.state.names, mu, design)
     at = 150
     change = Change("step", ("punch_end_distance",), at=at, size=3.0)
-    run = changed_run(spec, at + 60, mu, np.random.default_rng(77), change)
-    est = Tracker(model, mm, cfg).run(model.predict_curves(run.inputs))
+    rng = np.random.default_rng(77)
+    run = changed_run(spec, at + 60, mu, rng, change)
+    curves = model.predict_curves(run.inputs)
+    est = Tracker(model, mm, cfg).run(curves + measurement_noise(mm, len(curves), rng))
     mon, vals = Monitor(config), series(est)
     alarms = [a for i in range(len(est))
               for a in mon.update_values({k: float(v[i]) for k, v in vals.items()}, i)]
@@ -239,8 +317,10 @@ def test_model_mismatch_raises_the_mismatch_alarm(spec: ProcessSpec, line: tuple
                        spec.state.names, mu, ChartDesign(warmup=30, phase1=50))
     assert set(config.health) == {"loglik", "ess", "fit"}
     at = 150
-    run = changed_run(spec, at + 30, mu, np.random.default_rng(78), Change("none"))
+    rng = np.random.default_rng(78)
+    run = changed_run(spec, at + 30, mu, rng, Change("none"))
     curves = model.predict_curves(run.inputs)
+    curves = curves + measurement_noise(mm, len(curves), rng)
     curves[at:] *= 1.10
     est = Tracker(model, mm, cfg).run(curves)
     mon, vals = Monitor(config), series(est)

@@ -23,12 +23,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import ndtri
 
 from formtwin.estimates import Estimates
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.monitoring.charts import Cusum, Ewma, cusum_h, ewma_L
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
-from formtwin.monitoring.monitor import ANGLES, HEALTH, MonitorConfig
+from formtwin.monitoring.monitor import ANGLES, HEALTH, Monitor, MonitorConfig
 from formtwin.tracker import Tracker, TrackerConfig
 
 FloatArray = NDArray[np.float64]
@@ -42,49 +43,86 @@ class ChartDesign:
     ----------
     lam : EWMA smoothing.
     k : CUSUM reference value (sigma units of the residual: half the residual shift it is
-        tuned for).
+        tuned for; 0.5: the lasting residual shift of a 2-sigma step in a state mean is
+        0.6-1.0 residual sigma, docs/monitoring.md).
     k_mismatch : reference of the one-sided mismatch CUSUM on the health scores.
-    arl0_per_chart : in-control ARL of each chart (two-sided ones counted two-sided).
+    arl0_per_chart : in-control ARL of each quantity's CUSUM (two-sided), the charts that
+        detect a step; the family of all charts signals about ``sum 1 / ARL0`` per product.
+    arl0_ewma : in-control ARL of each quantity's EWMA (slower to see the lasting shift
+        than the CUSUM, so given little of the false-alarm budget).
+    arl0_mismatch : in-control ARL of each health statistic's mismatch CUSUM.
+    arl0_shewhart : in-control ARL of the single-product limit on ``|z|`` that joins each
+        CUSUM (combined Shewhart-CUSUM); ``None``: none.
     order : AR order of the in-control models.
     tails : standardise residuals through their in-control distribution (heavy tails).
     health_ar : chart the health scores' AR residuals (they are autocorrelated) instead of
         the scores.
+    angle_cusum : a CUSUM on the predicted angles too (their level comes from Phase I, so
+        a CUSUM tuned for small shifts alarms on the Phase-I error); default: EWMA only.
     health_phase1 : the scores' level from Phase I (it depends on the machine parameters,
         but the first products are still the filter's transient) instead of the pooled
         in-control level.
+    widen_margin : widen a quantity's limits where charting the calibration runs would
+        have come closer than this factor to them (:func:`widen`); ``None``: off.
     warmup, phase1 : see :class:`~formtwin.monitoring.monitor.MonitorConfig`.
     """
 
     lam: float = 0.2
-    k: float = 1.0
+    k: float = 0.5
     k_mismatch: float = 1.0
-    arl0_per_chart: float = 1.0e6
+    arl0_per_chart: float = 5.0e5
+    arl0_ewma: float = 1.0e7
+    arl0_mismatch: float = 1.0e7
+    arl0_shewhart: float | None = 2.0e6
     order: int = 2
     tails: bool = True
     health_ar: bool = True
     health_phase1: bool = False
+    angle_cusum: bool = False
+    widen_margin: float | None = 1.2
     warmup: int = 50
     phase1: int = 100
 
     def charts(self) -> tuple[Ewma, Cusum, Cusum]:
         """EWMA, CUSUM and mismatch CUSUM with their limits."""
-        a = self.arl0_per_chart
-        return (Ewma(self.lam, ewma_L(self.lam, a)), Cusum(self.k, cusum_h(self.k, a)),
-                Cusum(self.k_mismatch, cusum_h(self.k_mismatch, a, two_sided=False), "high"))
+        return (Ewma(self.lam, ewma_L(self.lam, self.arl0_ewma)),
+                Cusum(self.k, cusum_h(self.k, self.arl0_per_chart)),
+                Cusum(self.k_mismatch, cusum_h(self.k_mismatch, self.arl0_mismatch,
+                                               two_sided=False), "high"))
 
 
 def simulate_in_control(model: ProcessModel, measurement: MeasurementModel,
-                        config: TrackerConfig, n: int, runs: int, seed: int
-                        ) -> list[Estimates]:
+                        config: TrackerConfig, n: int, runs: int, seed: int,
+                        noise: bool = True) -> list[Estimates]:
     """Estimates of ``runs`` simulated in-control runs of ``n`` products, each drawn as the
     tracker assumes the process (:meth:`~formtwin.tracker.BendingSSM.simulate`: the
     config's mu, sigma, rho; machine parameters uniform in their bounds) and tracked with
-    ``config`` (its seed varied per run)."""
+    ``config`` (its seed varied per run).
+
+    ``noise``: the curves get measurement noise as the likelihood assumes it (see
+    :func:`measurement_noise`). Without it every curve fits better and the posterior means
+    spread less than on real curves: charts calibrated that way alarm on ~20 % of the
+    products of a real in-control stream (measured by the service, notes of issue 14).
+    """
     out = []
     for r, ss in enumerate(np.random.SeedSequence(seed).spawn(runs)):
         tracker = Tracker(model, measurement, replace(config, seed=config.seed + 1000 + r))
-        _, curves = tracker.ssm.simulate(n, np.random.default_rng(ss))
+        rng = np.random.default_rng(ss)
+        _, curves = tracker.ssm.simulate(n, rng)
+        if noise:
+            curves = curves + measurement_noise(measurement, curves.shape[0], rng)
         out.append(tracker.run(curves))
+    return out
+
+
+def measurement_noise(measurement: MeasurementModel, n: int, rng: np.random.Generator
+                      ) -> FloatArray:
+    """``n`` draws (n, n_t) N of ``N(0, Sigma)``, the likelihood's covariance
+    (:meth:`~formtwin.measurement.MeasurementModel.covariance`: measurement uncertainty,
+    sensor noise and, for the calibrated likelihood, the metamodel's residual covariance)."""
+    w, v = np.linalg.eigh(measurement.covariance())
+    root = v * np.sqrt(np.clip(w, 0.0, None))  # Sigma = root @ root.T
+    out: FloatArray = rng.standard_normal((n, root.shape[0])) @ root.T
     return out
 
 
@@ -136,8 +174,50 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
             models[name] = fit_in_control(scores, d.order, mean=None,
                                           keep_mean=not d.health_phase1, tails=d.tails)
     ewma, cusum, mismatch = d.charts()
-    return MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
-                         d.phase1)
+    shewhart = (None if d.arl0_shewhart is None
+                else float(ndtri(1.0 - 0.5 / d.arl0_shewhart)))
+    config = MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
+                           d.phase1, None if d.angle_cusum else tuple(state_names), shewhart)
+    return config if d.widen_margin is None else widen(config, runs, d.widen_margin)
 
 
-__all__ = ["ChartDesign", "calibrate", "calibrate_series", "series", "simulate_in_control"]
+def widen(config: MonitorConfig, runs: Sequence[Mapping[str, FloatArray]], margin: float,
+          rounds: int = 8) -> MonitorConfig:
+    """``config`` with every model's :attr:`~InControl.widen` raised until charting the
+    in-control ``runs`` keeps each chart statistic below its limit / ``margin`` (at most
+    ``rounds`` times, each by the factor the quantity's worst chart needed).
+
+    The Gaussian design assumes independent N(0, 1) scores; an estimate's excursion that
+    lasts several products (the filter losing its particles at an extreme state) breaks
+    that, and no per-product tail model covers it. Where the simulated in-control runs
+    would have crossed the design's limits, the limits are widened by what they needed
+    (an EWMA statistic scales exactly with ``1 / widen``, a CUSUM's at least as fast; a
+    chart that alarmed restarted, hiding how far it would have gone: another round).
+    """
+    for _ in range(rounds):
+        worst: dict[str, float] = {}
+        for run in runs:
+            mon = Monitor(config)
+            n = len(next(iter(run.values())))
+            for i in range(n):
+                mon.update_values({k: float(v[i]) for k, v in run.items()}, i)
+                for name, charts in mon.last.items():
+                    r = max(abs(stat) / lim for stat, lim in charts.values())
+                    worst[name] = max(worst.get(name, 0.0), r)
+        grow = {n: r * margin for n, r in worst.items() if r * margin > 1.0}
+        if not grow:
+            break
+        config = replace(
+            config,
+            quantities={n: _widened(q, grow.get(n)) for n, q in config.quantities.items()},
+            health_models={n: _widened(q, grow.get(n))
+                           for n, q in config.health_models.items()})
+    return config
+
+
+def _widened(q: InControl, factor: float | None) -> InControl:
+    return q if factor is None else replace(q, widen=q.widen * factor)
+
+
+__all__ = ["ChartDesign", "calibrate", "calibrate_series", "measurement_noise", "series",
+           "simulate_in_control", "widen"]

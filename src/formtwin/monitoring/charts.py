@@ -138,7 +138,8 @@ def cusum_arl_two_sided(k: float, h: float, shift: float = 0.0) -> float:
 def cusum_h(k: float, arl0: float, two_sided: bool = True) -> float:
     """Decision interval ``h`` giving in-control ARL ``arl0`` (Siegmund's approximation)."""
     arl = cusum_arl_two_sided if two_sided else cusum_arl_siegmund
-    return float(brentq(lambda h: math.log(arl(k, h)) - math.log(arl0), 0.01, 200.0))
+    top = min(200.0, 300.0 / max(k, 1e-9))  # exp(2 k (h + 1.166)) stays finite
+    return float(brentq(lambda h: math.log(arl(k, h)) - math.log(arl0), 0.01, top))
 
 
 def ewma_arl(lam: float, L: float, shift: float = 0.0, states: int = 201) -> float:

@@ -46,9 +46,10 @@ class Alarm:
     Attributes
     ----------
     variable : the quantity (a state variable, an angle, or a health statistic).
-    chart : ``"ewma"``, ``"cusum"`` or ``"mismatch"``.
+    chart : ``"ewma"``, ``"cusum"``, ``"shewhart"`` or ``"mismatch"``.
     index : the estimate's product index (0-based, the tracker's step).
-    statistic : the chart statistic when it crossed (sigma units of the residual).
+    statistic : the chart statistic when it crossed (sigma units of the residual;
+        ``shewhart``: the residual's score ``z`` itself).
     limit : the limit it crossed (same units).
     side : ``"high"`` (above the in-control level) or ``"low"``.
     """
@@ -78,7 +79,13 @@ class MonitorConfig:
     health_models : name -> in-control AR model of that normal score (its level, often
         set in Phase I: it depends on the machine parameters); the mismatch chart then
         watches the model's residual. Missing: the score itself.
-    ewma, cusum : the charts on every quantity (design: :mod:`formtwin.monitoring.design`).
+    ewma, cusum : the charts (design: :class:`~formtwin.monitoring.calibrate.ChartDesign`):
+        the EWMA on every quantity, the CUSUM on those of ``cusum_on``.
+    cusum_on : the quantities with a CUSUM chart; ``None``: all. (The angles' level comes
+        from Phase I, whose error a CUSUM tuned for small shifts would take for a shift.)
+    shewhart : limit on ``|z|`` of a single product for the quantities with a CUSUM (the
+        combined Shewhart-CUSUM, Lucas 1982; Montgomery ch. 9.1.7): the jump of the
+        residual when a state mean steps is seen at once; ``None``: no such limit.
     mismatch : the one-sided CUSUM on every health score.
     warmup : products not charted at the start.
     phase1 : products after the warm-up that estimate the means left ``None``.
@@ -92,8 +99,17 @@ class MonitorConfig:
     mismatch: Cusum = Cusum(sides="high")
     warmup: int = 50
     phase1: int = 100
+    cusum_on: tuple[str, ...] | None = None
+    shewhart: float | None = None
 
     def __post_init__(self) -> None:
+        if self.shewhart is not None and not self.shewhart > 0:
+            raise ValueError(f"shewhart limit = {self.shewhart}, expected > 0 or None")
+        if self.cusum_on is not None:
+            object.__setattr__(self, "cusum_on", tuple(self.cusum_on))
+            unknown = [n for n in self.cusum_on if n not in self.quantities]
+            if unknown:
+                raise ValueError(f"cusum_on names {unknown}, not charted quantities")
         bad = [n for n in self.health if n not in HEALTH]
         if bad:
             raise ValueError(f"health statistics {bad} unknown; known: {', '.join(HEALTH)}")
@@ -119,7 +135,8 @@ class MonitorConfig:
             "ewma": {"lam": self.ewma.lam, "L": self.ewma.L},
             "cusum": {"k": self.cusum.k, "h": self.cusum.h},
             "mismatch": {"k": self.mismatch.k, "h": self.mismatch.h},
-            "warmup": self.warmup, "phase1": self.phase1})
+            "warmup": self.warmup, "phase1": self.phase1, "cusum_on": self.cusum_on,
+            "shewhart": self.shewhart})
 
     @classmethod
     def from_json(cls, text: str) -> MonitorConfig:
@@ -131,7 +148,9 @@ class MonitorConfig:
                                   for n, q in d.get("health_models", {}).items()},
                    ewma=Ewma(**d["ewma"]), cusum=Cusum(**d["cusum"]),
                    mismatch=Cusum(**d["mismatch"], sides="high"),
-                   warmup=int(d["warmup"]), phase1=int(d["phase1"]))
+                   warmup=int(d["warmup"]), phase1=int(d["phase1"]),
+                   cusum_on=None if d.get("cusum_on") is None else tuple(d["cusum_on"]),
+                   shewhart=None if d.get("shewhart") is None else float(d["shewhart"]))
 
 
 def observe(estimate: Estimate) -> dict[str, float]:
@@ -173,7 +192,8 @@ class Monitor:
         self.phase1_sums = {n: 0.0 for n, q in self.models.items() if q.mean is None}
         self.history: dict[str, list[float]] = {n: [] for n in self.models}
         self.ewma = {n: EwmaState() for n in config.quantities}
-        self.cusum = {n: CusumState() for n in config.quantities}
+        self.cusum = {n: CusumState() for n in config.quantities
+                      if config.cusum_on is None or n in config.cusum_on}
         self.health = {n: CusumState() for n in config.health}
         if state is not None:
             self._load(state)
@@ -222,10 +242,17 @@ class Monitor:
             last["ewma"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "ewma", idx, s.statistic, s.limit, s.side))
+            if n not in self.cusum:
+                continue
             self.cusum[n], s = c.cusum.update(self.cusum[n], z)
             last["cusum"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "cusum", idx, s.statistic, s.limit, s.side))
+            if c.shewhart is not None:
+                last["shewhart"] = (z, c.shewhart)
+                if abs(z) > c.shewhart:
+                    alarms.append(Alarm(n, "shewhart", idx, z, c.shewhart,
+                                        "high" if z > 0 else "low"))
         for n in c.health:
             z, hm = float(values[n]), c.health_models.get(n)
             if hm is not None:
@@ -257,7 +284,8 @@ class Monitor:
 
     def _load(self, st: Mapping[str, Any]) -> None:
         names, health = set(self.models), set(self.config.health)
-        if set(st["history"]) != names or set(st["health"]) != health:
+        if (set(st["history"]) != names or set(st["health"]) != health
+                or set(st["cusum"]) != set(self.cusum)):
             raise ValueError(f"monitor state watches {sorted(st['history'])} and "
                              f"{sorted(st['health'])}, the config {sorted(names)} and "
                              f"{sorted(health)}")
