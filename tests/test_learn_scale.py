@@ -51,7 +51,8 @@ def test_learned_scale_finds_the_noise_level(model: AnalyticModel, mm: Measureme
 
 def test_checkpoint_with_learned_scale_is_bit_for_bit(tmp_path: Path, model: AnalyticModel,
                                                       mm: MeasurementModel) -> None:
-    cfg = TrackerConfig(n_particles=80, estimate_deviation=False, learn_scale=True, seed=1)
+    cfg = TrackerConfig(n_particles=80, estimate_deviation=False, learn_scale=True, seed=1,
+                        likelihood="calibrated")
     a = Tracker(model, mm, cfg)
     _, curves = a.ssm.simulate(10, np.random.default_rng(1))
     a.run(curves[:5])
@@ -63,4 +64,4 @@ def test_checkpoint_with_learned_scale_is_bit_for_bit(tmp_path: Path, model: Ana
     np.testing.assert_array_equal(ra.mean, rc.mean)
     np.testing.assert_array_equal(a.ssm.scale_logpost, c.ssm.scale_logpost)
     with pytest.raises(ValueError, match="Gaussian"):
-        TrackerConfig(learn_scale=True, nu=5.0)
+        TrackerConfig(learn_scale=True, nu=5.0, likelihood="calibrated")

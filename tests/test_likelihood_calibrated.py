@@ -130,10 +130,14 @@ def test_calibrated_measurement_adds_k_res_to_the_papers(
     if mm.residuals is None:
         calibrate(mm, data, k=4, seed=1)  # type: ignore[arg-type]
     assert mm.residuals is not None
-    cfg = TrackerConfig(n_mc=500, n_particles=50, estimate_deviation=False)
+    cfg = TrackerConfig(n_mc=500, n_particles=50, estimate_deviation=False,
+                        likelihood="calibrated")
     paper = build_measurement(mm, dataclasses.replace(cfg, likelihood="paper"))
     cal = build_measurement(mm, cfg)
-    assert cfg.likelihood == "calibrated"
+    assert TrackerConfig().likelihood == "adaptive"  # builds on the paper's (K_res apart)
+    np.testing.assert_array_equal(
+        build_measurement(mm, dataclasses.replace(cfg, likelihood="adaptive")).covariance(),
+        paper.covariance())
     # the same Monte-Carlo curves: the difference is K_res up to the noise floors
     diff = cal.covariance() - paper.covariance() - mm.residuals.curve_cov
     floor = max(paper.s2, cal.s2)

@@ -69,13 +69,15 @@ def test_quick_study_end_to_end(metamodel: tuple[Metamodel, Path], tmp_path: Pat
     for fig in ("fig4_nrmse.png", "fig5_series1.png", "fig6_series6.png",
                 "fig_skill_coverage.png"):
         assert (tmp_path / fig).stat().st_size > 10_000
-    # honest metrics for the calibrated default and the paper's likelihood on the same data
+    # honest metrics for the adaptive default and the paper's likelihood on the same data
     assert result.skill.shape == result.coverage.shape == nrmse.shape
     assert result.ess.shape == result.log_evidence.shape == (6, 2, 1)
     assert np.all((result.coverage[:, :, :, :10] >= 0) & (result.coverage[:, :, :, :10] <= 1))
     assert np.all(np.isfinite(result.log_evidence)) and np.all(result.ess >= 1)
     assert result.paper["nrmse"].shape == (6, 2, 1, 20)
-    assert "| 1 | paper |" in text and "| 1 | calibrated |" in text
+    assert "| 1 | paper |" in text and "| 1 | adaptive |" in text
+    assert "| 2 | paper |" not in text  # the paper's likelihood runs in series 1, 5, 6
+    assert np.isnan(result.paper["nrmse"][[1, 2, 3]]).all()
     assert not np.array_equal(result.paper["nrmse"], nrmse)
     assert (tmp_path / "nrmse.csv").read_text().count("\n") == 1 + 6 * 2
     # a second run reuses every cached piece and gives the same numbers

@@ -155,6 +155,7 @@ class MeasurementModel:
     mean: FloatArray | None = None
     _white: FloatArray = field(init=False, repr=False)
     _lognorm: float = field(init=False, repr=False)
+    _cov: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         b, lam = np.asarray(self.basis, np.float64), np.asarray(self.lam, np.float64)
@@ -261,10 +262,13 @@ class MeasurementModel:
     def covariance(self) -> FloatArray:
         """The likelihood's covariance ``Sigma`` (n_t, n_t), N^2 (the scale matrix for
         the Student-t): ``U diag(lam) U^T + s2 (I - U U^T)``; sensor noise and, for the
-        calibrated likelihood, the residual covariance ``K_res`` included."""
-        u = self.basis
-        out: FloatArray = (u * (self.lam - self.s2)) @ u.T + self.s2 * np.eye(self.n_t)
-        return out
+        calibrated likelihood, the residual covariance ``K_res`` included. Computed once
+        and read-only."""
+        if "sigma" not in self._cov:  # once: the goodness of fit asks every product
+            u = self.basis
+            self._cov["sigma"] = (u * (self.lam - self.s2)) @ u.T + self.s2 * np.eye(self.n_t)
+            self._cov["sigma"].flags.writeable = False
+        return self._cov["sigma"]
 
     def mahalanobis2(self, curves_model: FloatArray, curves_obs: FloatArray) -> FloatArray:
         """Squared Mahalanobis distance ``d^T Sigma^-1 d`` (N,) of ``obs - model``."""

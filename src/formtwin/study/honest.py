@@ -57,7 +57,7 @@ def honest_summary(result: StudyResult, spec: ProcessSpec) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for s in result.settings.series:
         entry = {result.settings.tracker.likelihood: series_scores(spec, mine, s)}
-        if result.paper:
+        if result.paper and s in result.settings.paper_series:
             entry["paper"] = series_scores(spec, result.paper, s)
         out[f"series{s}"] = entry
     return out
@@ -91,18 +91,20 @@ def plot_honest(summary: dict[str, Any], path: Path) -> Path:
     series, tracker's likelihood vs the paper's."""
     plt = pyplot()
     names = list(summary)
-    liks = list(next(iter(summary.values())))
+    liks = list(dict.fromkeys(lik for entry in summary.values() for lik in entry))
+    nan = {"skill_state": [np.nan], "skill_state_min": np.nan, "coverage_state": np.nan,
+           "coverage_angles": [np.nan]}  # a series not run with that likelihood
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), layout="constrained")
     width = 0.8 / len(liks)
     x = np.arange(len(names))
     for j, lik in enumerate(liks):
-        sc = [summary[n][lik] for n in names]
-        axes[0].bar(x + j * width, [np.nanmean(s["skill_state"]) for s in sc], width,
+        sc = [summary[n].get(lik, nan) for n in names]
+        axes[0].bar(x + j * width, [_mean(s["skill_state"]) for s in sc], width,
                     label=f"{lik}: mean", color=f"C{j}")
         axes[0].plot(x + j * width, [s["skill_state_min"] for s in sc], "kv", ms=5)
         axes[1].bar(x + j * width, [s["coverage_state"] for s in sc], width,
                     label=f"{lik}: states", color=f"C{j}")
-        axes[1].plot(x + j * width, [np.nanmean(s["coverage_angles"]) for s in sc], "kD",
+        axes[1].plot(x + j * width, [_mean(s["coverage_angles"]) for s in sc], "kD",
                      ms=4)
     axes[0].axhline(0, color="k", lw=0.8)
     axes[0].set(ylabel="skill = 1 - RMSE/RMSE_prior", title="state skill (bar mean, v min)")

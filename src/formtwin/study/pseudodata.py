@@ -16,6 +16,7 @@ A realisation is stored as NetCDF (``realisation_K.nc``) and reloaded when prese
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,7 +100,7 @@ def make_realisation(
     metamodel: ProcessModel,
     physics: Simulator,
     folder: Path,
-    executor: str | None = None,
+    executor: str | Executor | None = None,
 ) -> Realisation:
     """Create (or reload from ``folder``) realisation ``index`` of ``n`` products.
 

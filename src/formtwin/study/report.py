@@ -144,8 +144,9 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
               "sum over all products of log p(z_i | z_1..i-1) (higher: the filter's model "
               "explains the data better; compare within a series). Likelihoods: "
               f"'{st.tracker.likelihood}' ({st.n_repetitions} repetitions per dataset)"
-              + (f" and the paper's eq. 12 ({st.paper_repetitions} per dataset, same data)"
-                 if result.paper else "") + "; docs/filter.md explains them."),
+              + (f" and the paper's eq. 12 ({st.paper_repetitions} per dataset in series "
+                 f"{', '.join(map(str, st.paper_series))}, same data)"
+                 if result.paper else "") + "; docs/likelihood.md explains them."),
         ("img", "fig_skill_coverage.png", "skill and coverage per series"),
         ("table", *honest_table(honest)),
         ("h2", "Comparison with the paper"),

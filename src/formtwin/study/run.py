@@ -11,8 +11,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import multiprocessing
+import os
 import time
-from concurrent.futures import as_completed
+from collections.abc import Iterator
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -30,8 +34,8 @@ from formtwin.study.series import (
     PAPER_SERIES,
     SERIES,
     Task,
-    make_measurement,
     measurement_file,
+    measurement_task,
     run_task,
 )
 from formtwin.tracker import TrackerConfig
@@ -53,6 +57,10 @@ class StudySettings:
     #: repetitions per dataset of every series with the paper's likelihood (eq. 12) beside
     #: the tracker's (calibrated by default), on the same data; 0: none
     paper_repetitions: int = 1
+    #: the series that also run the paper's likelihood: no model error (1), the
+    #: metamodel's error (5), and that with the deviation and mu assumed (6); series 2-4
+    #: have metamodel data like 1
+    paper_series: tuple[int, ...] = (1, 5, 6)
     workers: int | None = None
     scheduler: str | None = None
     #: the filters' settings; each series sets its own estimate_deviation, mu, learn_mu
@@ -115,6 +123,21 @@ def _executor_name(settings: StudySettings) -> str:
     return f"dask {settings.scheduler}" if settings.scheduler else "processes"
 
 
+@contextmanager
+def _pool(settings: StudySettings) -> Iterator[Executor]:
+    """The study's executor: a Dask cluster's, or a local process pool whose workers are
+    started by a fork server (a worker forked while the physics runner holds a data file
+    open would keep its HDF5 lock)."""
+    if settings.scheduler:
+        with make_executor(_executor_name(settings), settings.workers) as ex:
+            yield ex
+        return
+    ctx = multiprocessing.get_context("forkserver")
+    with ProcessPoolExecutor(max_workers=settings.workers or os.cpu_count() or 1,
+                             mp_context=ctx) as pool:
+        yield pool
+
+
 def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
               metamodel_path: Path, physics: Simulator, progress: bool = False) -> StudyResult:
     """Generate (or reload) the pseudo-data and run (or reload) every filter run."""
@@ -122,27 +145,28 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     data_dir = folder / "data"
-    realisations = [make_realisation(spec, k, settings.n_products, settings.seed, metamodel,
-                                     physics, data_dir, executor=_executor_name(settings))
-                    for k in range(settings.n_realisations)]
-    t_data = time.perf_counter() - t0
-    tasks = _tasks(settings, folder, metamodel_path, data_dir)
-    todo = [t for t in tasks if not Path(t.out_path).exists()]
-    # K_MC once per (realisation, mu known or assumed, likelihood), here, not in every worker
-    for path, real_k, known, tracker in sorted(
-            {(t.measurement_path, t.realisation, SERIES[t.series - 1].mu_known, t.tracker)
-             for t in todo}, key=lambda a: a[0]):
-        if not Path(path).exists():
-            make_measurement(metamodel, realisations[real_k], known, settings.seed, tracker,
-                             Path(path))
-    log.info("%d filter runs, %d cached", len(tasks), len(tasks) - len(todo))
-    t1 = time.perf_counter()
-    if todo:
-        with make_executor(_executor_name(settings), settings.workers) as pool:
-            futures = [pool.submit(run_task, t) for t in todo]
-            for fut in tqdm(as_completed(futures), total=len(futures), desc="filter runs",
-                            disable=not progress):
-                fut.result()
+    # one pool for the physics runs and the filter runs: each worker compiles the physics
+    # (Numba, ~11 s) once, not once per realisation
+    with _pool(settings) as pool:
+        realisations = [make_realisation(spec, k, settings.n_products, settings.seed,
+                                         metamodel, physics, data_dir, executor=pool)
+                        for k in range(settings.n_realisations)]
+        t_data = time.perf_counter() - t0
+        tasks = _tasks(settings, folder, metamodel_path, data_dir)
+        todo = [t for t in tasks if not Path(t.out_path).exists()]
+        # K_MC once per (realisation, mu known or assumed, likelihood) file, in the pool,
+        # before the filter runs that read it
+        needed = {t.measurement_path: t for t in todo if not Path(t.measurement_path).exists()}
+        for fut in [pool.submit(measurement_task, t.metamodel_path, t.realisation_path,
+                                SERIES[t.series - 1].mu_known, settings.seed, t.tracker,
+                                path) for path, t in sorted(needed.items())]:
+            fut.result()
+        log.info("%d filter runs, %d cached", len(tasks), len(tasks) - len(todo))
+        t1 = time.perf_counter()
+        futures = [pool.submit(run_task, t) for t in todo]
+        for fut in tqdm(as_completed(futures), total=len(futures), desc="filter runs",
+                        disable=not progress):
+            fut.result()
     t_filters = time.perf_counter() - t1
     prior_angles = _prior_angles(metamodel, realisations, settings.seed)
     arrays, paths = _score(spec, settings, tasks, realisations, prior_angles, paper=False)
@@ -164,17 +188,19 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
 def _tasks(settings: StudySettings, folder: Path, metamodel_path: Path,
            data_dir: Path) -> list[Task]:
     """Every filter run of the study: the tracker's likelihood, then the paper's."""
-    runs = [(settings.tracker, settings.n_repetitions, "")]
+    lik = settings.tracker.likelihood  # a non-default likelihood's runs are named for it
+    runs = [(settings.tracker, settings.n_repetitions,
+             "" if lik == TrackerConfig().likelihood else f"_{lik}", settings.series)]
     if settings.compares_paper:
         runs.append((dataclasses.replace(settings.tracker, likelihood="paper"),
-                     settings.paper_repetitions, "_paper"))
+                     settings.paper_repetitions, "_paper", settings.paper_series))
     return [Task(series=s, realisation=k, repetition=r, metamodel_path=str(metamodel_path),
                  realisation_path=str(data_dir / f"realisation_{k}.nc"),
                  measurement_path=str(measurement_file(folder, k, SERIES[s - 1].mu_known,
                                                        tracker.likelihood)),
                  out_path=str(folder / "runs" / f"series{s}_real{k}_rep{r}{tag}.npz"),
                  tracker=tracker, seed=settings.seed)
-            for tracker, reps, tag in runs for s in settings.series
+            for tracker, reps, tag, series in runs for s in settings.series if s in series
             for k in range(settings.n_realisations) for r in range(reps)]
 
 

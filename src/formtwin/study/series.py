@@ -122,9 +122,9 @@ def _measurement(path: str) -> MeasurementModel:
 def measurement_file(folder: Path, realisation: int, mu_known: bool,
                      likelihood: str = "calibrated") -> Path:
     """Where the study keeps the measurement model of a realisation (mu known or assumed,
-    calibrated or paper likelihood)."""
+    calibrated likelihood, or the paper's, which the discrepancy likelihood builds on)."""
     kind = "known" if mu_known else "assumed"
-    tail = "" if likelihood == "calibrated" else f"_{likelihood}"
+    tail = "" if likelihood == "calibrated" else "_paper"  # discrepancy: the paper's
     return folder / "measurement" / f"real{realisation}_mu_{kind}{tail}.npz"
 
 
@@ -148,6 +148,16 @@ def make_measurement(model: Metamodel | ProcessModel, real: Realisation, mu_know
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = build_measurement(model, config, rng).save(path.with_suffix(".tmp.npz"))
     tmp.replace(path)
+    return path
+
+
+def measurement_task(metamodel_path: str, realisation_path: str, mu_known: bool, seed: int,
+                     base: TrackerConfig, path: str) -> str:
+    """:func:`make_measurement` from files (for a worker process); returns ``path``."""
+    if not Path(path).exists():
+        with single_blas_thread():
+            make_measurement(_metamodel(metamodel_path), _realisation(realisation_path),
+                             mu_known, seed, base, Path(path))
     return path
 
 

@@ -24,7 +24,8 @@ def build_measurement(model: ProcessModel, config: TrackerConfig,
                       rng: np.random.Generator | None = None) -> MeasurementModel:
     """The measurement model for ``config``: ``K_MC`` from ``config.n_mc`` curves of
     ``model`` with the state about ``config.mu`` (mid-range when ``None``), times
-    ``config.fraction^2``; plus ``K_res`` when ``config.likelihood == "calibrated"``.
+    ``config.fraction^2``; plus ``K_res`` when ``config.likelihood == "calibrated"`` (the
+    discrepancy likelihood takes the paper's and adds ``K_res`` itself).
 
     A model without residual statistics (the analytic stand-in, whose error is nil; a
     metamodel file from before the error model) gets ``K_res = 0`` with a warning for a

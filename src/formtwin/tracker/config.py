@@ -16,9 +16,17 @@ import numpy as np
 #: z~(x, theta)) or "measurement" (z against g(z~(x, theta), theta_d))
 COMPARE = ("model", "measurement")
 
-#: likelihoods (:mod:`formtwin.measurement`): "calibrated" adds the metamodel's k-fold
-#: residual covariance K_res to fraction^2 K_MC; "paper" is eq. 12 alone
-LIKELIHOODS = ("calibrated", "paper")
+#: likelihoods (:mod:`formtwin.measurement`, :mod:`formtwin.tracker.discrepancy`):
+#: "calibrated" adds the metamodel's k-fold residual covariance K_res to fraction^2 K_MC;
+#: "paper" is eq. 12 alone; "adaptive" adds kappa K_res with the share kappa weighted by
+#: the running evidence (Bayesian model averaging over :data:`SHARES`: kappa = 0 is the
+#: paper's, 1 the calibrated); "discrepancy" also learns a part of the metamodel's error
+#: shared by the products, prior N(0, (1 - kappa) K_res)
+LIKELIHOODS = ("calibrated", "paper", "adaptive", "discrepancy")
+
+#: the grid of the share ``kappa`` of ``K_res`` learned by the adaptive and discrepancy
+#: likelihoods when ``error_share`` is None (0: the paper's likelihood, 1: the calibrated)
+SHARES = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 #: the grid of factors on the likelihood covariance learned with ``learn_scale``
 SCALES = tuple(float(2.0**k) for k in np.arange(-3.0, 3.5, 0.5))
@@ -59,14 +67,24 @@ class TrackerConfig:
     n_mc : Monte-Carlo curves for the measurement model's ``K_MC`` (paper: 10^4).
     nu : Student-t degrees of freedom of the likelihood; ``inf`` is the paper's Gaussian,
         a finite value the heavy-tailed robust option.
-    likelihood : ``"calibrated"`` (default): covariance ``fraction^2 K_MC + K_res +
-        sigma_n^2 I`` with ``K_res`` the metamodel's held-out residual covariance, and the
-        predicted angles' std includes the metamodel's angle error; ``"paper"``: eq. 12,
-        ``fraction^2 K_MC + sigma_n^2 I``. See :data:`LIKELIHOODS`.
+    likelihood : ``"adaptive"`` (default): covariance ``fraction^2 K_MC + kappa K_res +
+        sigma_n^2 I`` with ``K_res`` the metamodel's held-out residual covariance and
+        ``kappa`` averaged over :data:`SHARES` by the running evidence (``error_share``
+        fixes it), and the predicted angles' variance adds ``kappa`` times the
+        metamodel's angle error; ``"calibrated"``: ``kappa = 1``; ``"discrepancy"``: also
+        a shared part of the error learned; ``"paper"``: eq. 12, ``fraction^2 K_MC +
+        sigma_n^2 I``. See :data:`LIKELIHOODS` and :mod:`formtwin.tracker.discrepancy`.
     fraction : std of the measurement uncertainty as a fraction of the Monte-Carlo std
         (paper: 1/2, i.e. ``K_MC / 4``).
     sensor_noise : std of the force sensor, N (a floor of 1 % of the largest principal std
         applies anyway, see :mod:`formtwin.measurement`).
+    error_share : the share ``kappa`` of ``K_res`` that the adaptive and discrepancy
+        likelihoods add to the paper's covariance, independent from product to product
+        (for the discrepancy likelihood the rest, ``(1 - kappa) K_res``, is the prior of
+        the shared discrepancy); ``None`` (default): learned over :data:`SHARES` by the
+        evidence.
+    discrepancy_memory : with ``likelihood="discrepancy"``, the memory (products) of its
+        statistics: ``1 - 1/memory`` is the forgetting factor; ``inf``: none.
     learn_scale : learn a factor ``c`` on the likelihood's covariance online: a posterior
         over :data:`SCALES`, updated by each product's innovation likelihood under each
         ``c`` (see :meth:`~formtwin.tracker.BendingSSM.update_scale`); the particles are
@@ -100,13 +118,19 @@ class TrackerConfig:
     n_mc: int = field(default=10_000, metadata=_help("Monte-Carlo curves for K_MC"))
     nu: float = field(default=math.inf, metadata=_help(
         "Student-t degrees of freedom of the likelihood (inf: Gaussian)", "--robust-nu"))
-    likelihood: str = field(default="calibrated", metadata=_help(
-        "likelihood: calibrated (K_MC fraction + metamodel residual covariance) or paper"))
+    likelihood: str = field(default="adaptive", metadata=_help(
+        "likelihood: adaptive (K_MC fraction + a share of the metamodel's residual "
+        "covariance weighted by the evidence), calibrated (the whole K_res), discrepancy "
+        "(part of K_res learned as a shared error) or paper"))
     fraction: float = field(default=0.5, metadata=_help(
         "measurement std as a fraction of the Monte-Carlo std (paper: 0.5)"))
     sensor_noise: float = field(default=0.0, metadata=_help("force sensor std, N"))
     learn_scale: bool = field(default=False, metadata=_help(
         "learn a factor on the likelihood covariance online"))
+    error_share: float | None = field(default=None, metadata=_help(
+        "share of K_res in the adaptive/discrepancy likelihood (default: learned)"))
+    discrepancy_memory: float = field(default=math.inf, metadata=_help(
+        "memory of the learned discrepancy, products (inf: no forgetting)"))
 
     def __post_init__(self) -> None:
         if self.angle_particles is not None and self.angle_particles < 1:
@@ -133,21 +157,33 @@ class TrackerConfig:
             raise ValueError(f"nu = {self.nu}, expected > 0 (inf for Gaussian)")
         if self.learn_scale and not math.isinf(self.nu):
             raise ValueError("learn_scale needs the Gaussian likelihood (nu = inf)")
+        if self.likelihood in ("adaptive", "discrepancy") and self.learn_scale:
+            raise ValueError(f"the {self.likelihood} likelihood learns its own scale "
+                             "(error_share): learn_scale is for calibrated or paper")
+        if self.likelihood == "discrepancy" and not math.isinf(self.nu):
+            raise ValueError("the discrepancy likelihood is Gaussian (nu = inf)")
+        if self.error_share is not None and not 0.0 <= self.error_share <= 1.0:
+            raise ValueError(f"error_share = {self.error_share}, expected in [0, 1]")
+        if not self.discrepancy_memory >= 1:
+            raise ValueError(f"discrepancy_memory = {self.discrepancy_memory}, expected >= 1 "
+                             "(inf: no forgetting)")
 
     def to_dict(self) -> dict[str, Any]:
         """The settings as JSON-ready values (``nu = inf`` as ``None``)."""
         if not isinstance(self.resampling, str):
             raise ValueError("a config with a callable resampling scheme cannot be saved")
         d = dataclasses.asdict(self)
-        d["nu"] = None if math.isinf(self.nu) else self.nu
+        for key in ("nu", "discrepancy_memory"):  # JSON has no infinity
+            d[key] = None if math.isinf(d[key]) else d[key]
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrackerConfig:
         """Inverse of :meth:`to_dict` (missing keys take their defaults)."""
         d = dict(d)
-        if "nu" in d:
-            d["nu"] = math.inf if d["nu"] is None else float(d["nu"])
+        for key in ("nu", "discrepancy_memory"):
+            if key in d:
+                d[key] = math.inf if d[key] is None else float(d[key])
         clean: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
                                  for k, v in d.items()}
         return cls(**clean)

@@ -144,6 +144,13 @@ class Tracker:
         return float(np.exp(self.ssm.scale_logpost) @ np.array(SCALES))
 
     @property
+    def error_share(self) -> float | None:
+        """Posterior mean of the share ``kappa`` of ``K_res`` added to the likelihood's
+        covariance (adaptive and discrepancy likelihoods), else ``None``."""
+        d = self.ssm.discrepancy
+        return None if d is None else float(np.exp(self.ssm.share_logpost) @ d.shares)
+
+    @property
     def n_steps(self) -> int:
         """Number of products assimilated so far."""
         return self.filter.t
@@ -170,11 +177,13 @@ class Tracker:
         f = self.filter
         saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
         scale = self.ssm.scale_logpost if self.config.learn_scale else None
+        share = self.ssm.share_logpost
         try:
             logw_prev = f.logw
             s = f.step(y)
             if scale is not None:
                 self.ssm.update_scale(logw_prev)
+            self.ssm.update_share(logw_prev)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
             return self._estimate(s, np.exp(saved[1]), c, uu)
         except BaseException:
@@ -182,6 +191,7 @@ class Tracker:
             self.rng.bit_generator.state = saved[3]
             if scale is not None:
                 self.ssm.set_scale_logpost(scale)
+            self.ssm.set_share_logpost(share)
             raise
 
     def final_angle(self, u: Any) -> FloatArray:
@@ -221,13 +231,13 @@ class Tracker:
             w = w / w.sum()
             a = np.where(ok[:, None], angles, 0.0)
             am = w @ a
-            astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error_var)
+            astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
         else:
             am = astd = np.full(2, np.nan)
         mean, std, na = s.mean(), s.std(), len(self.names)
         mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None
         fit = assess(self.ssm.last_residuals(), v, s.ess, self.measurement, s.collapsed,
-                     self.fit_rule, scale)
+                     self.fit_rule, scale, self.ssm.last_covariance())
         return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
                         std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
                         collapsed=s.collapsed, loglik=s.loglik,
@@ -265,6 +275,8 @@ class Tracker:
         x = np.empty((0, self.ssm.n_aug)) if f.x is None else f.x
         model = {"scale_logpost": [float(v) for v in self.ssm.scale_logpost]} \
             if self.config.learn_scale else {}
+        if self.ssm.share_logpost.size > 1:
+            model["share_logpost"] = [float(v) for v in self.ssm.share_logpost]
         return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
                                    t=f.t, rng=dict(self.rng.bit_generator.state),
                                    config=self._config_dict, names=self.names,
@@ -283,6 +295,8 @@ class Tracker:
         self.rng.bit_generator.state = s.rng
         if self.config.learn_scale and "scale_logpost" in s.model:
             self.ssm.set_scale_logpost(np.array(s.model["scale_logpost"], dtype=np.float64))
+        if "share_logpost" in s.model:
+            self.ssm.set_share_logpost(np.array(s.model["share_logpost"], dtype=np.float64))
         self.filter.x = s.particles if s.t > 0 and s.particles.size else None
         self.filter.logw = s.logw
         self.filter.t = s.t

@@ -50,8 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import cho_factor, cho_solve
-from scipy.special import gammaln
-from scipy.stats import chi2
+from scipy.special import gammaincc, gammaln
 from scipy.stats import f as fdist
 
 from formtwin.estimates import Fit
@@ -99,7 +98,8 @@ def distance_logsf(m2: FloatArray, measurement: MeasurementModel) -> FloatArray:
     m2 = np.asarray(m2, dtype=np.float64)
     n_t, nu = measurement.n_t, measurement.nu
     if math.isinf(nu):
-        out = np.asarray(chi2.logsf(m2, n_t), dtype=np.float64)
+        with np.errstate(divide="ignore"):  # chi2.logsf without scipy.stats' overhead
+            out = np.log(gammaincc(0.5 * n_t, np.maximum(0.5 * m2, 0.0)))
         far = np.isneginf(out) & np.isfinite(m2)
         if far.any():  # Q(a, x) ~ x^(a-1) e^-x / Gamma(a) / (1 - (a-1)/x), x = m2/2
             a, x = 0.5 * n_t, 0.5 * m2[far]
@@ -112,7 +112,8 @@ def distance_logsf(m2: FloatArray, measurement: MeasurementModel) -> FloatArray:
 
 def assess(residuals: FloatArray, v: FloatArray, ess: float,
            measurement: MeasurementModel, collapsed: bool = False,
-           rule: FitRule | None = None, scale: float = 1.0) -> Fit:
+           rule: FitRule | None = None, scale: float = 1.0,
+           covariance: FloatArray | None = None) -> Fit:
     """The goodness of fit of one step.
 
     Parameters
@@ -124,6 +125,8 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     collapsed : the step collapsed (no particle explained the curve).
     rule : thresholds; default :class:`FitRule()`.
     scale : factor on ``Sigma`` (the learned likelihood scale, ``learn_scale``; else 1).
+    covariance : (n_t, n_t) the residuals' predictive covariance N^2 when it is not
+        ``scale * Sigma`` (the discrepancy likelihood), else ``None``.
     """
     rule = FitRule() if rule is None else rule
     r = np.asarray(residuals, dtype=np.float64)
@@ -138,7 +141,8 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     stride = max(1, -(-r.shape[0] // MAX_SPREAD))
     rs, vs = r[::stride], v[::stride]
     rc = (rs - r_bar) * np.sqrt(vs / vs.sum())[:, None]
-    cov = scale * measurement.covariance() + rc.T @ rc
+    base = scale * measurement.covariance() if covariance is None else covariance
+    cov = base + rc.T @ rc
     chol = cho_factor(cov, lower=True, check_finite=False)
     d2 = float(r_bar @ cho_solve(chol, r_bar, check_finite=False))
     logp = min(float(distance_logsf(np.array([d2]), measurement)[0]), 0.0)

@@ -26,6 +26,10 @@ With ``learn_scale=True`` the likelihood is a mixture over factors ``c`` on its 
 (:data:`~formtwin.tracker.config.SCALES`) weighted by their posterior, which
 :meth:`BendingSSM.update_scale` moves after each product by the evidence under each ``c``.
 
+With ``likelihood="discrepancy"`` the metamodel's error is a discrepancy shared by the
+products, integrated out per particle by conjugate updates
+(:mod:`formtwin.tracker.discrepancy`); its statistics are the last ``n_t + 1`` columns.
+
 With ``estimate_deviation=False`` (paper series 1, 2, 4, 5) ``theta_d`` is fixed at 0
 (``g`` is the identity) and never jittered.
 """
@@ -43,7 +47,9 @@ from formtwin.evolution import evolve, jitter, mu_predictive, mu_update, reflect
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
-from formtwin.tracker.config import SCALES, TrackerConfig
+from formtwin.tracker.config import SCALES, SHARES, TrackerConfig
+from formtwin.tracker.discrepancy import Discrepancy
+from formtwin.tracker.hyper import GridPosteriors
 
 FloatArray = NDArray[np.float64]
 
@@ -54,7 +60,7 @@ CHUNK = 512
 
 
 @dataclass(frozen=True)
-class BendingSSM:
+class BendingSSM(GridPosteriors):
     """The augmented state-space model ``[x, theta, theta_d]`` for the generic filters.
 
     Parameters
@@ -83,6 +89,10 @@ class BendingSSM:
     _last: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
     # log-posterior of the likelihood scale (learn_scale)
     _scale: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
+    #: the learned discrepancy (``likelihood="discrepancy"``), else None
+    discrepancy: Discrepancy | None = field(init=False, repr=False, default=None)
+    # columns [0, _n_bounded) have finite bounds (the discrepancy's statistics have none)
+    _n_bounded: int = field(init=False, repr=False, default=0)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
@@ -95,6 +105,20 @@ class BendingSSM:
         if self.config.learn_mu:  # bounds of m (the design box) and P (0, P0]
             lo = np.r_[lo, spec.state.lo, np.full(len(spec.state), 1e-300)]
             hi = np.r_[hi, spec.state.hi, self.mu_prior[1]]
+        object.__setattr__(self, "_n_bounded", lo.size)
+        if self.config.likelihood in ("adaptive", "discrepancy"):
+            k_res = residual_covariance(self.model)
+            share = self.config.error_share
+            disc = Discrepancy.from_covariances(
+                self.measurement.covariance(),
+                np.zeros((spec.n_t, spec.n_t)) if k_res is None else k_res,
+                np.array(SHARES) if share is None else share,
+                self.config.discrepancy_memory, self.config.likelihood == "discrepancy",
+                self.config.nu)
+            object.__setattr__(self, "discrepancy", disc)
+            if disc.shared:  # the statistics of the shared part: unbounded columns
+                lo = np.r_[lo, np.full(disc.width, -np.inf)]
+                hi = np.r_[hi, np.full(disc.width, np.inf)]
         object.__setattr__(self, "_lo", lo)
         object.__setattr__(self, "_hi", hi)
         object.__setattr__(self, "deviation", DeviationModel.from_spec(spec))
@@ -106,7 +130,7 @@ class BendingSSM:
         object.__setattr__(self, "_mu", st.mu_mid if c.mu is None else np.array(c.mu))
         object.__setattr__(self, "_sigma", st.sigma if c.sigma is None else np.array(c.sigma))
         object.__setattr__(self, "_rho", st.rho if c.rho is None else np.array(c.rho))
-        var = angle_residual_variance(self.model) if c.likelihood == "calibrated" else None
+        var = angle_residual_variance(self.model) if c.likelihood != "paper" else None
         object.__setattr__(self, "angle_error_var", np.zeros(2) if var is None else var)
         if self.measurement.n_t != spec.n_t:
             raise ValueError(f"measurement model has {self.measurement.n_t} samples, "
@@ -123,7 +147,7 @@ class BendingSSM:
         """Posterior mean and std (7,) of a learned mu from particles ``x`` (N, 32) with
         weights ``w`` (N,): the moments of the mixture of the particles' ``N(m, P)``."""
         na, nx = self.n_aug, self.n_x
-        m, P = x[:, na:na + nx], x[:, na + nx:]
+        m, P = x[:, na:na + nx], x[:, na + nx:na + 2 * nx]
         mean = w @ m
         var = w @ P + w @ (m - mean) ** 2
         return mean, np.sqrt(np.maximum(var, 0.0))
@@ -156,11 +180,12 @@ class BendingSSM:
             out[:, :nx] = x0
             P = np.broadcast_to(1.0 / (1.0 / P0 + 1.0 / self._sigma**2), (n, nx))
             out[:, na:na + nx] = P * (m0 / P0 + x0 / self._sigma**2)
-            out[:, na + nx:] = P
+            out[:, na + nx:na + 2 * nx] = P
         else:
             out[:, :nx] = stationary(n, self._mu, self._sigma, rng, lo[:nx], hi[:nx])
         if not self.config.estimate_deviation:
             out[:, self.n_in:self.n_aug] = 0.0
+        out[:, self._n_bounded:] = 0.0  # the discrepancy's statistics: nothing seen yet
         return out
 
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
@@ -168,12 +193,12 @@ class BendingSSM:
         lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
         out = np.empty_like(x)
         if self.config.learn_mu:  # the predictive with mu ~ N(m, P) integrated out
-            m, P = x[:, na:na + nx], x[:, na + nx:]
+            m, P = x[:, na:na + nx], x[:, na + nx:na + 2 * nx]
             mean, var = mu_predictive(m, P, x[:, :nx], self._sigma, self._rho)
             out[:, :nx] = _into_box(mean + np.sqrt(var) * rng.standard_normal(mean.shape),
                                     lo[:nx], hi[:nx])
-            out[:, na:na + nx], out[:, na + nx:] = mu_update(m, P, x[:, :nx], out[:, :nx],
-                                                             self._sigma, self._rho)
+            out[:, na:na + nx], out[:, na + nx:na + 2 * nx] = mu_update(
+                m, P, x[:, :nx], out[:, :nx], self._sigma, self._rho)
         else:  # eq. 4-5, then reflection of the few rows that left the box
             out[:, :nx] = _into_box(evolve(x[:, :nx], self._mu, self._sigma, self._rho, rng),
                                     lo[:nx], hi[:nx])
@@ -181,6 +206,7 @@ class BendingSSM:
         out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                  self.config.alpha)
         out[:, stop:na] = x[:, stop:na]
+        out[:, self._n_bounded:] = x[:, self._n_bounded:]
         return out
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
@@ -195,57 +221,33 @@ class BendingSSM:
         else:
             self._last["r"] = np.concatenate([p[1] for p in parts])
             ll = np.concatenate([p[0] for p in parts])
+        disc = self.discrepancy
+        if disc is not None:  # residuals net of each particle's shared discrepancy,
+            stats = x[:, self._n_bounded:] if disc.shared else None  # then this product
+            logp = self.share_logpost  # joins the statistics
+            w = np.exp(logp)
+            self._last["cov"] = disc.predictive_cov(stats, w)
+            if stats is not None:
+                self._last["r"] = self._last["r"] - disc.bias(stats, w)
+                disc.update(stats, np.concatenate([p[2] for p in parts]))
+            self._last["grid"] = ll  # (N, n_k): the mixture over the share's posterior
+            ll = logsumexp(ll + logp, axis=1) if logp.size > 1 else ll[:, 0]
         if not self.config.learn_scale:
             return ll
         self._last["scaled"] = ll  # (N, n_scales): the mixture over the scale posterior
         out: FloatArray = logsumexp(ll + self.scale_logpost, axis=1)
         return out
 
-    @property
-    def scale_logpost(self) -> FloatArray:
-        """Log-posterior (n_scales,) of the factor on the likelihood covariance over
-        :data:`~formtwin.tracker.config.SCALES` (``learn_scale``; uniform prior)."""
-        if "logp" not in self._scale:
-            self._scale["logp"] = np.full(len(SCALES), -np.log(len(SCALES)))
-        return self._scale["logp"]
-
-    def set_scale_logpost(self, value: FloatArray) -> None:
-        """Replace the log-posterior of the scale (restoring a saved state)."""
-        self._scale["logp"] = np.asarray(value, dtype=np.float64)
-
-    def update_scale(self, logw_prev: FloatArray) -> None:
-        """Bayes' rule for the scale after a step whose predicted particles had normalised
-        log-weights ``logw_prev`` (N,): ``p(c | Z_i) ~ p(c | Z_i-1) p(z_i | Z_i-1, c)``.
-
-        The predictive ``p(z_i | Z_i-1, c)`` is taken Gaussian, moment-matched to the
-        predicted cloud (the innovation likelihood of adaptive Kalman filtering): residual
-        mean ``e`` and covariance ``P`` of ``obs - model`` over the particles, and
-        ``z_i - model ~ N(e, c Sigma + P)``. (The particle mixture ``sum_k w_k N(r_k; 0, c
-        Sigma)`` instead rewards small ``c`` whenever one particle lands near the data.)
-        """
-        if "scaled" not in self._last or "r" not in self._last:
-            return
-        ll = self._last.pop("scaled")
-        good = np.all(np.isfinite(ll), axis=1) & np.all(np.isfinite(self._last["r"]), axis=1)
-        w = np.exp(logw_prev - logsumexp(logw_prev)) * good
-        if w.sum() <= 0:
-            return  # a collapsed step says nothing about the scale
-        w = w / w.sum()
-        r = np.where(good[:, None], self._last["r"], 0.0)
-        e = w @ r
-        d = (r - e) * np.sqrt(w)[:, None]
-        if "white" not in self._scale:  # Sigma = L L^T; whiten by L^-1
-            L = np.linalg.cholesky(self.measurement.covariance())
-            self._scale["white"] = np.linalg.inv(L)
-        Wt = self._scale["white"]
-        dw = d @ Wt.T
-        gam, V = np.linalg.eigh(dw.T @ dw)  # whitened P = V diag(gam) V^T
-        ev2 = (V.T @ (Wt @ e)) ** 2
-        c = np.array(SCALES)[:, None]
-        g = np.maximum(gam, 0.0)[None, :]
-        ev = -0.5 * (np.sum(np.log(c + g), axis=1) + np.sum(ev2 / (c + g), axis=1))
-        logp = self.scale_logpost + ev
-        self.set_scale_logpost(logp - logsumexp(logp))
+    def angle_error(self) -> FloatArray:
+        """Variance (2,) deg^2 the predicted angles' variance adds for the metamodel's own
+        angle error: its held-out variance (calibrated, discrepancy), times the posterior
+        mean of ``kappa`` (adaptive: the share of the metamodel's error the curves show),
+        0 for the paper's likelihood."""
+        d = self.discrepancy
+        if d is None or d.shared:
+            return self.angle_error_var
+        out: FloatArray = self.angle_error_var * float(np.exp(self.share_logpost) @ d.shares)
+        return out
 
     def residuals(self, x: FloatArray, y: FloatArray) -> FloatArray:
         """Residuals ``obs - model`` (N, n_t) N of curve ``y`` for particles ``x``, as the
@@ -254,15 +256,24 @@ class BendingSSM:
 
     def last_residuals(self) -> FloatArray:
         """Residuals (N, n_t) N of the curve of the last :meth:`loglik` call: ``obs - model``
-        as the likelihood compares them (the goodness of fit, :mod:`formtwin.tracker.fit`)."""
+        as the likelihood compares them (the goodness of fit, :mod:`formtwin.tracker.fit`);
+        with the discrepancy likelihood, net of each particle's predicted discrepancy."""
         if "r" not in self._last:
             raise RuntimeError("no likelihood evaluated yet")
         return self._last["r"]
 
+    def last_covariance(self) -> FloatArray | None:
+        """The predictive covariance (n_t, n_t) N^2 of the last curve's residuals when it is
+        not the measurement model's (the discrepancy likelihood), else ``None``."""
+        return self._last.get("cov")
+
     def constrain(self, x: FloatArray) -> FloatArray:
         """Reflect particles (N, 18) or (N, 32) into their bounds (used by kernel moves);
-        ``theta_d`` stays 0 when it is not estimated."""
-        out = reflect(x, self._lo, self._hi)
+        ``theta_d`` stays 0 when it is not estimated; the discrepancy's statistics are
+        left as they are."""
+        nb = self._n_bounded
+        out = x.copy()
+        out[:, :nb] = reflect(x[:, :nb], self._lo[:nb], self._hi[:nb])
         if not self.config.estimate_deviation:
             out[:, self.n_in:self.n_aug] = 0.0
         return out
@@ -304,8 +315,10 @@ class BendingSSM:
             curves = self.deviation.apply(curves, np.tile(run.theta_d, (n, 1)))
         return run, curves
 
-    def _loglik(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Log-likelihoods (N,) of ``y`` for ``x`` and the residuals (N, n_t)."""
+    def _loglik(self, x: FloatArray, y: FloatArray
+                ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Log-likelihoods (N,) of ``y`` for ``x``, the residuals (N, n_t) and, with the
+        discrepancy likelihood, their whitened coordinates (N, n_t)."""
         curves = self.model.predict_curves(x[:, : self.n_in])
         obs: FloatArray = y
         if self.config.estimate_deviation:
@@ -314,9 +327,14 @@ class BendingSSM:
                 curves = self.deviation.apply(curves, td)
             else:
                 obs = self.deviation.invert(y, td)
+        r = np.atleast_2d(obs - curves)
+        if self.discrepancy is not None:
+            c = self.discrepancy.whiten(r)
+            stats = x[:, self._n_bounded:] if self.discrepancy.shared else None
+            return self.discrepancy.loglik(r, stats, c), r, c
         ll = self.measurement.loglik_scaled(curves, obs, np.array(SCALES)) \
             if self.config.learn_scale else self.measurement.loglik(curves, obs)
-        return ll, np.atleast_2d(obs - curves)
+        return ll, r, None
 
 
 def residual_covariance(model: ProcessModel) -> FloatArray | None:

@@ -1,0 +1,100 @@
+"""Hyperparameters of the likelihood learned by Bayes' rule over a grid, shared by all
+particles: the share ``kappa`` of the metamodel's error (adaptive and discrepancy
+likelihoods, :mod:`formtwin.tracker.discrepancy`) and the factor ``c`` on the whole
+covariance (``learn_scale``). A mixin of :class:`~formtwin.tracker.ssm.BendingSSM`, whose
+``_last`` holds the last step's per-particle log-likelihoods on each grid."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import logsumexp
+
+from formtwin.tracker.config import SCALES
+
+FloatArray = NDArray[np.float64]
+
+
+class GridPosteriors:
+    """Log-posteriors over the grids of ``kappa`` and ``c`` and their updates."""
+
+    _scale: dict[str, FloatArray]
+    _last: dict[str, FloatArray]
+    discrepancy: Any
+    measurement: Any
+
+    @property
+    def share_logpost(self) -> FloatArray:
+        """Log-posterior (n_k,) of the independent share ``kappa`` of ``K_res`` over the
+        discrepancy's grid (uniform prior), or ``[0]`` for one given value."""
+        if "share" not in self._scale:
+            n = 1 if self.discrepancy is None else self.discrepancy.shares.size
+            self._scale["share"] = np.full(n, -np.log(n))
+        return self._scale["share"]
+
+    def set_share_logpost(self, value: FloatArray) -> None:
+        """Replace the log-posterior of the share (restoring a saved state)."""
+        self._scale["share"] = np.asarray(value, dtype=np.float64)
+
+    def update_share(self, logw_prev: FloatArray) -> None:
+        """Bayes' rule for ``kappa`` after a step whose predicted particles had normalised
+        log-weights ``logw_prev`` (N,): ``p(kappa | Z_i) ~ p(kappa | Z_i-1) sum_k w_k
+        p_kappa(z_i | particle k)``, the particle estimate of the evidence under each
+        ``kappa``."""
+        grid = self._last.pop("grid", None)
+        if grid is None or grid.shape[1] < 2:
+            return
+        ev = logsumexp(logw_prev[:, None] + grid, axis=0)
+        if not np.all(np.isfinite(ev)):
+            return  # a collapsed step says nothing about the share
+        logp = self.share_logpost + ev
+        self.set_share_logpost(logp - logsumexp(logp))
+
+    @property
+    def scale_logpost(self) -> FloatArray:
+        """Log-posterior (n_scales,) of the factor on the likelihood covariance over
+        :data:`~formtwin.tracker.config.SCALES` (``learn_scale``; uniform prior)."""
+        if "logp" not in self._scale:
+            self._scale["logp"] = np.full(len(SCALES), -np.log(len(SCALES)))
+        return self._scale["logp"]
+
+    def set_scale_logpost(self, value: FloatArray) -> None:
+        """Replace the log-posterior of the scale (restoring a saved state)."""
+        self._scale["logp"] = np.asarray(value, dtype=np.float64)
+
+    def update_scale(self, logw_prev: FloatArray) -> None:
+        """Bayes' rule for the scale after a step whose predicted particles had normalised
+        log-weights ``logw_prev`` (N,): ``p(c | Z_i) ~ p(c | Z_i-1) p(z_i | Z_i-1, c)``.
+
+        The predictive ``p(z_i | Z_i-1, c)`` is taken Gaussian, moment-matched to the
+        predicted cloud (the innovation likelihood of adaptive Kalman filtering): residual
+        mean ``e`` and covariance ``P`` of ``obs - model`` over the particles, and
+        ``z_i - model ~ N(e, c Sigma + P)``. (The particle mixture ``sum_k w_k N(r_k; 0, c
+        Sigma)`` instead rewards small ``c`` whenever one particle lands near the data.)
+        """
+        if "scaled" not in self._last or "r" not in self._last:
+            return
+        ll = self._last.pop("scaled")
+        good = np.all(np.isfinite(ll), axis=1) & np.all(np.isfinite(self._last["r"]), axis=1)
+        w = np.exp(logw_prev - logsumexp(logw_prev)) * good
+        if w.sum() <= 0:
+            return  # a collapsed step says nothing about the scale
+        w = w / w.sum()
+        r = np.where(good[:, None], self._last["r"], 0.0)
+        e = w @ r
+        d = (r - e) * np.sqrt(w)[:, None]
+        if "white" not in self._scale:  # Sigma = L L^T; whiten by L^-1
+            L = np.linalg.cholesky(self.measurement.covariance())
+            self._scale["white"] = np.linalg.inv(L)
+        Wt = self._scale["white"]
+        dw = d @ Wt.T
+        gam, V = np.linalg.eigh(dw.T @ dw)  # whitened P = V diag(gam) V^T
+        ev2 = (V.T @ (Wt @ e)) ** 2
+        c = np.array(SCALES)[:, None]
+        g = np.maximum(gam, 0.0)[None, :]
+        ev = -0.5 * (np.sum(np.log(c + g), axis=1) + np.sum(ev2 / (c + g), axis=1))
+        logp = self.scale_logpost + ev
+        self.set_scale_logpost(logp - logsumexp(logp))
+
