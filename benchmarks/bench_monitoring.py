@@ -65,6 +65,7 @@ from formtwin.monitoring.calibrate import (
 from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
 from formtwin.monitoring.scenarios import Change, changed_run
 from formtwin.tracker import Tracker, TrackerConfig
+from formtwin.tracker.build import build_measurement
 
 Series = dict[str, np.ndarray]
 
@@ -99,13 +100,14 @@ def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
 
 
 def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, change: Change,
-            n: int, seed: int) -> Estimates:
+            n: int, seed: int, noise: bool = True) -> Estimates:
     """Track one production run with ``change``, its curves with measurement noise."""
     rng = np.random.default_rng(seed)
     run = changed_run(model.spec, n, np.asarray(tcfg.mu), rng, change)
     curves = model.predict_curves(run.inputs)
-    return Tracker(model, mm, replace(tcfg, seed=seed)).run(
-        curves + measurement_noise(mm, n, rng))
+    if noise:
+        curves = curves + measurement_noise(mm, n, rng)
+    return Tracker(model, mm, replace(tcfg, seed=seed)).run(curves)
 
 
 def estimates_code() -> str:
@@ -149,6 +151,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--particles", type=int, default=500)
     p.add_argument("--deviation", action="store_true")
+    p.add_argument("--no-noise", action="store_true",
+                   help="noise-free curves (the model's own, as the paper's pseudo-data)")
     p.add_argument("--calib-runs", type=int, default=16)
     p.add_argument("--calib-products", type=int, default=1500)
     p.add_argument("--ic-runs", type=int, default=30)
@@ -182,8 +186,8 @@ def main() -> None:
     mu = spec.state.mu_mid
     tcfg = TrackerConfig(n_particles=args.particles, estimate_deviation=args.deviation,
                          mu=tuple(mu), seed=args.seed)
-    mm = MeasurementModel.from_monte_carlo(model, mu=mu, n=tcfg.n_mc,
-                                           rng=np.random.default_rng(args.seed))
+    # the measurement model as every tracker gets it (the default likelihood: K_res too)
+    mm = build_measurement(model, tcfg, np.random.default_rng(args.seed))
     design = ChartDesign(lam=args.lam, k=args.k, k_mismatch=args.k_mismatch,
                          arl0_per_chart=args.arl0, arl0_ewma=args.arl0_ewma,
                          arl0_mismatch=args.arl0_mismatch,
@@ -192,22 +196,25 @@ def main() -> None:
                          tails=not args.no_tails, health_ar=not args.no_health_ar,
                          health_phase1=args.health_phase1)
     key = {"model": info["doe_sha256_16"], "metamodel": info["metamodel"],
-           "tracker": tcfg.to_dict(), "code": estimates_code(), "noise": "N(0, Sigma)",
+           "tracker": tcfg.to_dict(), "code": estimates_code(),
+           "noise": "none" if args.no_noise else "N(0, Sigma)",
            "seed": args.seed, "at": args.at, "after": args.after}
     runs = Runs(CACHE / "monitoring", key)
+    noise = not args.no_noise
     n = args.at + args.after
     t0 = time.perf_counter()
     with single_blas_thread():
         calib_runs = [runs.get(f"calib{r}_{args.calib_products}", lambda r=r: simulate_in_control(
             model, mm, replace(tcfg, seed=tcfg.seed + r), args.calib_products, 1,
-            seed=args.seed + r)[0]) for r in range(args.calib_runs)]
+            seed=args.seed + r, noise=noise)[0]) for r in range(args.calib_runs)]
         scenarios: dict[str, list[tuple[Change, Series]]] = {}
         ic_runs: list[Series] = []
         for kind, size in (("step", 2.0), ("ic", 0.0), ("drift", args.drift)):
             if kind == "ic":  # tracked between the steps and the drifts (cache order)
                 ic_runs = [runs.get(f"ic{r}_{args.ic_products}", lambda r=r: simulate_in_control(
                     model, mm, replace(tcfg, seed=tcfg.seed + 5000 + r), args.ic_products, 1,
-                    seed=args.seed + 10_000 + r)[0]) for r in range(args.ic_runs)]
+                    seed=args.seed + 10_000 + r, noise=noise)[0])
+                    for r in range(args.ic_runs)]
                 continue
             for j, name in enumerate(spec.state.names):
                 scenarios[f"{kind}:{name}"] = []
@@ -216,14 +223,14 @@ def main() -> None:
                     seed = args.seed + 100_000 + 1000 * j + 100 * (kind == "drift") + r
                     scenarios[f"{kind}:{name}"].append((ch, runs.get(
                         f"{kind}_{name}_{size}_{r}",
-                        lambda ch=ch, seed=seed: changed(model, mm, tcfg, ch, n, seed))))
+                        lambda ch=ch, seed=seed: changed(model, mm, tcfg, ch, n, seed, noise))))
         rng = np.random.default_rng(args.seed + 7)
         scenarios["batch"] = []
         for r in range(2 * args.drift_reps):
             ch = Change.batch(args.at, args.batch, rng)
             scenarios["batch"].append((ch, runs.get(
                 f"batch_{args.batch}_{r}", lambda ch=ch, r=r: changed(
-                    model, mm, tcfg, ch, n, args.seed + 200_000 + r))))
+                    model, mm, tcfg, ch, n, args.seed + 200_000 + r, noise))))
     track_s = time.perf_counter() - t0
     config = calibrate_series(calib_runs, spec.state.names, mu, design)
     ic_alarms = [a for s in ic_runs for a in chart(config, s)]
@@ -263,6 +270,8 @@ def main() -> None:
             **summary([d for d, _, _ in results["batch"]], args.after),
             "first_alarm_variable": [v for _, _, v in results["batch"]]},
         "settings": {"particles": args.particles, "deviation": args.deviation,
+                     "likelihood": tcfg.likelihood,
+                     "noise": key["noise"],
                      "calib_runs": args.calib_runs, "calib_products": args.calib_products,
                      "ic_runs": args.ic_runs, "ic_products": args.ic_products,
                      "reps": args.reps, "drift_reps": args.drift_reps, "at": args.at,
