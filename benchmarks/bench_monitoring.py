@@ -153,12 +153,12 @@ def main() -> None:
     p.add_argument("--deviation", action="store_true")
     p.add_argument("--no-noise", action="store_true",
                    help="noise-free curves (the model's own, as the paper's pseudo-data)")
-    p.add_argument("--calib-runs", type=int, default=16)
+    p.add_argument("--calib-runs", type=int, default=12)
     p.add_argument("--calib-products", type=int, default=1500)
-    p.add_argument("--ic-runs", type=int, default=30)
+    p.add_argument("--ic-runs", type=int, default=25)
     p.add_argument("--ic-products", type=int, default=2000)
     p.add_argument("--reps", type=int, default=10, help="runs per variable and step sign")
-    p.add_argument("--drift-reps", type=int, default=4,
+    p.add_argument("--drift-reps", type=int, default=2,
                    help="runs per variable for the drift; 2 x this for the batch")
     p.add_argument("--at", type=int, default=250)
     p.add_argument("--after", type=int, default=150)
