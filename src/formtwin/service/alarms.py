@@ -20,8 +20,9 @@ order (the charts are deterministic).
 
 The chart configuration is fixed with the store (``meta`` key ``monitor_config``, JSON):
 either calibrated at the store's first start on simulated in-control runs of the service's
-own model, measurement model and tracker settings (:func:`in_control_runs`: the spec's
-statistics mu, sigma, rho, and measurement noise as the likelihood assumes it;
+own model, measurement model and tracker settings
+(:func:`~formtwin.monitoring.calibrate.simulate_in_control`: the spec's statistics mu,
+sigma, rho, and measurement noise as the likelihood assumes it;
 :func:`~formtwin.monitoring.calibrate.calibrate`), or a user's file
 (:meth:`~formtwin.monitoring.MonitorConfig.to_json` format: in-control means, residual
 sigmas, chart limits).
@@ -33,14 +34,13 @@ import logging
 import math
 import sqlite3
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from formtwin.estimates import Estimates
-from formtwin.monitoring.calibrate import ChartDesign, calibrate
+from formtwin.monitoring.calibrate import ChartDesign, calibrate, simulate_in_control
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker
@@ -86,33 +86,6 @@ class MonitorSource:
     seed: int = 0
 
 
-def in_control_runs(tracker: Tracker, n: int, runs: int, seed: int) -> list[Estimates]:
-    """Estimates of ``runs`` simulated in-control runs of ``n`` products, tracked as the
-    service tracks (``tracker``'s model, measurement model and settings, its seed varied
-    per run).
-
-    Each run is drawn as the tracker assumes the process
-    (:meth:`~formtwin.tracker.BendingSSM.simulate`: the config's mu, sigma, rho, machine
-    parameters and deviation uniform in their bounds) and its curves get measurement noise
-    as the likelihood assumes it, ``N(0, Sigma)`` (:meth:`~formtwin.measurement.
-    MeasurementModel.covariance`). Without that noise (as
-    :func:`~formtwin.monitoring.calibrate.simulate_in_control` draws them) every real curve
-    fits worse and spreads the posterior means more than in calibration: the health and
-    state charts then alarm on ~20 % of an in-control stream's products.
-    """
-    cov = tracker.measurement.covariance()
-    w, v = np.linalg.eigh(cov)
-    root = v * np.sqrt(np.clip(w, 0.0, None))  # Sigma = root @ root.T
-    out = []
-    for r, ss in enumerate(np.random.SeedSequence(seed).spawn(runs)):
-        t = Tracker(tracker.model, tracker.measurement,
-                    replace(tracker.config, seed=tracker.config.seed + 1000 + r))
-        rng = np.random.default_rng(ss)
-        _, curves = t.ssm.simulate(n, rng)
-        out.append(t.run(curves + rng.standard_normal(curves.shape) @ root.T))
-    return out
-
-
 def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> MonitorConfig:
     """The store's chart configuration: the stored one, or a new one from ``source``
     (stored in the store's ``meta``)."""
@@ -127,7 +100,8 @@ def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> Mon
     else:
         log.info("calibrating the charts on %d simulated in-control runs of %d products",
                  source.runs, source.products)
-        runs = in_control_runs(tracker, source.products, source.runs, source.seed)
+        runs = simulate_in_control(tracker.model, tracker.measurement, tracker.config,
+                                   source.products, source.runs, source.seed, noise=True)
         c = tracker.config
         mu = tracker.spec.state.mu_mid if c.mu is None else np.asarray(c.mu)
         config = calibrate(runs, tracker.spec.state.names, mu, source.design)
@@ -272,5 +246,4 @@ def _real(v: Any) -> float:
     return math.nan if v is None else float(v)
 
 
-__all__ = ["MonitorSource", "ServiceMonitor", "in_control_runs", "monitor_config",
-           "values_of"]
+__all__ = ["MonitorSource", "ServiceMonitor", "monitor_config", "values_of"]
