@@ -70,10 +70,11 @@ class TrackerConfig:
     likelihood : ``"adaptive"`` (default): covariance ``fraction^2 K_MC + kappa K_res +
         sigma_n^2 I`` with ``K_res`` the metamodel's held-out residual covariance and
         ``kappa`` averaged over :data:`SHARES` by the running evidence (``error_share``
-        fixes it), and the predicted angles' variance adds ``kappa`` times the
-        metamodel's angle error; ``"calibrated"``: ``kappa = 1``; ``"discrepancy"``: also
-        a shared part of the error learned; ``"paper"``: eq. 12, ``fraction^2 K_MC +
-        sigma_n^2 I``. See :data:`LIKELIHOODS` and :mod:`formtwin.tracker.discrepancy`.
+        fixes it), and the predicted angles' variance adds the metamodel's angle error
+        times the posterior probability of ``kappa > 0``; ``"calibrated"``: ``kappa = 1``;
+        ``"discrepancy"``: also a shared part of the error learned; ``"paper"``: eq. 12,
+        ``fraction^2 K_MC + sigma_n^2 I``. See :data:`LIKELIHOODS` and
+        :mod:`formtwin.tracker.discrepancy`.
     fraction : std of the measurement uncertainty as a fraction of the Monte-Carlo std
         (paper: 1/2, i.e. ``K_MC / 4``).
     sensor_noise : std of the force sensor, N (a floor of 1 % of the largest principal std

@@ -240,13 +240,15 @@ class BendingSSM(GridPosteriors):
 
     def angle_error(self) -> FloatArray:
         """Variance (2,) deg^2 the predicted angles' variance adds for the metamodel's own
-        angle error: its held-out variance (calibrated, discrepancy), times the posterior
-        mean of ``kappa`` (adaptive: the share of the metamodel's error the curves show),
-        0 for the paper's likelihood."""
+        angle error: its held-out variance (calibrated, discrepancy); for the adaptive
+        likelihood that times the posterior probability that the metamodel's error is in
+        the data at all (``kappa > 0``: in the curves a part of the error is taken up by
+        the parameters, in the angles nothing takes it up); 0 for the paper's."""
         d = self.discrepancy
         if d is None or d.shared:
             return self.angle_error_var
-        out: FloatArray = self.angle_error_var * float(np.exp(self.share_logpost) @ d.shares)
+        present = float(np.exp(self.share_logpost) @ (d.shares > 0))
+        out: FloatArray = self.angle_error_var * present
         return out
 
     def residuals(self, x: FloatArray, y: FloatArray) -> FloatArray:
