@@ -121,6 +121,13 @@ def main() -> None:
         "study_filter_runs": int(timings["filter_runs_computed"]),
         "extra_runs_s": round(extra_s, 1),
         "likelihood": lik,
+        "method": ("study_s: the default `formtwin study` (bending) in an emptied folder, "
+                   "as its timings record it: pseudo-data (physics runs), K_MC builds, "
+                   f"{int(timings['filter_runs_computed'])} filter runs, scoring; the "
+                   "metamodel fitted before (cached in the folder's model/); study_wall_s "
+                   "adds loading it and writing the report. Ratios: repetitions 0-1 of "
+                   "every dataset, the default and the paper's likelihood on identical "
+                   "data."),
         "state_nrmse": {
             lik: {f"series{s}": round(state(paper, s), 4) for s in (1, 5, 6)},
             "paper": {f"series{s}": round(state(paper, s, True), 4) for s in (1, 5, 6)},
