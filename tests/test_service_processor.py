@@ -184,7 +184,7 @@ def test_restart_replays_the_products_after_the_checkpoint(
     ck = proc.store.checkpoint()
     assert ck is not None and ck[0] == 24 // k * k  # seq of the k-th, 2k-th, ... product
     proc.close()
-    with caplog.at_level(logging.INFO, logger="formtwin.service.runtime"):
+    with caplog.at_level(logging.INFO, logger="formtwin.service.processor"):
         proc = open_processor(tmp_path / "k.sqlite", gated, checkpoint_every=k)
     assert f"replayed {27 - ck[0] - 1} products" in caplog.text  # the gated one skipped
     assert not [r for r in caplog.records if r.levelname == "ERROR"]
@@ -339,10 +339,16 @@ def test_tracker_refusal_is_a_rejection(tmp_path: Path, payloads: list[bytes]) -
     assert proc.handle(payloads[1]).kind == "accepted"
     assert proc.store.rejection_counts() == {"tracker_rejected": 1}
 
-    class Crashing:  # an unexpected error after touching the state: rolled back
+    class Crashing:  # an unexpected error after touching the state: rolled back (the
+        # undo replays the stored curves through the tracker: those step as before)
+        crashed = False
+
         def step(self, curve: object, u: object = None) -> object:
-            real.step(curve)
-            raise FloatingPointError("overflow in the model (test double)")
+            out = real.step(curve)
+            if not self.crashed:
+                self.crashed = True
+                raise FloatingPointError("overflow in the model (test double)")
+            return out
 
         def state_bytes(self) -> bytes:
             return real.state_bytes()

@@ -102,6 +102,31 @@ class TrackerLike(Protocol):
         ...
 
 
+def replay(store: Store, tracker: TrackerLike) -> int:
+    """Restore ``tracker`` from the store's last checkpoint (if any) and step it through
+    the curves (and press settings) of the accepted products stored after it, in commit
+    order; return how many were stepped. The steps are deterministic, so the tracker ends
+    in the state it had after the last stored product (at a restart, and to undo a gated
+    or failed step); an estimate the replay does not reproduce (its log-likelihood) is
+    logged as an error."""
+    ck = store.checkpoint()
+    if ck is not None:
+        tracker.load_state_bytes(ck[1])
+        log.info("restored tracker from checkpoint of product seq %d", ck[0])
+    n = 0
+    for row in store.products(since_seq=0 if ck is None else ck[0], status="accepted"):
+        stored = row.estimate or {}
+        u = stored.get("u")
+        est = tracker.step(row.curve, None if u is None else np.asarray(u, dtype=np.float64))
+        n += 1
+        if "loglik" in stored and float(est.loglik) != stored["loglik"]:
+            log.error("replaying product seq %d gave loglik %r, stored %r: the tracker does "
+                      "not continue bit for bit", row.seq, float(est.loglik), stored["loglik"])
+    if n:
+        log.info("replayed %d products stored after the checkpoint", n)
+    return n
+
+
 @dataclass(frozen=True)
 class Outcome:
     """Result of one message: ``kind`` is accepted, redelivered, gated or rejected;
@@ -127,11 +152,12 @@ class Processor:
     Parameters
     ----------
     store : Store
-        The durable store; its checkpoint (if any) must be the state of ``tracker``.
+        The durable store.
     tracker : TrackerLike
-        The tracker, already restored from the store's checkpoint when there is one; its
-        in-memory state (``state_bytes``) is the checkpoint, and loading the last one back
-        undoes a gated or failed step.
+        The tracker at the last stored product: restored from the store's checkpoint and
+        stepped through the products stored after it (:func:`replay`); on a store without
+        a checkpoint, in its first state (stored then as the checkpoint of seq 0). A gated
+        or failed step is undone by :func:`replay` too.
     limits : Limits
         Message validation limits.
     gate : OutlierGate or None
@@ -179,8 +205,10 @@ class Processor:
         if gate is not None:
             gate.history = store.recent_logliks(gate.window)
             gate.last_gated = store.last_status() == "gated"
-        self._last_ckpt = self.tracker.state_bytes()
         ck = store.checkpoint()
+        if ck is None:
+            store.execute("INSERT INTO checkpoint(id, seq, data) VALUES (1, 0, ?)",
+                          (tracker.state_bytes(),))
         #: accepted products stored after the last stored checkpoint
         self._unsaved = int(store.query(
             "SELECT COUNT(*) FROM products WHERE status = 'accepted' AND seq > ?",
@@ -202,7 +230,7 @@ class Processor:
 
     # ------------------------------------------------------------------ internals
     def _rollback(self) -> None:
-        self.tracker.load_state_bytes(self._last_ckpt)
+        replay(self.store, self.tracker)
         for m in (self.monitor, self.health, self.controller):
             if m is not None:
                 m.rollback()
@@ -314,7 +342,6 @@ class Processor:
                                "state not updated", stroke.part_id)
             log.warning("part %s gated as outlier: %s", stroke.part_id, err.detail)
             return Outcome("gated", error_message(err, topic, now), stroke.part_id, seq)
-        ckpt = self.tracker.state_bytes()
         flags = {"collapsed": bool(est.collapsed), "redelivered": False}
         msg = estimate_message(stroke, est.to_dict(), seq=-1, flags=flags)
         seq = self._next_seq
@@ -338,16 +365,16 @@ class Processor:
                                                now)
 
         save = self._unsaved + 1 >= self.checkpoint_every
+        ckpt = self.tracker.state_bytes() if save else None
         payload = dumps(msg)  # once: stored and published as is
         got = self.store.commit_product(
             part_id=stroke.part_id, cycle=stroke.cycle, timestamp=stroke.timestamp,
             status="accepted", digest=stroke.digest, curve=stroke.force_N,
-            measured_angles=angles, estimate=payload, checkpoint=ckpt if save else None,
+            measured_angles=angles, estimate=payload, checkpoint=ckpt,
             received_at=now, within=within)
         if got != seq:  # single writer: cannot happen unless the store is shared
             raise RuntimeError(f"store sequence {got} != expected {seq}: is another "
                                "service writing to the same store?")
-        self._last_ckpt = ckpt  # in memory: undoes a gated or failed step
         self._unsaved = 0 if save else self._unsaved + 1
         self._last_cycle = stroke.cycle
         self._next_seq = seq + 1

@@ -27,7 +27,7 @@ from formtwin.service.gate import OutlierGate
 from formtwin.service.health import HealthRule, ModelHealth
 from formtwin.service.messages import Limits
 from formtwin.service.plausibility import Plausibility
-from formtwin.service.processor import Processor
+from formtwin.service.processor import Processor, replay
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker, TrackerConfig, build_measurement, build_tracker
 from formtwin.tracker.explain import best_distance2, default_starts
@@ -149,30 +149,6 @@ def measurement_path(store_path: Path) -> Path:
     return store_path.with_name(store_path.name + ".measurement.npz")
 
 
-def replay(store: Store, tracker: Tracker) -> int:
-    """Restore ``tracker`` from the store's last checkpoint (if any) and step it through
-    the curves (and press settings) of the accepted products stored after it, in commit
-    order; return how many were stepped. The steps are deterministic, so the tracker ends
-    in the state it had after the last stored product; an estimate the replay does not
-    reproduce (its log-likelihood) is logged as an error."""
-    ck = store.checkpoint()
-    if ck is not None:
-        tracker.load_state_bytes(ck[1])
-        log.info("restored tracker from checkpoint of product seq %d", ck[0])
-    n = 0
-    for row in store.products(since_seq=0 if ck is None else ck[0], status="accepted"):
-        stored = row.estimate or {}
-        u = stored.get("u")
-        est = tracker.step(row.curve, None if u is None else np.asarray(u, dtype=np.float64))
-        n += 1
-        if "loglik" in stored and float(est.loglik) != stored["loglik"]:
-            log.error("replaying product seq %d gave loglik %r, stored %r: the tracker does "
-                      "not continue bit for bit", row.seq, float(est.loglik), stored["loglik"])
-    if n:
-        log.info("replayed %d products stored after the checkpoint", n)
-    return n
-
-
 def open_processor(store_path: str | Path, settings: ServiceSettings,
                    synchronous: str = "NORMAL", background_checkpoint_s: float = 1.0,
                    checkpoint_every: int = 10) -> Processor:
@@ -207,6 +183,9 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
         # always the saved file, so the first run and every restart use identical numbers
         measurement = MeasurementModel.load(mpath)
         tracker = build_tracker(model, settings.tracker, measurement)
+        if store.checkpoint() is None:  # the tracker's first state: replays start there
+            store.execute("INSERT INTO checkpoint(id, seq, data) VALUES (1, 0, ?)",
+                          (tracker.state_bytes(),))
         replay(store, tracker)
         gate = OutlierGate(k=settings.gate_k) if settings.gate_k > 0 else None
         plausible = Plausibility.from_model(model, settings.min_peak_N, settings.clip_samples,
