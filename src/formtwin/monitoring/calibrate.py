@@ -52,7 +52,9 @@ class ChartDesign:
         than the CUSUM, so given little of the false-alarm budget).
     arl0_mismatch : in-control ARL of each health statistic's mismatch CUSUM.
     arl0_shewhart : in-control ARL of the single-product limit on ``|z|`` that joins each
-        CUSUM (combined Shewhart-CUSUM); ``None``: none.
+        CUSUM (combined Shewhart-CUSUM); ``None`` (default): none. (It sees the jump of a
+        step at once, but the residuals' extreme tails beyond the calibration sample then
+        widen every chart of the quantity: measured, it cost more detection than it gave.)
     order : AR order of the in-control models.
     tails : standardise residuals through their in-control distribution (heavy tails).
     health_ar : chart the health scores' AR residuals (they are autocorrelated) instead of
@@ -73,7 +75,7 @@ class ChartDesign:
     arl0_per_chart: float = 5.0e5
     arl0_ewma: float = 1.0e7
     arl0_mismatch: float = 1.0e7
-    arl0_shewhart: float | None = 2.0e6
+    arl0_shewhart: float | None = None
     order: int = 2
     tails: bool = True
     health_ar: bool = True
