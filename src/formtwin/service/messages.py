@@ -145,15 +145,19 @@ def _reject_constant(name: str) -> float:
     raise MessageError("non_finite", f"JSON literal {name} is not a finite number")
 
 
+#: the types of a JSON number (``bool``, a subclass of ``int``, is not one)
+_NUMBER_TYPES = frozenset((int, float))
+
+
 def _number_list(doc: dict[str, Any], key: str, part_id: str) -> FloatArray:
     value = doc[key]
     if not isinstance(value, list):
         raise MessageError("bad_field", f"{key} must be a list of numbers, got "
                            f"{type(value).__name__}", part_id)
-    for i, v in enumerate(value):
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise MessageError("bad_field", f"{key}[{i}] must be a number, got {v!r:.40}",
-                               part_id)
+    if not set(map(type, value)) <= _NUMBER_TYPES:  # JSON gives exactly int and float
+        i, v = next((i, v) for i, v in enumerate(value) if type(v) not in _NUMBER_TYPES)
+        raise MessageError("bad_field", f"{key}[{i}] must be a number, got {v!r:.40}",
+                           part_id)
     try:
         arr = np.asarray(value, dtype=np.float64)
     except OverflowError:

@@ -123,7 +123,8 @@ class Plausibility:
             return MessageError("no_stroke", f"peak force {top:.4g} N < {self.min_peak_N:.4g} "
                                 "N (no stroke or sensor unplugged)", part_id)
         at_top = np.abs(f - top) <= self.clip_rel_tol * abs(top)
-        run = _longest_run(at_top)
+        n_top = int(np.count_nonzero(at_top))  # a run is no longer than the count
+        run = _longest_run(at_top) if n_top >= self.clip_samples else n_top
         if run >= self.clip_samples:
             return MessageError("clipped_sensor", f"{run} consecutive samples at the maximum "
                                 f"{top:.6g} N (>= {self.clip_samples}: clipped or saturated "
