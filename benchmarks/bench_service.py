@@ -11,7 +11,10 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   that queueing does not dominate);
 * ``full_speed_latency_p99_ms``: the same measured during the full-speed phase (queueing);
 * peers in the same run: ``processor_products_per_s`` (the same processing in-process, no
-  broker) and ``tracker_step_ms`` (the tracker alone);
+  broker: validation, tracker, model health, control charts, store, page feed; measured
+  once the charts run) and ``tracker_step_ms`` (the tracker alone);
+* ``alarm_products``: products of the full-speed and paced phases whose estimate raised an
+  alarm (the stream is in control: few expected);
 * CPU time, which other jobs on the machine disturb far less than wall time:
   ``serve_cpu_ms_per_product`` (the whole serve process: MQTT, validation, tracker, store,
   page; during the full-speed phase), ``tracker_step_cpu_ms`` (thread time of a step), and
@@ -40,6 +43,7 @@ import json
 import os
 import shutil
 import socket
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -51,10 +55,12 @@ from typing import Any
 import numpy as np
 
 from formtwin._bench import bundled_metamodel, write_result
+from formtwin.service.alarms import MonitorSource, ServiceMonitor, monitor_config
 from formtwin.service.messages import dumps
 from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
 from formtwin.service.runtime import ServiceSettings, open_processor
 from formtwin.service.streams import make_stream, read_stream
+from formtwin.service.web import LiveFeed
 from formtwin.tracker import TrackerConfig
 
 #: what the service must reach (issue 14)
@@ -189,6 +195,9 @@ def main() -> int:
         for p in reversed(procs):
             p.terminate()
             p.wait(20)
+    with sqlite3.connect(tmp / "b.sqlite") as db:
+        alarm_products = int(db.execute("SELECT COUNT(DISTINCT seq) FROM alarms WHERE seq > ?",
+                                        (n_warm,)).fetchone()[0])
     # peers in the same run: the processor without a broker, the tracker alone
     from threadpoolctl import threadpool_limits
 
@@ -197,14 +206,18 @@ def main() -> int:
                                tracker=TrackerConfig(n_particles=args.particles,
                                                      sensor_noise=NOISE_N))
     proc = open_processor(tmp / "peer.sqlite", settings)
-    payloads = [dumps(s.to_message()) for s in strokes[:300]]
-    for p in payloads[:n_warm]:
+    proc.monitor = ServiceMonitor(proc.store, monitor_config(  # as serve sets them up
+        proc.store, proc.tracker, MonitorSource(seed=settings.tracker.seed)))
+    proc.on_outcome = LiveFeed(proc.tracker_names()).on_outcome
+    payloads = [dumps(s.to_message()) for s in strokes[:500]]
+    peer_warm = min(200, len(payloads) // 2)  # past the charts' warm-up and Phase I
+    for p in payloads[:peer_warm]:
         proc.handle(p)
     t0, c0 = time.perf_counter(), time.thread_time()
-    for p in payloads[n_warm:]:
+    for p in payloads[peer_warm:]:
         proc.handle(p)
-    peer_rate = (len(payloads) - n_warm) / (time.perf_counter() - t0)
-    peer_cpu_ms = (time.thread_time() - c0) / (len(payloads) - n_warm) * 1e3
+    peer_rate = (len(payloads) - peer_warm) / (time.perf_counter() - t0)
+    peer_cpu_ms = (time.thread_time() - c0) / (len(payloads) - peer_warm) * 1e3
     tail = strokes[:200]  # the curves again: the tracker does not mind
     t0, c0 = time.perf_counter(), time.thread_time()
     for s in tail:
@@ -228,6 +241,7 @@ def main() -> int:
         "latency_p50_ms": round(float(np.percentile(lat, 50)), 2),
         "latency_p99_ms": round(p99, 2),
         "full_speed_latency_p99_ms": round(float(np.percentile(lat_full, 99)), 1),
+        "alarm_products": alarm_products,
         "processor_products_per_s": round(peer_rate, 1),
         "tracker_step_ms": round(step_ms, 2),
         "serve_cpu_ms_per_product": round(serve_cpu_ms, 2),
