@@ -283,8 +283,8 @@ def main() -> None:
                      "ewma_L": round(per_chart[0].L, 4), "cusum_h": round(per_chart[1].h, 4),
                      "mismatch_h": round(per_chart[2].h, 4),
                      "shewhart_limit": config.shewhart,
-                     "widen": {n: round(q.widen, 3) for n, q in
-                               (*config.quantities.items(), *config.health_models.items())}},
+                     "widen": {n: {c: round(f, 3) for c, f in d.items()}
+                               for n, d in config.widen.items()}},
         "tracking_s": round(track_s, 1),
     }
     write_result("monitoring", figures, directory=args.out, model=info)

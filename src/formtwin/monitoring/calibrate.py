@@ -53,8 +53,8 @@ class ChartDesign:
     arl0_mismatch : in-control ARL of each health statistic's mismatch CUSUM.
     arl0_shewhart : in-control ARL of the single-product limit on ``|z|`` that joins each
         CUSUM (combined Shewhart-CUSUM); ``None`` (default): none. (It sees the jump of a
-        step at once, but the residuals' extreme tails beyond the calibration sample then
-        widen every chart of the quantity: measured, it cost more detection than it gave.)
+        step at once, but the residuals' extreme tails beyond the calibration sample make
+        it raise false alarms; see docs/monitoring.md.)
     order : AR order of the in-control models.
     tails : standardise residuals through their in-control distribution (heavy tails).
     health_ar : chart the health scores' AR residuals (they are autocorrelated) instead of
@@ -64,8 +64,8 @@ class ChartDesign:
     health_phase1 : the scores' level from Phase I (it depends on the machine parameters,
         but the first products are still the filter's transient) instead of the pooled
         in-control level.
-    widen_margin : widen a quantity's limits where charting the calibration runs would
-        have come closer than this factor to them (:func:`widen`); ``None``: off.
+    widen_margin : raise a chart's limit where charting the calibration runs would have
+        come closer than this factor to it (:func:`widen`); ``None``: off.
     warmup, phase1 : see :class:`~formtwin.monitoring.monitor.MonitorConfig`.
     """
 
@@ -184,41 +184,45 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
 
 
 def widen(config: MonitorConfig, runs: Sequence[Mapping[str, FloatArray]], margin: float,
-          rounds: int = 8) -> MonitorConfig:
-    """``config`` with every model's :attr:`~InControl.widen` raised until charting the
-    in-control ``runs`` keeps each chart statistic below its limit / ``margin`` (at most
-    ``rounds`` times, each by the factor the quantity's worst chart needed).
+          rounds: int = 10) -> MonitorConfig:
+    """``config`` with the limit of every chart raised (:attr:`MonitorConfig.widen`) until
+    charting the in-control ``runs`` keeps its statistic below limit / ``margin`` (at most
+    ``rounds`` times).
 
     The Gaussian design assumes independent N(0, 1) scores; an estimate's excursion that
-    lasts several products (the filter losing its particles at an extreme state) breaks
-    that, and no per-product tail model covers it. Where the simulated in-control runs
-    would have crossed the design's limits, the limits are widened by what they needed
-    (an EWMA statistic scales exactly with ``1 / widen``, a CUSUM's at least as fast; a
-    chart that alarmed restarted, hiding how far it would have gone: another round).
+    lasts several products (an extreme but in-control state, where the filter's particles
+    thin out) breaks that, and no per-product tail model covers it. Where the simulated
+    in-control runs would have crossed the design's limits, that chart's limit is raised by
+    what it needed; the other charts of the quantity keep theirs (a CUSUM keeps its
+    reference value ``k``, tuned to the shift it is for). Below its limit a chart's
+    statistic does not depend on the limit, so the factor needed is exact; a chart that
+    alarmed restarted, hiding how far it would have gone: its limit is doubled (at least)
+    and the round repeated.
     """
     for _ in range(rounds):
-        worst: dict[str, float] = {}
+        worst: dict[tuple[str, str], float] = {}
         for run in runs:
             mon = Monitor(config)
             n = len(next(iter(run.values())))
             for i in range(n):
                 mon.update_values({k: float(v[i]) for k, v in run.items()}, i)
                 for name, charts in mon.last.items():
-                    r = max(abs(stat) / lim for stat, lim in charts.values())
-                    worst[name] = max(worst.get(name, 0.0), r)
-        grow = {n: r * margin for n, r in worst.items() if r * margin > 1.0}
-        if not grow:
+                    for chart, (stat, lim) in charts.items():
+                        key = (name, chart)
+                        worst[key] = max(worst.get(key, 0.0), abs(stat) / lim)
+        factors = {n: dict(d) for n, d in config.widen.items()}
+        changed = False
+        for (name, chart), r in worst.items():
+            f = factors.get(name, {}).get(chart, 1.0)
+            # below its limit the statistic's path does not depend on the limit: exact
+            new = f * max(2.0, r * margin) if r > 1.0 else max(1.0, f * r * margin)
+            if abs(new - f) > 1e-9 * f and (new > f or f > 1.0):
+                factors.setdefault(name, {})[chart] = new
+                changed = True
+        if not changed:
             break
-        config = replace(
-            config,
-            quantities={n: _widened(q, grow.get(n)) for n, q in config.quantities.items()},
-            health_models={n: _widened(q, grow.get(n))
-                           for n, q in config.health_models.items()})
+        config = replace(config, widen={n: d for n, d in factors.items() if d})
     return config
-
-
-def _widened(q: InControl, factor: float | None) -> InControl:
-    return q if factor is None else replace(q, widen=q.widen * factor)
 
 
 __all__ = ["ChartDesign", "calibrate", "calibrate_series", "measurement_noise", "series",

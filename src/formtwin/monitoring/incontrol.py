@@ -60,21 +60,14 @@ class InControl:
         (from :func:`fit_in_control` with ``tails=True``); when given, :meth:`score` maps
         the residual through their distribution to a normal score (heavy-tailed residuals
         would otherwise make Gaussian limits far too tight). ``()``: ``e / sigma`` as is.
-    widen : the score is divided by this factor >= 1 (the charts' limits widened by it):
-        set by :func:`~formtwin.monitoring.calibrate.calibrate_series` where simulated
-        in-control runs would have crossed the Gaussian design's limits (excursions of the
-        estimates that last several products, which no per-product tail model covers).
     """
 
     mean: float | None
     sigma: float
     phi: tuple[float, ...] = ()
     quantiles: tuple[float, ...] = ()
-    widen: float = 1.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.widen) and self.widen >= 1.0):
-            raise ValueError(f"in-control widen = {self.widen}, expected a number >= 1")
         if not (math.isfinite(self.sigma) and self.sigma > 0):
             raise ValueError(f"in-control sigma = {self.sigma}, expected a number > 0")
         if self.mean is not None and not math.isfinite(self.mean):
@@ -96,18 +89,17 @@ class InControl:
         pred = mean + sum(p * (h - mean) for p, h in zip(self.phi, reversed(history),
                                                           strict=True))
         e = (y - pred) / self.sigma
-        return (normal_score(e, self.quantiles) if self.quantiles else e) / self.widen
+        return normal_score(e, self.quantiles) if self.quantiles else e
 
     def to_dict(self) -> dict[str, Any]:
         return {"mean": self.mean, "sigma": self.sigma, "phi": list(self.phi),
-                "quantiles": list(self.quantiles), "widen": self.widen}
+                "quantiles": list(self.quantiles)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> InControl:
         return cls(mean=None if d["mean"] is None else float(d["mean"]),
                    sigma=float(d["sigma"]), phi=tuple(d["phi"]),
-                   quantiles=tuple(d.get("quantiles", ())),
-                   widen=float(d.get("widen", 1.0)))
+                   quantiles=tuple(d.get("quantiles", ())))
 
 
 def normal_score(e: float, q: Sequence[float]) -> float:

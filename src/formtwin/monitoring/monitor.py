@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from formtwin.estimates import Estimate
@@ -101,8 +101,13 @@ class MonitorConfig:
     phase1: int = 100
     cusum_on: tuple[str, ...] | None = None
     shewhart: float | None = None
+    widen: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        bad_w = {f"{n}/{c}": f for n, d in self.widen.items() for c, f in d.items()
+                 if not (math.isfinite(f) and f >= 1.0)}
+        if bad_w:
+            raise ValueError(f"limit factors {bad_w}: expected numbers >= 1")
         if self.shewhart is not None and not self.shewhart > 0:
             raise ValueError(f"shewhart limit = {self.shewhart}, expected > 0 or None")
         if self.cusum_on is not None:
@@ -136,7 +141,8 @@ class MonitorConfig:
             "cusum": {"k": self.cusum.k, "h": self.cusum.h},
             "mismatch": {"k": self.mismatch.k, "h": self.mismatch.h},
             "warmup": self.warmup, "phase1": self.phase1, "cusum_on": self.cusum_on,
-            "shewhart": self.shewhart})
+            "shewhart": self.shewhart,
+            "widen": {n: dict(d) for n, d in self.widen.items()}})
 
     @classmethod
     def from_json(cls, text: str) -> MonitorConfig:
@@ -150,7 +156,9 @@ class MonitorConfig:
                    mismatch=Cusum(**d["mismatch"], sides="high"),
                    warmup=int(d["warmup"]), phase1=int(d["phase1"]),
                    cusum_on=None if d.get("cusum_on") is None else tuple(d["cusum_on"]),
-                   shewhart=None if d.get("shewhart") is None else float(d["shewhart"]))
+                   shewhart=None if d.get("shewhart") is None else float(d["shewhart"]),
+                   widen={n: {c: float(f) for c, f in w.items()}
+                          for n, w in d.get("widen", {}).items()})
 
 
 def observe(estimate: Estimate) -> dict[str, float]:
@@ -195,6 +203,16 @@ class Monitor:
         self.cusum = {n: CusumState() for n in config.quantities
                       if config.cusum_on is None or n in config.cusum_on}
         self.health = {n: CusumState() for n in config.health}
+        w = config.widen
+        #: each quantity's charts with its limits (the design's times its ``widen``)
+        self.charts = {n: (replace(config.ewma, L=config.ewma.L * w.get(n, {}).get("ewma", 1.0)),
+                           replace(config.cusum, h=config.cusum.h * w.get(n, {}).get("cusum", 1.0)),
+                           None if config.shewhart is None
+                           else config.shewhart * w.get(n, {}).get("shewhart", 1.0))
+                       for n in config.quantities}
+        self.mismatch = {n: replace(config.mismatch,
+                                    h=config.mismatch.h * w.get(n, {}).get("mismatch", 1.0))
+                         for n in config.health}
         if state is not None:
             self._load(state)
 
@@ -237,21 +255,22 @@ class Monitor:
             if len(hist) < q.order or mean is None or not math.isfinite(y):
                 continue
             z = q.score(y, hist, mean)
-            self.ewma[n], s = c.ewma.update(self.ewma[n], z)
+            ewma, cusum, shewhart = self.charts[n]
+            self.ewma[n], s = ewma.update(self.ewma[n], z)
             last = self.last.setdefault(n, {})
             last["ewma"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "ewma", idx, s.statistic, s.limit, s.side))
             if n not in self.cusum:
                 continue
-            self.cusum[n], s = c.cusum.update(self.cusum[n], z)
+            self.cusum[n], s = cusum.update(self.cusum[n], z)
             last["cusum"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "cusum", idx, s.statistic, s.limit, s.side))
-            if c.shewhart is not None:
-                last["shewhart"] = (z, c.shewhart)
-                if abs(z) > c.shewhart:
-                    alarms.append(Alarm(n, "shewhart", idx, z, c.shewhart,
+            if shewhart is not None:
+                last["shewhart"] = (z, shewhart)
+                if abs(z) > shewhart:
+                    alarms.append(Alarm(n, "shewhart", idx, z, shewhart,
                                         "high" if z > 0 else "low"))
         for n in c.health:
             z, hm = float(values[n]), c.health_models.get(n)
@@ -260,7 +279,7 @@ class Monitor:
                 if len(hist) < hm.order or mean is None:
                     continue
                 z = hm.score(z, hist, mean)
-            self.health[n], s = c.mismatch.update(self.health[n], z)
+            self.health[n], s = self.mismatch[n].update(self.health[n], z)
             self.last[n] = {"mismatch": (s.statistic, s.limit)}
             if s.side:
                 alarms.append(Alarm(n, "mismatch", idx, s.statistic, s.limit, s.side))
