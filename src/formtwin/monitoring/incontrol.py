@@ -77,6 +77,9 @@ class InControl:
         if q and (len(q) < 20 or any(b < a for a, b in zip(q, q[1:], strict=False))):
             raise ValueError("in-control quantiles: expected >= 20 sorted values")
         object.__setattr__(self, "quantiles", q)
+        # the array and the outermost score once (score runs for every product and chart)
+        object.__setattr__(self, "_q", np.asarray(q, dtype=np.float64))
+        object.__setattr__(self, "_zmax", float(ndtri(1.0 - 0.5 / len(q))) if q else 0.0)
 
     @property
     def order(self) -> int:
@@ -89,7 +92,9 @@ class InControl:
         pred = mean + sum(p * (h - mean) for p, h in zip(self.phi, reversed(history),
                                                           strict=True))
         e = (y - pred) / self.sigma
-        return normal_score(e, self.quantiles) if self.quantiles else e
+        if not self.quantiles:
+            return e
+        return _score(e, self._q, self._zmax)  # type: ignore[attr-defined]
 
     def to_dict(self) -> dict[str, Any]:
         return {"mean": self.mean, "sigma": self.sigma, "phi": list(self.phi),
@@ -111,9 +116,14 @@ def normal_score(e: float, q: Sequence[float]) -> float:
     >>> normal_score(0.0, q), round(normal_score(12.0, q), 3)   # 1.981 + 2 beyond the last
     (0.0, 3.981)
     """
-    m = len(q)
-    lo, hi = q[0], q[-1]
-    zmax = float(ndtri(1.0 - 0.5 / m))
+    a = np.asarray(q, dtype=np.float64)
+    return _score(e, a, float(ndtri(1.0 - 0.5 / a.size)))
+
+
+def _score(e: float, q: FloatArray, zmax: float) -> float:
+    """:func:`normal_score` with the quantiles as an array and ``zmax = Phi^-1(1 - 1/(2m))``."""
+    m = q.size
+    lo, hi = float(q[0]), float(q[-1])
     if not math.isfinite(e):
         return math.copysign(math.inf, e) if not math.isnan(e) else math.nan
     if e <= lo:
@@ -121,8 +131,8 @@ def normal_score(e: float, q: Sequence[float]) -> float:
     if e >= hi:
         return zmax + (e - hi)
     k = int(np.searchsorted(q, e, "right")) - 1  # q[k] <= e < q[k + 1]
-    span = q[k + 1] - q[k]
-    f = (k + 0.5 + ((e - q[k]) / span if span > 0 else 0.5)) / m
+    span = float(q[k + 1] - q[k])
+    f = (k + 0.5 + ((e - float(q[k])) / span if span > 0 else 0.5)) / m
     return float(ndtri(f))
 
 
