@@ -1,5 +1,5 @@
-"""Benchmark of the monitoring (EWMA, Shewhart-CUSUM and model-mismatch charts): detection
-delay for known changes and false alarms in control.
+"""Benchmark of the monitoring (EWMA, CUSUM and model-mismatch charts): detection delay
+for known changes and false alarms in control.
 
 Run ``python benchmarks/bench_monitoring.py`` (heavy, ~15 min: run it under
 ``flock /tmp/formtwin-heavy.lock``). Model: the metamodel of the bundled physics DOE

@@ -10,10 +10,12 @@ about the spec's mean for state variables, about a Phase-I level for the angles 
 level depends on the machine parameters); and the health statistics' reference is their
 distribution in that run.
 
-Limits: every chart is designed for the same in-control ARL of its standardised residual,
-``arl0_per_chart``. With ``c`` charts the whole monitor then raises about ``c / arl0`` false
-alarms per product, if the residuals are as Gaussian and independent as assumed; the
-benchmark (``benchmarks/bench_monitoring.py``) counts the real rate.
+Limits: each chart kind is designed for an in-control ARL of independent N(0, 1) scores
+(:class:`ChartDesign`: the CUSUMs ``arl0_per_chart``, the EWMAs ``arl0_ewma``, the
+mismatch CUSUMs ``arl0_mismatch``); the whole monitor then raises about ``sum 1 / ARL0``
+false alarms per product if the scores are as Gaussian and independent as assumed. Where
+charting the calibration runs shows they are not, :func:`widen` raises that chart's
+limit. The benchmark (``benchmarks/bench_monitoring.py``) counts the real rate.
 """
 
 from __future__ import annotations
