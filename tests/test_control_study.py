@@ -40,3 +40,19 @@ def test_control_study_on_the_analytic_stand_in(tmp_path: Path) -> None:
     assert (tmp_path / "control_study.png").stat().st_size > 10_000
     again = run_control_study(model, physics, settings, tmp_path)  # reused, identical
     assert json.dumps(again, sort_keys=True) == json.dumps(s, sort_keys=True)
+
+
+def test_results_are_keyed_by_the_model_not_only_its_version() -> None:
+    """A metamodel refitted on the same physics version must not reuse old results."""
+    from types import SimpleNamespace
+
+    from formtwin.study.control_run import _key
+
+    model = analytic_model()
+    settings = ControlStudySettings(products=60, datasets=1)
+    shifted = SimpleNamespace(spec=model.spec, predict_angles=model.predict_angles,
+                              predict_curves=lambda X: model.predict_curves(X) + 1e-9)
+    key = _key(settings, 90.0, "v1", model)
+    assert key == _key(settings, 90.0, "v1", model)
+    assert key != _key(settings, 90.0, "v1", shifted)  # type: ignore[arg-type]
+    assert key != _key(settings, 90.1, "v1", model)

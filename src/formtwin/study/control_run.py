@@ -1,6 +1,7 @@
 """Run the control study (:mod:`formtwin.study.control`) over its datasets, score it and draw
 its figure: ``control_study.json`` and ``control_study.png`` in the output folder, the
-per-dataset results in ``dataset_<k>.npz`` (reused when present with the same settings)."""
+per-dataset results in ``dataset_<k>.npz`` (reused when present with the same settings, the
+same model and the same code)."""
 
 from __future__ import annotations
 
@@ -34,12 +35,29 @@ LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
 SHOWN = ("fixed", "ewma", "feedforward", "oracle")
 
 
-def _key(settings: ControlStudySettings, target: float, version: str) -> str:
+#: packages whose code does not change a control-study result
+NOT_IN_RESULTS = ("service", "cli", "monitoring", "figures.py")
+
+
+def _key(settings: ControlStudySettings, target: float, version: str,
+         metamodel: ProcessModel) -> str:
+    """Hash of what makes a dataset's result: settings (not the worker count), target,
+    physics version, the metamodel (its curve and angles at the box's middle) and the source
+    of the package outside :data:`NOT_IN_RESULTS` (tracker, controllers, plant, study)."""
     d = dataclasses.asdict(settings)
     d["tracker"] = settings.tracker.to_dict()
     d.pop("workers")
-    return hashlib.sha256(json.dumps([d, target, version], sort_keys=True,
-                                     default=str).encode()).hexdigest()[:16]
+    h = hashlib.sha256(json.dumps([d, target, version], sort_keys=True,
+                                  default=str).encode())
+    spec = metamodel.spec
+    mid = 0.5 * (spec.inputs.lo + spec.inputs.hi)[None, :]
+    h.update(np.ascontiguousarray(metamodel.predict_curves(mid), dtype="<f8").tobytes())
+    h.update(np.ascontiguousarray(metamodel.predict_angles(mid), dtype="<f8").tobytes())
+    pkg = Path(__file__).resolve().parents[1]
+    for f in sorted(pkg.rglob("*.py")):
+        if f.relative_to(pkg).parts[0] not in NOT_IN_RESULTS:
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def run_control_study(metamodel: ProcessModel, physics: Simulator,
@@ -51,7 +69,7 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     out.mkdir(parents=True, exist_ok=True)
     target = default_target(metamodel) if settings.target is None else settings.target
     gain = r2r_gain(metamodel, np.random.default_rng(settings.seed))
-    key = _key(settings, target, str(getattr(physics, "version", "")))
+    key = _key(settings, target, str(getattr(physics, "version", "")), metamodel)
     results: list[dict[str, Any]] = []
     lam: float | None = None
     for k in range(settings.datasets):
