@@ -116,3 +116,15 @@ def test_cli_quick_study_on_the_embedded_default(tmp_path: Path) -> None:
     assert len(lines) == 1 + 6 * 2 * 1
     s1 = np.array([[float(v) for v in line.split(",")[3:]] for line in lines[1:3]])
     assert np.all(s1[:, 6] < 0.5), s1[:, 6]  # punch end distance is observable in series 1
+
+
+def test_the_study_counts_its_filter_runs(tmp_path: Path) -> None:
+    """What `formtwin study` announces is what it runs (default: 6 series x 5 datasets x 5
+    repetitions, plus the paper's likelihood once per dataset in series 1, 5 and 6)."""
+    from formtwin.study.run import StudySettings, _tasks
+
+    assert StudySettings().n_filter_runs == 165
+    for kw in ({}, {"paper_repetitions": 0}, {"series": (2, 3, 5)},
+               {"paper_repetitions": 2, "n_repetitions": 3}):
+        st = StudySettings(**kw)  # type: ignore[arg-type]
+        assert st.n_filter_runs == len(_tasks(st, tmp_path, tmp_path / "mm.npz", tmp_path))

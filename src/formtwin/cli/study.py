@@ -80,10 +80,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     metamodel, mm_path = default_metamodel(out / "model", args.physics, args.metamodel)
     physics = physics_model(args.physics, metamodel.spec)
-    n_runs = len(settings.series) * settings.n_realisations * settings.n_repetitions
     print(f"study into {out}: {settings.n_realisations} datasets x {settings.n_products} "
-          f"products ({args.physics} model runs, cached), then {n_runs} filter runs with "
-          f"N = {settings.tracker.n_particles} (progress bars on a terminal; -v logs the steps)",
+          f"products ({args.physics} model runs, cached), then {settings.n_filter_runs} "
+          f"filter runs with N = {settings.tracker.n_particles} (progress bars on a "
+          "terminal; -v logs the steps)",
           flush=True)
     result = run_study(settings, out, metamodel, mm_path, physics,
                        progress=sys.stderr.isatty())

@@ -85,6 +85,15 @@ class StudySettings:
         """Whether the study also runs the paper's likelihood (the tracker's is another)."""
         return self.paper_repetitions > 0 and self.tracker.likelihood != "paper"
 
+    @property
+    def n_filter_runs(self) -> int:
+        """Filter runs of the study: every series with the tracker's likelihood, plus the
+        paper's likelihood in :attr:`paper_series` when the study compares it."""
+        n = len(self.series) * self.n_repetitions
+        if self.compares_paper:
+            n += sum(s in self.paper_series for s in self.series) * self.paper_repetitions
+        return n * self.n_realisations
+
 
 @dataclass
 class StudyResult:
