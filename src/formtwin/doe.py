@@ -23,6 +23,7 @@ stopped. A run that raises is recorded as a failure with its reason.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import time
 from collections.abc import Iterator
@@ -95,11 +96,15 @@ class _Serial(Executor):
 def make_executor(executor: str | Executor | None = None,
                   workers: int | None = None) -> Iterator[Executor]:
     """``None``/``"processes"``: local process pool (all cores); ``"serial"``: in-process;
-    ``"dask tcp://HOST:PORT"``: a Dask cluster; an ``Executor`` is used as it is."""
+    ``"dask tcp://HOST:PORT"``: a Dask cluster; an ``Executor`` is used as it is.
+
+    The local pool starts its workers from a fork server: a worker forked while the caller
+    holds a data file open (the DOE runner's HDF5 output) would keep its lock."""
     if isinstance(executor, Executor):
         yield executor
     elif executor in (None, "processes"):
-        with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+        with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
+                                 mp_context=multiprocessing.get_context("forkserver")) as pool:
             yield pool
     elif executor == "serial":
         yield _Serial()

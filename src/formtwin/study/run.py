@@ -11,12 +11,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import multiprocessing
-import os
 import time
-from collections.abc import Iterator
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
-from contextlib import contextmanager
+from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -132,21 +128,6 @@ def _executor_name(settings: StudySettings) -> str:
     return f"dask {settings.scheduler}" if settings.scheduler else "processes"
 
 
-@contextmanager
-def _pool(settings: StudySettings) -> Iterator[Executor]:
-    """The study's executor: a Dask cluster's, or a local process pool whose workers are
-    started by a fork server (a worker forked while the physics runner holds a data file
-    open would keep its HDF5 lock)."""
-    if settings.scheduler:
-        with make_executor(_executor_name(settings), settings.workers) as ex:
-            yield ex
-        return
-    ctx = multiprocessing.get_context("forkserver")
-    with ProcessPoolExecutor(max_workers=settings.workers or os.cpu_count() or 1,
-                             mp_context=ctx) as pool:
-        yield pool
-
-
 def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
               metamodel_path: Path, physics: Simulator, progress: bool = False) -> StudyResult:
     """Generate (or reload) the pseudo-data and run (or reload) every filter run."""
@@ -156,7 +137,7 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
     data_dir = folder / "data"
     # one pool for the physics runs and the filter runs: each worker compiles the physics
     # (Numba, ~11 s) once, not once per realisation
-    with _pool(settings) as pool:
+    with make_executor(_executor_name(settings), settings.workers) as pool:
         realisations = [make_realisation(spec, k, settings.n_products, settings.seed,
                                          metamodel, physics, data_dir, executor=pool)
                         for k in range(settings.n_realisations)]
