@@ -232,7 +232,8 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool) -> N
     ct_rel[:, :, 0] = sheet.X[:, [0]] + (5e-3 if slip else 1e-7)
     ct_rel[:, :, 1] = 0.0
     ct_rel[:, 1, 1] = T - p
-    contact = (np.zeros((sheet.X.shape[0], 2)), ct_rel, np.zeros((sheet.X.shape[0], 2), np.int64))
+    contact = (np.zeros((sheet.X.shape[0], 2)), ct_rel, np.zeros((sheet.X.shape[0], 2), np.int64),
+               np.zeros((sheet.X.shape[0], 2)))
     press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0, 5e-4])
     toolarr = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, pen)
 
@@ -240,7 +241,8 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool) -> N
         Kb, R = np.zeros((n, 2 * BW + 1)), np.zeros(n)
         col, row, out = np.zeros(n), np.zeros(n), np.zeros(5)
         trial = (np.zeros_like(zeros), np.zeros_like(zeros), np.zeros_like(zeros))
-        ct_trial = (np.zeros((sheet.X.shape[0], 2)), np.zeros((sheet.X.shape[0], 2), np.int64))
+        ct_trial = (np.zeros((sheet.X.shape[0], 2)), np.zeros((sheet.X.shape[0], 2), np.int64),
+                    np.zeros((sheet.X.shape[0], 2)))
         assemble(0.0, uu, pp, mesh, zeros, zeros, zeros, zeros, trial, toolarr, contact,
                  ct_trial, press, np.zeros(n), Kb, R, col, row, out)
         assert ct_trial[1].sum() >= 4  # several contacts active
@@ -256,3 +258,43 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool) -> N
         np.testing.assert_allclose(band, fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
     fd = (residual(u, p + h)[0] - residual(u, p - h)[0]) / (2 * h)
     np.testing.assert_allclose(col, fd, rtol=1e-4, atol=1e-4 * np.abs(fd).max())
+
+
+@pytest.mark.parametrize("p", [0.0, 100.0, 250.0])
+def test_yield_under_through_thickness_pressure(p: float) -> None:
+    """Plane strain with incompressible flow under a through-thickness stress -p: the layer
+    yields where ``|sigma_xx + p| = (2/sqrt 3) sigma_y`` (perfect plasticity), in tension
+    and in compression; elastic below it."""
+    from formtwin.physics.bending.kernels import SQ, layer_update
+
+    mat = Material(yield_stress=300.0, rate=False, hardening=False).array
+    E = mat[0]
+    for sign in (+1.0, -1.0):
+        sig, _, et = layer_update(sign * 0.05, 0.0, 0.0, 0.0, E, 300.0, np.inf, 1.0, 0.0, -p)
+        assert sig == pytest.approx(-p + sign * SQ * 300.0, rel=1e-12)
+        assert et == pytest.approx(0.0, abs=1e-9)  # perfectly plastic
+    small = 0.5 * SQ * 300.0 / E  # half the yield strain without pressure
+    sig, epb, et = layer_update(small, 0.0, 0.0, 0.0, E, 300.0, np.inf, 1.0, 0.0,
+                                -min(p, 0.4 * SQ * 300.0))
+    assert sig == pytest.approx(E * small) and epb == 0.0 and et == E
+
+
+def test_face_pressure_spreads_forces_without_changing_their_sum() -> None:
+    """Uniform normal forces ``f`` per node at spacing ``h``, spread by a hat of half-width
+    ``3 h``: the pressure away from the ends is ``f / h`` (exactly: the hat's weights sum
+    to 1/h); a single force keeps its total ``sum p h``; the faces are kept apart."""
+    from formtwin.physics.bending.kernels import face_pressure
+
+    h, n = 0.05, 41
+    X = np.column_stack([h * np.arange(n), np.zeros(n)])
+    fn = np.zeros((n, 2))
+    fn[:, 0] = 2.0  # a lower-face tool (face -1) pressing every node with 2 N/mm
+    p = np.zeros((n, 2))
+    face_pressure(X, fn, np.array([-1.0, 1.0]), 3 * h, p)
+    np.testing.assert_allclose(p[5:-5, 0], 2.0 / h, rtol=1e-12)
+    assert np.all(p[:, 1] == 0.0)
+    fn[:] = 0.0
+    fn[20, 1] = 3.0  # one force on the upper face
+    face_pressure(X, fn, np.array([-1.0, 1.0]), 3 * h, p)
+    assert np.sum(p[:, 1]) * h == pytest.approx(3.0, rel=1e-12)
+    assert np.count_nonzero(p[:, 1] > 1e-9 * p[:, 1].max()) == 5 and np.all(p[:, 0] == 0.0)

@@ -17,6 +17,15 @@ Beam
     stretch ``u_l = l - l0`` and local end rotations ``theta_i - (beta - beta0)``;
     cubic Hermite bending, ``n_g`` Gauss points along, layers through the thickness.
 
+Through-thickness stress
+    The contact pressure on a face is not zero through the thickness: each layer carries a
+    through-thickness stress ``sigma_yy``, linear from ``-p_lower`` on the lower face to
+    ``-p_upper`` on the upper face, with the pressures of the last converged increment
+    (lagged, so the tangent stays exact for the increment) spread along the sheet over
+    about a thickness (:func:`face_pressure`). In plane strain with incompressible flow the
+    yield condition becomes ``|sigma_xx - sigma_yy| = (2/sqrt 3) sigma_flow``: a sheet pressed
+    onto a tool yields at a shifted axial stress, which a plain beam misses.
+
 Contact
     Node-to-rigid-surface penalty contact with the sheet surface offset ``t/2`` from the
     mid-surface node, Coulomb friction by an elastic-predictor / slip-corrector return map
@@ -56,27 +65,30 @@ def hardening(eb, hard):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard):  # type: ignore[no-untyped-def]
+def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[no-untyped-def]
+                 syy=0.0):
     """Return map of one layer point.
 
     ``E`` plane-strain modulus, ``sy`` yield stress (MPa), ``e0, q`` Cowper-Symonds
     constants, ``hard`` hardening switch (1 tabulated, 0 perfectly plastic); ``de`` the
-    axial strain increment, ``rate_n`` the lagged equivalent strain rate (1/s).
+    axial strain increment, ``rate_n`` the lagged equivalent strain rate (1/s); ``syy``
+    the through-thickness stress (MPa, <= 0 under contact pressure), which shifts the
+    yield condition to ``|sigma - syy| = (2/sqrt 3) sigma_flow``.
     Returns ``(sigma, eps_bar, E_tangent)``.
     """
-    sig_tr = sig_n + E * de
+    sig_tr = sig_n + E * de - syy  # the stress difference that yields
     a = abs(sig_tr)
     r = 1.0
     if epb_n > 0.0:
         r, h = hardening(epb_n, hard)
     if a <= SQ * sy * r:  # inside the rate-free (smallest) yield surface
-        return sig_tr, epb_n, E
+        return sig_tr + syy, epb_n, E
     rf = 1.0
     if rate_n > 0.0:
         rf = 1.0 + (rate_n / e0) ** q
     s0 = SQ * rf * sy
     if a - s0 * r <= 0.0:
-        return sig_tr, epb_n, E
+        return sig_tr + syy, epb_n, E
     dg = 0.0
     for _ in range(40):
         r, h = hardening(epb_n + SQ * dg, hard)
@@ -87,7 +99,7 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard):  # type: ignore[
             break
     r, h = hardening(epb_n + SQ * dg, hard)
     H = s0 * SQ * h
-    sig = math.copysign(a - E * dg, sig_tr)
+    sig = math.copysign(a - E * dg, sig_tr) + syy
     return sig, epb_n + SQ * dg, E * H / (E + H)
 
 
@@ -96,11 +108,13 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard):  # type: ignore[
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
-                 sig, epb, eps, rate, sig_t, epb_t, eps_t, f, K, B):
+                 sig, epb, eps, rate, sig_t, epb_t, eps_t, f, K, B, pface):
     """Internal force ``f (6,)`` and tangent ``K (6, 6)`` of element ``e`` (nodes e, e+1).
 
     Reads the committed layer state ``sig, epb, eps, rate [e]`` and writes the trial state
-    into ``sig_t, epb_t, eps_t [e]``; ``B (3, 6)`` is work space.
+    into ``sig_t, epb_t, eps_t [e]``; ``B (3, 6)`` is work space; ``pface (n_nodes, 2)``
+    the contact pressures (MPa) on the lower and upper face, interpolated linearly along
+    the element, give each layer its through-thickness stress.
     """
     X1, Y1, X2, Y2 = X[e, 0], X[e, 1], X[e + 1, 0], X[e + 1, 1]
     dX, dY = X2 - X1, Y2 - Y1
@@ -123,11 +137,14 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
         b3 = (6.0 * xg[g] - 2.0) / l0
         kap = b2 * th1 + b3 * th2
         wgl = wg[g] * l0 * thick
+        p_lo = (1.0 - xg[g]) * pface[e, 0] + xg[g] * pface[e + 1, 0]
+        p_up = (1.0 - xg[g]) * pface[e, 1] + xg[g] * pface[e + 1, 1]
         for k in range(ylay.shape[0]):
             y = thick * ylay[k]
             ek = ul / l0 - y * kap
+            syy = -(p_lo * (0.5 - ylay[k]) + p_up * (0.5 + ylay[k]))
             sg, eb, et = layer_update(ek - eps[e, g, k], sig[e, g, k], epb[e, g, k],
-                                      rate[e, g, k], E, sy, e0, q, hard)
+                                      rate[e, g, k], E, sy, e0, q, hard, syy)
             sig_t[e, g, k] = sg
             epb_t[e, g, k] = eb
             eps_t[e, g, k] = ek
@@ -164,6 +181,28 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
         for j in range(6):
             K[i, j] = (g0 * B[0, j] + g1 * B[1, j] + g2 * B[2, j] + z[i] * z[j] * f0 / ln
                        + (r[i] * z[j] + z[i] * r[j]) * msum)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def face_pressure(X, fn, tface, a, pface):  # type: ignore[no-untyped-def]
+    """Contact pressure (MPa) on the lower and upper face at each node, ``pface (n, 2)``.
+
+    The normal contact forces of the nodes ``fn (n_nodes, n_tools)`` (N/mm, per mm width)
+    on the faces ``tface (n_tools,)`` (+1 upper, -1 lower), spread along the sheet by a
+    hat of half-width ``a`` (mm; a load on a face spreads through the thickness over about
+    the thickness), so the pressure is independent of the node spacing ``X (n_nodes, 2)``.
+    """
+    n = X.shape[0]
+    pface[:, :] = 0.0
+    for j in range(n):
+        for k in range(tface.shape[0]):
+            if fn[j, k] == 0.0:
+                continue
+            side = 1 if tface[k] > 0.0 else 0
+            for i in range(n):
+                d = math.hypot(X[i, 0] - X[j, 0], X[i, 1] - X[j, 1])
+                if d < a:
+                    pface[i, side] += fn[j, k] * (1.0 - d / a) / a
 
 
 # ----------------------------------------------------------------------------- contact

@@ -28,7 +28,7 @@ from formtwin.spec import ProcessSpec, load_spec
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-VERSION = "bending-2.0"
+VERSION = "bending-2.1"
 
 #: the control input (spec ``[[control]]``) that sets the stage-2 depth, mm
 CONTROL = "stage2_depth"
@@ -68,6 +68,10 @@ class Discretisation:
         over the converged increments) in the process stages; 2.7 deg is 5 ms at 90
         strokes/min. Smoothing makes the Cowper-Symonds factor independent of the adaptive
         step pattern; tied to the crank angle it scales with the press speed.
+    pressure_spread
+        Half-width, in sheet thicknesses, of the hat over which the nodes' normal contact
+        forces are spread into face pressures, which the layers carry as a through-thickness
+        stress (:mod:`.kernels`); 0 switches the through-thickness stress off (model 2.0).
     """
 
     n_elements: int = 32
@@ -86,12 +90,13 @@ class Discretisation:
     easy_iter: int = 8
     easy_steps: int = 2
     rate_window: float = 2.7
+    pressure_spread: float = 1.0
 
     def opts(self, dt_max: float, rate_tau: float = 0.0) -> FloatArray:
         """Solver option array for :func:`~.solver.run_history` (``rate_tau`` in s)."""
         return np.array([dt_max, self.dt_min, self.max_iter, self.tol_force, self.tol_disp,
                          self.cap_disp, self.predict, self.line_search, self.ls_ratio,
-                         self.easy_iter, self.easy_steps, rate_tau])
+                         self.easy_iter, self.easy_steps, rate_tau, self.pressure_spread])
 
 
 @dataclass
@@ -217,7 +222,8 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     state = (sheet.u, pa, sheet.sig, sheet.epb, sheet.eps, sheet.rate)
     tool_arrays = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, pen)
     status = run_history(targets, lam, lam_fix, t0, mesh, state, tool_arrays,
-                         (ct_t, ct_rel, ct_act), (press, fref, fix, fix_ref),
+                         (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 2))),
+                         (press, fref, fix, fix_ref),
                          disc.opts(dt_max, rate_tau), (rec_u, rec_f, rec_r, counters))
     return History(targets, rec_u, rec_f, rec_r, int(status), counters)
 

@@ -32,13 +32,14 @@ from formtwin.physics.bending.kernels import (
     beam_element,
     closest_point,
     contact_node,
+    face_pressure,
 )
 
 # indices into the ``press`` array
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 (DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
- RATE_TAU) = range(12)
+ RATE_TAU, SPREAD) = range(13)
 # status codes
 OK, FAIL_STEP = 0, 1
 
@@ -60,7 +61,8 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
 
     ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``trial = (sig_t, epb_t, eps_t)``
     (written), ``tools = (ptype, pdata, tstart, towner, tface, tmu, pen)``, ``contact =
-    (ct_t, ct_rel, ct_act)`` (committed), ``ct_trial = (ct_t_t, ct_act_t)`` (written).
+    (ct_t, ct_rel, ct_act, pface)`` (committed; ``pface`` the face pressures, MPa),
+    ``ct_trial = (ct_t_t, ct_act_t, ct_n_t)`` (written; ``ct_n_t`` normal forces, N/mm).
     Contact acts on the sheet's face: the point ``x + f (t/2) n(phi0 + theta)`` of each node
     (``f = tface[k]``: +1 upper, -1 lower face, ``n`` the sheet's normal), so the normal
     and friction forces there also load the node's rotation with their moment about it.
@@ -69,8 +71,8 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     X, phi0, thick, ylay, wlay, xg, wg, mat = mesh
     sig_t, epb_t, eps_t = trial
     ptype, pdata, tstart, towner, tface, tmu, pen = tools
-    ct_t, ct_rel, ct_act = contact
-    ct_t_t, ct_act_t = ct_trial
+    ct_t, ct_rel, ct_act, pface = contact
+    ct_t_t, ct_act_t, ct_n_t = ct_trial
     n_dof = u.shape[0]
     n_el = X.shape[0] - 1
     Kb[:, :] = 0.0
@@ -83,7 +85,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     Bw = np.zeros((3, 6))
     for e in range(n_el):
         beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,
-                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw)
+                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw, pface)
         i0 = 3 * e
         for a in range(6):
             R[i0 + a] += fe[a]
@@ -102,6 +104,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
         for nd in range(n_nodes):
             ct_act_t[nd, k] = 0
             ct_t_t[nd, k] = 0.0
+            ct_n_t[nd, k] = 0.0
             phi = phi0[nd] + u[3 * nd + 2]
             sf, cf = math.sin(phi), math.cos(phi)
             rx, ry = -tface[k] * half * sf, tface[k] * half * cf  # node -> face point
@@ -119,6 +122,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
                                             pen[nd, 1], tmu[k], tt_n, drx, dry, J)
             ct_act_t[nd, k] = 1
             ct_t_t[nd, k] = tt
+            ct_n_t[nd, k] = fx * nx + fy * ny
             # force (fx, fy) at the face point and its moment about the node, and their
             # derivatives by (u_x, u_y, theta) of the node
             jx = J[0, 0] * drx_dth + J[0, 1] * dry_dth
@@ -259,19 +263,13 @@ def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untype
 
 
 @njit(cache=True)
-def lam_at(t, targets, lam):  # type: ignore[no-untyped-def]
-    """Load factor at ``t``, piecewise linear through ``(targets, lam)``."""
-    return np.interp(t, targets, lam)
-
-
-@njit(cache=True)
 def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-untyped-def]
                 tools, contact, loads, opts, record):
     """Advance the state and the contact state in place through ``targets``.
 
     Grouped arguments: ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``state =
     (u, pa, sig, epb, eps, rate)``, ``tools = (ptype, pdata, tstart, towner, tface, tmu,
-    pen)``, ``contact = (ct_t, ct_rel, ct_act)``, ``loads = (press, fref, fix_idx,
+    pen)``, ``contact = (ct_t, ct_rel, ct_act, pface)``, ``loads = (press, fref, fix_idx,
     fix_ref)``, ``record = (rec_u, rec_f, rec_r, counters)``.
 
     Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam_fix(t) * fix_ref``
@@ -284,7 +282,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     X, phi0, thick = mesh[0], mesh[1], mesh[2]
     u, pa, sig, epb, eps, rate = state
     towner, tface = tools[3], tools[4]
-    ct_t, ct_rel, ct_act = contact
+    ct_t, ct_rel, ct_act, pface = contact
     press, fref, fix_idx, fix_ref = loads
     rec_u, rec_f, rec_r, counters = record
     n = u.shape[0]
@@ -297,7 +295,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     trial = (sig_t, epb_t, eps_t)
     ct_t_t = np.zeros((n_nodes, n_tools))
     ct_act_t = np.zeros((n_nodes, n_tools), dtype=np.int64)
-    ct_trial = (ct_t_t, ct_act_t)
+    ct_trial = (ct_t_t, ct_act_t, np.zeros((n_nodes, n_tools)))
     Kb = np.zeros((n, 2 * BW + 1))
     R = np.zeros(n)
     col = np.zeros(n)
@@ -319,13 +317,13 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
         while t < targets[j] - 1e-12:
             h = min(dt, targets[j] - t)
             tn = t + h
-            lf = lam_at(tn, targets, lam)
+            lf = np.interp(tn, targets, lam)  # load factors: piecewise linear
             for i in range(n):
                 fext[i] = lf * fref[i]
                 u_trial[i] = u[i]
                 if dt_prev > 0.0:
                     u_trial[i] += opts[PREDICT] * du_prev[i] * h / dt_prev
-            lff = lam_at(tn, targets, lam_fix)
+            lff = np.interp(tn, targets, lam_fix)
             for m in range(fix_idx.shape[0]):
                 u_trial[fix_idx[m]] = lff * fix_ref[m]
             c_new, _ = crank(tn, press)
@@ -362,6 +360,8 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                         sig[e, g, k] = sig_t[e, g, k]
                         epb[e, g, k] = epb_t[e, g, k]
                         eps[e, g, k] = eps_t[e, g, k]
+            if opts[SPREAD] > 0.0:  # face pressures for the next increment
+                face_pressure(X, ct_trial[2], tface, opts[SPREAD] * thick, pface)
             for nd in range(n_nodes):
                 phi = phi0[nd] + u_trial[3 * nd + 2]
                 for k in range(n_tools):
