@@ -4,8 +4,6 @@ its anisotropic scaling."""
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
@@ -62,17 +60,7 @@ def loo_from_distances(R2: FloatArray, P: FloatArray, Y: FloatArray, kernel: str
                        ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Rippa's LOO residuals ``e`` plus ``B = A^{-1}``, coefficients ``w`` and ``diag(B)``."""
     n = R2.shape[0]
-    # Expected, hence silenced here only: the bundled DOE's 2^11 corner runs differ only in
-    # the press setting u, which the curve model does not take, so in its 10 inputs they
-    # come in identical pairs (1023 of 7047 runs) and a tuning subset of 800 holds ~13
-    # duplicated points: A is then exactly singular (LAPACK rcond ~1e-20, one LinAlgWarning
-    # per objective evaluation, hundreds per fit). Without the duplicates Rippa's residuals
-    # match explicit leave-one-out refits to 1e-11 even at cond(A) ~1e15; the residuals of
-    # the duplicated points themselves (truly 0: their curves are identical) are not
-    # reliable. Dropping duplicate inputs from the tuning subset would remove the cause.
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)
-        B = scipy.linalg.inv(interpolation_matrix(R2, P, kernel, smoothing), check_finite=False)
+    B = scipy.linalg.inv(interpolation_matrix(R2, P, kernel, smoothing), check_finite=False)
     Bn = B[:n, :n]
     g = np.diag(Bn).copy()
     w = Bn @ Y

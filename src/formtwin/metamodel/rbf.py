@@ -61,6 +61,24 @@ log = logging.getLogger(__name__)
 _SMOOTHING_MIN, _SMOOTHING_START, _SMOOTHING_MAX = 1e-10, 1e-4, 1e4
 
 
+def merge_duplicates(U: FloatArray, Y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Repeated rows of ``U`` (n, d) merged into one with the mean of their outputs ``Y``
+    (n, k): an interpolant cannot pass through two values at one point, and a repeated
+    centre makes the interpolation matrix singular (the bundled DOE's corner runs differ
+    only in the press setting, which a stage-1 model does not take).
+
+    >>> U, Y = merge_duplicates(np.array([[0.0], [1.0], [0.0]]), np.array([[1.0], [5.0], [3.0]]))
+    >>> U.ravel().tolist(), Y.ravel().tolist()
+    ([0.0, 1.0], [2.0, 5.0])
+    """
+    unique, inverse, counts = np.unique(U, axis=0, return_inverse=True, return_counts=True)
+    if unique.shape[0] == U.shape[0]:
+        return U, Y
+    merged = np.zeros((unique.shape[0], Y.shape[1]))
+    np.add.at(merged, inverse.reshape(-1), Y)
+    return unique, merged / counts[:, None]
+
+
 class RBF:
     """RBF interpolation of k outputs over the unit box (an :class:`Approximation`).
 
@@ -141,9 +159,11 @@ class RBF:
 
     # ------------------------------------------------------------------ fitting
     def fit(self, U: FloatArray, Y: FloatArray) -> RBF:
-        """Fit to unit-box inputs ``U`` (n, d) and outputs ``Y`` (n, k) or (n,); returns self."""
+        """Fit to unit-box inputs ``U`` (n, d) and outputs ``Y`` (n, k) or (n,) (repeated inputs
+        merged, :func:`merge_duplicates`); returns self."""
         U = np.asarray(U, dtype=np.float64)
         Y = np.asarray(Y, dtype=np.float64).reshape(U.shape[0], -1)
+        U, Y = merge_duplicates(U, Y)
         n, d = U.shape
         self.powers = monomial_powers(d, self.degree)
         order = np.random.default_rng(self.seed).permutation(n)
@@ -286,4 +306,4 @@ class RBF:
         return rbf
 
 
-__all__ = ["KERNELS", "RBF", "loo_objective", "loo_residuals"]
+__all__ = ["KERNELS", "RBF", "loo_objective", "loo_residuals", "merge_duplicates"]
