@@ -58,9 +58,9 @@ from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.monitoring.calibrate import (
     ChartDesign,
     calibrate_series,
+    in_control_runs,
     measurement_noise,
     series,
-    simulate_in_control,
 )
 from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
 from formtwin.monitoring.scenarios import Change, changed_run
@@ -68,6 +68,8 @@ from formtwin.tracker import Tracker, TrackerConfig
 from formtwin.tracker.build import build_measurement
 
 Series = dict[str, np.ndarray]
+#: prefix of the true states in a cached run
+TRUE = "true_"
 
 
 class Runs:
@@ -79,16 +81,20 @@ class Runs:
         self.folder.mkdir(parents=True, exist_ok=True)
         (self.folder / "key.json").write_text(json.dumps(key, indent=1))
 
-    def get(self, name: str, make: Any) -> Series:
-        """The series of run ``name``, from the cache or ``make()`` (an Estimates)."""
+    def get(self, name: str, make: Any) -> tuple[Series, Series]:
+        """The series of run ``name`` and its true states (by state name), from the cache or
+        ``make()`` (``(x, estimates)``)."""
         path = self.folder / f"{name}.npz"
         if path.exists():
             with np.load(path, allow_pickle=False) as f:
-                return {k: f[k] for k in f.files}
-        est: Estimates = make()
-        out = {k: np.asarray(v, dtype=np.float64) for k, v in series(est).items()}
-        np.savez(path, **out)  # type: ignore[arg-type]
-        return out
+                out = {k: f[k] for k in f.files}
+        else:
+            x, est = make()
+            out = {k: np.asarray(v, dtype=np.float64) for k, v in series(est).items()}
+            out.update({TRUE + n: x[:, j] for j, n in enumerate(est.names[: x.shape[1]])})
+            np.savez(path, **out)  # type: ignore[arg-type]
+        return ({k: v for k, v in out.items() if not k.startswith(TRUE)},
+                {k[len(TRUE):]: v for k, v in out.items() if k.startswith(TRUE)})
 
 
 def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
@@ -100,14 +106,15 @@ def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
 
 
 def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, change: Change,
-            n: int, seed: int, noise: bool = True) -> Estimates:
-    """Track one production run with ``change``, its curves with measurement noise."""
+            n: int, seed: int, noise: bool = True) -> tuple[np.ndarray, Estimates]:
+    """Track one production run with ``change``, its curves with measurement noise: its
+    true states (n, 7) and estimates."""
     rng = np.random.default_rng(seed)
     run = changed_run(model.spec, n, np.asarray(tcfg.mu), rng, change)
     curves = model.predict_curves(run.inputs)
     if noise:
         curves = curves + measurement_noise(mm, n, rng)
-    return Tracker(model, mm, replace(tcfg, seed=seed)).run(curves)
+    return run.x, Tracker(model, mm, replace(tcfg, seed=seed)).run(curves)
 
 
 def estimates_code() -> str:
@@ -178,7 +185,15 @@ def main() -> None:
     p.add_argument("--no-health-ar", action="store_true")
     p.add_argument("--health-phase1", action="store_true")
     p.add_argument("--k-mismatch", type=float, default=d0.k_mismatch)
+    p.add_argument("--no-glr", action="store_true")
+    p.add_argument("--arl0-glr", type=float, default=d0.arl0_glr)
+    p.add_argument("--glr-window", type=int, default=d0.glr_window)
+    p.add_argument("--no-state-cusum", action="store_true")
+    p.add_argument("--level-signature", action="store_true",
+                   help="GLR matched to a step of the estimate, not of the state")
     p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--track-only", action="store_true",
+                   help="track (fill the cache) and stop")
     p.add_argument("--out", help="result folder (default benchmarks/results)")
     args = p.parse_args()
     model, _, info = bundled_metamodel()
@@ -194,7 +209,9 @@ def main() -> None:
                          arl0_shewhart=args.arl0_shewhart or None,
                          widen_margin=args.widen_margin or None, angle_cusum=args.angle_cusum,
                          tails=not args.no_tails, health_ar=not args.no_health_ar,
-                         health_phase1=args.health_phase1)
+                         health_phase1=args.health_phase1, glr=not args.no_glr,
+                         arl0_glr=args.arl0_glr, glr_window=args.glr_window,
+                         state_cusum=not args.no_state_cusum)
     key = {"model": info["doe_sha256_16"], "metamodel": info["metamodel"],
            "tracker": tcfg.to_dict(), "code": estimates_code(),
            "noise": "none" if args.no_noise else "N(0, Sigma)",
@@ -204,14 +221,14 @@ def main() -> None:
     n = args.at + args.after
     t0 = time.perf_counter()
     with single_blas_thread():
-        calib_runs = [runs.get(f"calib{r}_{args.calib_products}", lambda r=r: simulate_in_control(
+        calib = [runs.get(f"calib{r}_{args.calib_products}", lambda r=r: in_control_runs(
             model, mm, replace(tcfg, seed=tcfg.seed + r), args.calib_products, 1,
             seed=args.seed + r, noise=noise)[0]) for r in range(args.calib_runs)]
-        scenarios: dict[str, list[tuple[Change, Series]]] = {}
-        ic_runs: list[Series] = []
+        scenarios: dict[str, list[tuple[Change, Series, Series]]] = {}
+        ic: list[tuple[Series, Series]] = []
         for kind, size in (("step", 2.0), ("ic", 0.0), ("drift", args.drift)):
             if kind == "ic":  # tracked between the steps and the drifts (cache order)
-                ic_runs = [runs.get(f"ic{r}_{args.ic_products}", lambda r=r: simulate_in_control(
+                ic = [runs.get(f"ic{r}_{args.ic_products}", lambda r=r: in_control_runs(
                     model, mm, replace(tcfg, seed=tcfg.seed + 5000 + r), args.ic_products, 1,
                     seed=args.seed + 10_000 + r, noise=noise)[0])
                     for r in range(args.ic_runs)]
@@ -221,54 +238,40 @@ def main() -> None:
                 for r in range(args.reps if kind == "step" else args.drift_reps):
                     ch = Change(kind, (name,), args.at, size * (1 if r % 2 == 0 else -1))
                     seed = args.seed + 100_000 + 1000 * j + 100 * (kind == "drift") + r
-                    scenarios[f"{kind}:{name}"].append((ch, runs.get(
+                    scenarios[f"{kind}:{name}"].append((ch, *runs.get(
                         f"{kind}_{name}_{size}_{r}",
                         lambda ch=ch, seed=seed: changed(model, mm, tcfg, ch, n, seed, noise))))
         rng = np.random.default_rng(args.seed + 7)
         scenarios["batch"] = []
         for r in range(2 * args.drift_reps):
             ch = Change.batch(args.at, args.batch, rng)
-            scenarios["batch"].append((ch, runs.get(
+            scenarios["batch"].append((ch, *runs.get(
                 f"batch_{args.batch}_{r}", lambda ch=ch, r=r: changed(
                     model, mm, tcfg, ch, n, args.seed + 200_000 + r, noise))))
+    if args.track_only:
+        print(f"tracked into {runs.folder} in {time.perf_counter() - t0:.0f} s")
+        return
     track_s = time.perf_counter() - t0
-    config = calibrate_series(calib_runs, spec.state.names, mu, design)
-    ic_alarms = [a for s in ic_runs for a in chart(config, s)]
-    charted = args.ic_runs * (args.ic_products - design.warmup - design.phase1)
-    results: dict[str, list[tuple[int, int, str]]] = {
-        k: [delay(chart(config, s), ch.at, n) for ch, s in v] for k, v in scenarios.items()}
-    false_changes = sum(f for v in results.values() for _, f, _ in v)
-
-    def block(kind: str) -> dict[str, Any]:
-        per = {name: [d for d, _, _ in results[f"{kind}:{name}"]] for name in spec.state.names}
-        return {**summary([d for v in per.values() for d in v], args.after),
-                "per_variable": {k: summary(v, args.after) for k, v in per.items()},
-                "first_alarm_variable": {name: [v for _, _, v in results[f"{kind}:{name}"]]
-                                         for name in spec.state.names}}
-
-    by_chart: dict[str, int] = {}
-    for a in ic_alarms:
-        by_chart[f"{a.variable}/{a.chart}"] = by_chart.get(f"{a.variable}/{a.chart}", 0) + 1
-    steps = block("step")
-    lo, hi = poisson_interval(len(ic_alarms))
-    config_cusums = list(config.quantities) if config.cusum_on is None else config.cusum_on
-    per_chart = config.ewma, config.cusum, config.mismatch
-    figures: dict[str, Any] = {
+    names = spec.state.names
+    truths = None if args.level_signature else [np.column_stack([t[k] for k in names])
+                                                for _, t in calib]
+    config = calibrate_series([e for e, _ in calib], names, mu, design, truths)
+    figures = evaluate(config, [e for e, _ in ic], {k: [(ch, e) for ch, e, _ in v]
+                                                     for k, v in scenarios.items()}, names, args)
+    # the oracle: the same charts on the true states (what a perfect estimate allows)
+    t_config = calibrate_series([t for _, t in calib], names, mu, design)
+    oracle = evaluate(t_config, [t for _, t in ic], {k: [(ch, t) for ch, _, t in v]
+                                                     for k, v in scenarios.items()}, names, args)
+    steps = figures.pop("step_2sigma")
+    figures = {
         "detection_delay_median_products": steps["median"],
         "detection_delay_target": 30,
-        "false_alarms_per_10k_products": round(len(ic_alarms) / charted * 1e4, 3),
+        **figures,
         "false_alarms_target": 1,
-        "false_alarms_per_10k_products_95ci": [round(lo / charted * 1e4, 3),
-                                               round(hi / charted * 1e4, 3)],
-        "false_alarms_in_control": len(ic_alarms),
-        "charted_products_in_control": charted,
-        "false_alarms_by_chart": by_chart,
-        "false_alarms_before_changes": false_changes,
         "step_2sigma": steps,
-        f"drift_{args.drift}sigma_per_product": block("drift"),
-        f"batch_{args.batch}sigma": {
-            **summary([d for d, _, _ in results["batch"]], args.after),
-            "first_alarm_variable": [v for _, _, v in results["batch"]]},
+        "oracle_true_states": {
+            "detection_delay_median_products": oracle["step_2sigma"]["median"],
+            **{k: v for k, v in oracle.items() if k != "charts"}},
         "settings": {"particles": args.particles, "deviation": args.deviation,
                      "likelihood": tcfg.likelihood,
                      "noise": key["noise"],
@@ -276,18 +279,64 @@ def main() -> None:
                      "ic_runs": args.ic_runs, "ic_products": args.ic_products,
                      "reps": args.reps, "drift_reps": args.drift_reps, "at": args.at,
                      "after": args.after,
-                     "design": asdict(design),
-                     "charts": {"ewma": len(config.quantities), "cusum": len(config_cusums),
-                                "shewhart": len(config_cusums) * (config.shewhart is not None),
-                                "mismatch": len(config.health)},
-                     "ewma_L": round(per_chart[0].L, 4), "cusum_h": round(per_chart[1].h, 4),
-                     "mismatch_h": round(per_chart[2].h, 4),
-                     "shewhart_limit": config.shewhart,
-                     "widen": {n: {c: round(f, 3) for c, f in d.items()}
-                               for n, d in config.widen.items()}},
+                     "design": asdict(design), **figures.pop("charts"),
+                     "oracle_charts": oracle["charts"]},
         "tracking_s": round(track_s, 1),
     }
     write_result("monitoring", figures, directory=args.out, model=info)
+
+
+def evaluate(config: MonitorConfig, ic_runs: list[Series],
+             scenarios: dict[str, list[tuple[Change, Series]]], names: tuple[str, ...],
+             args: argparse.Namespace) -> dict[str, Any]:
+    """False alarms on ``ic_runs`` and delays on the changed runs of ``config``'s charts."""
+    d = config.warmup + config.phase1
+    ic_alarms = [a for s in ic_runs for a in chart(config, s)]
+    charted = len(ic_runs) * (args.ic_products - d)
+    n = args.at + args.after
+    results: dict[str, list[tuple[int, int, str]]] = {
+        k: [delay(chart(config, s), ch.at, n) for ch, s in v] for k, v in scenarios.items()}
+    false_changes = sum(f for v in results.values() for _, f, _ in v)
+
+    def block(kind: str) -> dict[str, Any]:
+        per = {name: [d for d, _, _ in results[f"{kind}:{name}"]] for name in names}
+        return {**summary([d for v in per.values() for d in v], args.after),
+                "per_variable": {k: summary(v, args.after) for k, v in per.items()},
+                "first_alarm": {name: [v for _, _, v in results[f"{kind}:{name}"]]
+                                for name in names}}
+
+    by_chart: dict[str, int] = {}
+    for a in ic_alarms:
+        by_chart[f"{a.variable}/{a.chart}"] = by_chart.get(f"{a.variable}/{a.chart}", 0) + 1
+    lo, hi = poisson_interval(len(ic_alarms))
+    cusums = list(config.quantities) if config.cusum_on is None else config.cusum_on
+    return {
+        "false_alarms_per_10k_products": round(len(ic_alarms) / charted * 1e4, 3),
+        "false_alarms_per_10k_products_95ci": [round(lo / charted * 1e4, 3),
+                                               round(hi / charted * 1e4, 3)],
+        "false_alarms_in_control": len(ic_alarms),
+        "charted_products_in_control": charted,
+        "false_alarms_by_chart": by_chart,
+        "false_alarms_before_changes": false_changes,
+        "step_2sigma": block("step"),
+        f"drift_{args.drift}sigma_per_product": block("drift"),
+        f"batch_{args.batch}sigma": {
+            **summary([d for d, _, _ in results["batch"]], args.after),
+            "first_alarm": [v for _, _, v in results["batch"]]},
+        "charts": {
+            "charts": {"ewma": len(config.quantities), "cusum": len(cusums),
+                       "glr": len(config.glr),
+                       "shewhart": len(cusums) * (config.shewhart is not None),
+                       "mismatch": len(config.health)},
+            "ewma_L": round(config.ewma.L, 4), "cusum_h": round(config.cusum.h, 4),
+            "mismatch_h": round(config.mismatch.h, 4),
+            "glr_h": {k: round(g.h, 3) for k, g in config.glr.items()},
+            "glr_signature": {k: [round(v, 4) for v in g.signature]
+                              for k, g in config.glr.items()},
+            "shewhart_limit": config.shewhart,
+            "widen": {k: {c: round(f, 3) for c, f in w.items()}
+                      for k, w in config.widen.items()}},
+    }
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ Layer: above the tracker (it consumes :class:`~formtwin.estimates.Estimate`), be
 study, the service and the command line. See ``docs/monitoring.md``.
 
 * :mod:`~formtwin.monitoring.charts`: the charts and their run-length design;
+* :mod:`~formtwin.monitoring.glr`: the GLR chart for a level change of an AR quantity;
 * :mod:`~formtwin.monitoring.incontrol`: in-control AR models and health references;
 * :mod:`~formtwin.monitoring.monitor`: :class:`Monitor`, :class:`Alarm`;
 * :mod:`~formtwin.monitoring.calibrate`: a monitor from a simulated in-control run;

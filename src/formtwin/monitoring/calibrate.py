@@ -30,6 +30,7 @@ from scipy.special import ndtri
 from formtwin.estimates import Estimates
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.monitoring.charts import Cusum, Ewma, cusum_h, ewma_L
+from formtwin.monitoring.glr import Glr, glr_h, level_signature, response_signature
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
 from formtwin.monitoring.monitor import ANGLES, HEALTH, Monitor, MonitorConfig
 from formtwin.tracker import Tracker, TrackerConfig
@@ -66,6 +67,12 @@ class ChartDesign:
     health_phase1 : the scores' level from Phase I (it depends on the machine parameters,
         but the first products are still the filter's transient) instead of the pooled
         in-control level.
+    glr : a GLR chart for a level change on each state variable
+        (:mod:`~formtwin.monitoring.glr`: matched to the spike-then-shift signature a step
+        in the mean leaves in the AR residuals).
+    arl0_glr : in-control ARL of each state variable's GLR chart.
+    glr_window : the GLR's window of candidate change times (products).
+    state_cusum : the CUSUM on the state variables (off: the GLR detects the step).
     widen_margin : raise a chart's limit where charting the calibration runs would have
         come closer than this factor to it (:func:`widen`); ``None``: off.
     warmup, phase1 : see :class:`~formtwin.monitoring.monitor.MonitorConfig`.
@@ -83,6 +90,10 @@ class ChartDesign:
     health_ar: bool = True
     health_phase1: bool = False
     angle_cusum: bool = False
+    glr: bool = True
+    arl0_glr: float = 2.0e5
+    glr_window: int = 200
+    state_cusum: bool = True
     widen_margin: float | None = 1.2
     warmup: int = 50
     phase1: int = 100
@@ -108,14 +119,22 @@ def simulate_in_control(model: ProcessModel, measurement: MeasurementModel,
     spread less than on real curves: charts calibrated that way alarm on ~20 % of the
     products of a real in-control stream (measured by the service, notes of issue 14).
     """
+    return [est for _, est in in_control_runs(model, measurement, config, n, runs, seed, noise)]
+
+
+def in_control_runs(model: ProcessModel, measurement: MeasurementModel,
+                    config: TrackerConfig, n: int, runs: int, seed: int, noise: bool = True
+                    ) -> list[tuple[FloatArray, Estimates]]:
+    """:func:`simulate_in_control` with each run's true states (n, 7) (the same draws):
+    ``(x, estimates)`` per run."""
     out = []
     for r, ss in enumerate(np.random.SeedSequence(seed).spawn(runs)):
         tracker = Tracker(model, measurement, replace(config, seed=config.seed + 1000 + r))
         rng = np.random.default_rng(ss)
-        _, curves = tracker.ssm.simulate(n, rng)
+        run, curves = tracker.ssm.simulate(n, rng)
         if noise:
             curves = curves + measurement_noise(measurement, curves.shape[0], rng)
-        out.append(tracker.run(curves))
+        out.append((run.x, tracker.run(curves)))
     return out
 
 
@@ -141,20 +160,27 @@ def series(est: Estimates) -> dict[str, FloatArray]:
 
 
 def calibrate(runs: Sequence[Estimates], state_names: Sequence[str], mu: FloatArray,
-              design: ChartDesign | None = None) -> MonitorConfig:
+              design: ChartDesign | None = None, truths: Sequence[FloatArray] | None = None
+              ) -> MonitorConfig:
     """A monitor for a line whose state means are ``mu`` (7,), from in-control ``runs``
     (see :func:`calibrate_series`)."""
-    return calibrate_series([series(r) for r in runs], state_names, mu, design)
+    return calibrate_series([series(r) for r in runs], state_names, mu, design, truths)
 
 
 def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequence[str],
-                     mu: FloatArray, design: ChartDesign | None = None) -> MonitorConfig:
+                     mu: FloatArray, design: ChartDesign | None = None,
+                     truths: Sequence[FloatArray] | None = None) -> MonitorConfig:
     """A monitor for a line whose state means are ``mu`` (7,), from the :func:`series` of
     in-control runs.
 
     State variables get an AR model about ``mu`` (the in-control mean is the spec's or the
     user's); the angles about a Phase-I level; the health statistics a reference from the
     runs. The first ``design.warmup`` products of each run are left out.
+
+    ``truths``: the runs' true states (n_r, 7) (simulated runs): each state variable's GLR
+    chart is then matched to how its estimate responds to a step of the state
+    (:func:`~formtwin.monitoring.glr.response_signature`); without them, to a step of the
+    estimate itself (:func:`~formtwin.monitoring.glr.level_signature`).
     """
     d = ChartDesign() if design is None else design
     if d.phase1 < 2:
@@ -164,7 +190,7 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
     for j, name in enumerate(state_names):
         quantities[name] = fit_in_control([v[name] for v in values], d.order,
                                           mean=float(mu[j]), tails=d.tails)
-    for name in ANGLES:
+    for name in (a for a in ANGLES if all(a in v for v in values)):
         quantities[name] = fit_in_control([v[name] for v in values], d.order, mean=None,
                                           keep_mean=False, tails=d.tails)
     pooled = {name: np.concatenate([v[name] for v in values]) for name in HEALTH
@@ -180,8 +206,17 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
     ewma, cusum, mismatch = d.charts()
     shewhart = (None if d.arl0_shewhart is None
                 else float(ndtri(1.0 - 0.5 / d.arl0_shewhart)))
+    cusum_on = [n for n in quantities if (n in state_names and d.state_cusum)
+                or (n in ANGLES and d.angle_cusum)]
+    glr = {}
+    for j, n in enumerate(state_names if d.glr else ()):
+        q = quantities[n]
+        sig = (level_signature(q.phi) if truths is None else response_signature(
+            [v[n] for v in values], [np.asarray(x)[d.warmup:, j] for x in truths], q.phi,
+            float(mu[j]), float(mu[j])))
+        glr[n] = Glr(sig, glr_h(sig, d.glr_window, d.arl0_glr), d.glr_window)
     config = MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
-                           d.phase1, None if d.angle_cusum else tuple(state_names), shewhart)
+                           d.phase1, tuple(cusum_on), shewhart, glr=glr)
     return config if d.widen_margin is None else widen(config, runs, d.widen_margin)
 
 
@@ -227,5 +262,5 @@ def widen(config: MonitorConfig, runs: Sequence[Mapping[str, FloatArray]], margi
     return config
 
 
-__all__ = ["ChartDesign", "calibrate", "calibrate_series", "measurement_noise", "series",
-           "simulate_in_control", "widen"]
+__all__ = ["ChartDesign", "calibrate", "calibrate_series", "in_control_runs", "measurement_noise",
+           "series", "simulate_in_control", "widen"]

@@ -1,5 +1,6 @@
-"""Control charts on a stream of estimates: one EWMA and one CUSUM chart per quantity, and
-a model-mismatch chart on the filter's health; alarms as small immutable values.
+"""Control charts on a stream of estimates: an EWMA chart per quantity, a CUSUM and a GLR
+chart for a level change (:mod:`~formtwin.monitoring.glr`) on those configured, and a
+model-mismatch chart on the filter's health; alarms as small immutable values.
 
 Quantities: the posterior means of the state variables (``spec.state.names``) and the
 predicted angles (``angle_stage1``, ``angle_stage2``), each standardised by its in-control
@@ -27,8 +28,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
+
 from formtwin.estimates import Estimate
 from formtwin.monitoring.charts import Cusum, CusumState, Ewma, EwmaState
+from formtwin.monitoring.glr import Glr, GlrState
 from formtwin.monitoring.incontrol import InControl, Reference
 
 #: names of the predicted angles as monitored quantities
@@ -46,10 +50,10 @@ class Alarm:
     Attributes
     ----------
     variable : the quantity (a state variable, an angle, or a health statistic).
-    chart : ``"ewma"``, ``"cusum"``, ``"shewhart"`` or ``"mismatch"``.
+    chart : ``"ewma"``, ``"cusum"``, ``"glr"``, ``"shewhart"`` or ``"mismatch"``.
     index : the estimate's product index (0-based, the tracker's step).
     statistic : the chart statistic when it crossed (sigma units of the residual;
-        ``shewhart``: the residual's score ``z`` itself).
+        ``shewhart``: the residual's score ``z`` itself; ``glr``: a log-likelihood ratio).
     limit : the limit it crossed (same units).
     side : ``"high"`` (above the in-control level) or ``"low"``.
     """
@@ -87,6 +91,8 @@ class MonitorConfig:
         combined Shewhart-CUSUM, Lucas 1982; Montgomery ch. 9.1.7): the jump of the
         residual when a state mean steps is seen at once; ``None``: no such limit.
     mismatch : the one-sided CUSUM on every health score.
+    glr : quantity -> GLR chart for a level change (:mod:`~formtwin.monitoring.glr`; its
+        signature follows from the quantity's AR model); empty: none.
     warmup : products not charted at the start.
     phase1 : products after the warm-up that estimate the means left ``None``.
     """
@@ -102,6 +108,7 @@ class MonitorConfig:
     cusum_on: tuple[str, ...] | None = None
     shewhart: float | None = None
     widen: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    glr: Mapping[str, Glr] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         bad_w = {f"{n}/{c}": f for n, d in self.widen.items() for c, f in d.items()
@@ -115,6 +122,9 @@ class MonitorConfig:
             unknown = [n for n in self.cusum_on if n not in self.quantities]
             if unknown:
                 raise ValueError(f"cusum_on names {unknown}, not charted quantities")
+        unknown_glr = [n for n in self.glr if n not in self.quantities]
+        if unknown_glr:
+            raise ValueError(f"GLR charts for {unknown_glr}, not charted quantities")
         bad = [n for n in self.health if n not in HEALTH]
         if bad:
             raise ValueError(f"health statistics {bad} unknown; known: {', '.join(HEALTH)}")
@@ -142,7 +152,9 @@ class MonitorConfig:
             "mismatch": {"k": self.mismatch.k, "h": self.mismatch.h},
             "warmup": self.warmup, "phase1": self.phase1, "cusum_on": self.cusum_on,
             "shewhart": self.shewhart,
-            "widen": {n: dict(d) for n, d in self.widen.items()}})
+            "widen": {n: dict(d) for n, d in self.widen.items()},
+            "glr": {n: {"signature": list(g.signature), "h": g.h, "window": g.window}
+                    for n, g in self.glr.items()}})
 
     @classmethod
     def from_json(cls, text: str) -> MonitorConfig:
@@ -158,7 +170,9 @@ class MonitorConfig:
                    cusum_on=None if d.get("cusum_on") is None else tuple(d["cusum_on"]),
                    shewhart=None if d.get("shewhart") is None else float(d["shewhart"]),
                    widen={n: {c: float(f) for c, f in w.items()}
-                          for n, w in d.get("widen", {}).items()})
+                          for n, w in d.get("widen", {}).items()},
+                   glr={n: Glr(tuple(g["signature"]), float(g["h"]), int(g["window"]))
+                        for n, g in d.get("glr", {}).items()})
 
 
 def observe(estimate: Estimate) -> dict[str, float]:
@@ -172,7 +186,7 @@ def observe(estimate: Estimate) -> dict[str, float]:
 
 
 class Monitor:
-    """EWMA, CUSUM and mismatch charts over a stream of estimates.
+    """EWMA, CUSUM, GLR and mismatch charts over a stream of estimates.
 
     Parameters
     ----------
@@ -203,6 +217,7 @@ class Monitor:
         self.cusum = {n: CusumState() for n in config.quantities
                       if config.cusum_on is None or n in config.cusum_on}
         self.health = {n: CusumState() for n in config.health}
+        self.glr = {n: GlrState() for n in config.glr}
         w = config.widen
         #: each quantity's charts with its limits (the design's times its ``widen``)
         self.charts = {n: (replace(config.ewma, L=config.ewma.L * w.get(n, {}).get("ewma", 1.0)),
@@ -210,6 +225,8 @@ class Monitor:
                            None if config.shewhart is None
                            else config.shewhart * w.get(n, {}).get("shewhart", 1.0))
                        for n in config.quantities}
+        self.glr_charts = {n: replace(g, h=g.h * w.get(n, {}).get("glr", 1.0))
+                           for n, g in config.glr.items()}
         self.mismatch = {n: replace(config.mismatch,
                                     h=config.mismatch.h * w.get(n, {}).get("mismatch", 1.0))
                          for n in config.health}
@@ -261,6 +278,11 @@ class Monitor:
             last["ewma"] = (s.statistic, s.limit)
             if s.side:
                 alarms.append(Alarm(n, "ewma", idx, s.statistic, s.limit, s.side))
+            if n in self.glr:
+                self.glr[n], s = self.glr_charts[n].update(self.glr[n], z)
+                last["glr"] = (s.statistic, s.limit)
+                if s.side:
+                    alarms.append(Alarm(n, "glr", idx, s.statistic, s.limit, s.side))
             if n not in self.cusum:
                 continue
             self.cusum[n], s = cusum.update(self.cusum[n], z)
@@ -299,7 +321,8 @@ class Monitor:
                 "history": {n: list(h) for n, h in self.history.items()},
                 "ewma": {n: [s.z, s.i] for n, s in self.ewma.items()},
                 "cusum": {n: [s.hi, s.lo] for n, s in self.cusum.items()},
-                "health": {n: [s.hi, s.lo] for n, s in self.health.items()}}
+                "health": {n: [s.hi, s.lo] for n, s in self.health.items()},
+                "glr": {n: [s.sums.tolist(), s.i] for n, s in self.glr.items()}}
 
     def _load(self, st: Mapping[str, Any]) -> None:
         names, health = set(self.models), set(self.config.health)
@@ -315,6 +338,12 @@ class Monitor:
         self.ewma = {n: EwmaState(float(z), int(i)) for n, (z, i) in st["ewma"].items()}
         self.cusum = {n: CusumState(float(a), float(b)) for n, (a, b) in st["cusum"].items()}
         self.health = {n: CusumState(float(a), float(b)) for n, (a, b) in st["health"].items()}
+        glr = st.get("glr", {})
+        if set(glr) - set(self.glr):
+            raise ValueError(f"monitor state has GLR charts {sorted(glr)}, the config "
+                             f"{sorted(self.glr)}")
+        self.glr.update({n: GlrState(np.asarray(v, dtype=np.float64), int(i))
+                         for n, (v, i) in glr.items()})
 
 
 __all__ = ["ANGLES", "HEALTH", "Alarm", "Monitor", "MonitorConfig", "observe"]

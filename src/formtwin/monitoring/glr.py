@@ -1,0 +1,194 @@
+"""GLR chart for an additive (level) change of an autoregressive quantity, in the residuals of
+its in-control model (Basseville & Nikiforov, *Detection of Abrupt Changes*, 1993, ch. 7-8:
+additive changes in AR models; Lai 1995; Lai & Shan 1999: window-limited GLR).
+
+A quantity ``y`` with the in-control AR(p) model ``y_i - m = sum_l phi_l (y_{i-l} - m) + e_i``
+whose *level* steps by ``delta`` at product ``tau`` (``y`` and its mean move together) shows
+in the one-step residuals not a constant shift but a *signature*: at lag ``j`` after the
+change the residual's mean moves by ``delta s_j`` with
+
+    s_j = 1 - sum_{l <= min(j, p)} phi_l        (s_0 = 1: the jump; then the lasting shift),
+
+a spike followed by a small lasting shift (``rho`` = 0.9: 4.6 and 0.46 innovation sigmas for a
+2-sigma step of an AR(1) state). A CUSUM with a constant reference is matched to neither.
+The generalised likelihood ratio of "a change of unknown size at an unknown product within
+the last ``window``" against "no change", for standardised residuals ``z`` (N(0, 1)
+independent in control), maximises over the change time ``tau`` the closed form over
+``delta``::
+
+    g_n = max_tau  (sum_{j=0}^{n-tau} s_j z_{tau+j})^2 / (2 sum_{j=0}^{n-tau} s_j^2)
+
+and signals when ``g_n > h``. Both signs are covered (``delta`` is free). The numerators
+for all candidate ``tau`` are kept as one array that each product shifts and updates in
+``O(window)`` (:meth:`Glr.update`). After a signal the chart restarts.
+
+The threshold for an in-control average run length ``ARL0`` (:func:`glr_h`) is set by
+simulating the statistic on independent N(0, 1) scores and extrapolating the rate of its
+up-crossings of ``h`` with the large-``h`` form ``C h^(1/2) exp(-h)`` (Siegmund &
+Venkatraman 1995, for the GLR of a mean change): fitted where the rate is measurable,
+solved where it is not.
+
+>>> g = Glr(level_signature((0.9,)), h=10.0, window=50)
+>>> tuple(round(v, 2) for v in g.signature)      # the jump, then 1 - rho
+(1.0, 0.1)
+>>> st, sig = g.update(GlrState(), 3.0)          # one residual of 3 sigma: 3^2 / 2
+>>> round(sig.statistic, 2), sig.side
+(4.5, '')
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import brentq
+
+from formtwin.monitoring.charts import Signal
+
+FloatArray = NDArray[np.float64]
+
+
+def level_signature(phi: Sequence[float]) -> tuple[float, ...]:
+    """Residual signature ``(s_0, ..., s_p)`` (p + 1,) of a unit level step of an AR(p)
+    quantity with coefficients ``phi``; ``s_j = s_p`` for ``j > p``."""
+    return tuple(1.0 - float(np.sum(phi[:j])) for j in range(len(phi) + 1))
+
+
+def response_signature(estimates: Sequence[FloatArray], truths: Sequence[FloatArray],
+                       phi: Sequence[float], mean: float, mu: float, length: int = 50
+                       ) -> tuple[float, ...]:
+    """Residual signature (length,) of a unit level step of the *true* state as the
+    estimates of it see it, for estimates that follow the state with a lag and only part
+    of the way (a filter that expects the state about ``mu`` pulls a lasting offset back).
+
+    The estimate's response to the state is fitted on in-control runs whose true states
+    are known (simulated): the ARX model ``y_i - m = b_1 (y_{i-1} - m) + b_2 (y_{i-2} - m) +
+    c_0 (x_i - mu) + c_1 (x_{i-1} - mu) + c_2 (x_{i-2} - mu) + noise`` by least squares
+    (each run (n_r,) of ``estimates`` with the true states ``truths`` (n_r,)). Its step
+    response ``g_j`` to ``x - mu`` = 1 from lag 0 on, through the in-control AR model
+    ``phi`` of the estimate, gives the residual signature ``s_j = g_j - sum_l phi_l
+    g_{j-l}``, scaled to a largest ``|s_j|`` of 1. (For estimates equal to the state,
+    ``s`` is :func:`level_signature`.)
+    """
+    rows, target = [], []
+    for y, x in zip(estimates, truths, strict=True):
+        yc, xc = np.asarray(y, float) - mean, np.asarray(x, float) - mu
+        rows.append(np.column_stack([yc[1:-1], yc[:-2], xc[2:], xc[1:-1], xc[:-2]]))
+        target.append(yc[2:])
+    a, t = np.vstack(rows), np.concatenate(target)
+    ok = np.isfinite(t) & np.all(np.isfinite(a), axis=1)
+    b = np.linalg.lstsq(a[ok], t[ok], rcond=None)[0]
+    g = np.zeros(length + 2)  # g[j + 2] = response at lag j; zeros before the step
+    for j in range(length):
+        g[j + 2] = b[0] * g[j + 1] + b[1] * g[j] + b[2] + b[3] * (j >= 1) + b[4] * (j >= 2)
+    s = g[2:] - sum(p * g[2 - lag: 2 - lag + length] for lag, p in enumerate(phi, 1))
+    top = float(np.max(np.abs(s)))
+    if not top > 0:
+        raise ValueError("the estimates do not respond to the state: no GLR signature")
+    return tuple(float(v) for v in s / top)
+
+
+@dataclass(frozen=True)
+class GlrState:
+    """Numerators ``sum_j s_j z_{tau+j}`` by the change's age ``n - tau`` (0 .. window-1;
+    empty: none yet) and the products since the (re)start ``i``."""
+
+    sums: FloatArray = field(default_factory=lambda: np.zeros(0))
+    i: int = 0
+
+
+@dataclass(frozen=True)
+class Glr:
+    """Window-limited GLR chart for a change with residual signature ``signature``
+    (``s_0, s_1, ...``; the last value holds for all later lags), threshold ``h`` on the
+    log-likelihood ratio, change times within the last ``window`` products."""
+
+    signature: tuple[float, ...]
+    h: float
+    window: int = 200
+
+    def __post_init__(self) -> None:
+        s = tuple(float(v) for v in self.signature)
+        if not all(math.isfinite(v) for v in s) or not any(s):
+            raise ValueError(f"GLR signature {s}: expected finite values, not all 0")
+        if not self.h > 0 or self.window < 1:
+            raise ValueError(f"GLR h = {self.h}, window = {self.window}: expected > 0, >= 1")
+        object.__setattr__(self, "signature", s)
+        full = np.full(self.window, s[-1])
+        full[: min(len(s), self.window)] = s[: self.window]
+        object.__setattr__(self, "_s", full)
+        # 2 sum_{j<=a} s_j^2 by age a; a lasting shift of 0 would give 0 beyond s: guard
+        object.__setattr__(self, "_d2", 2.0 * np.maximum(np.cumsum(full * full), 1e-300))
+
+    def update(self, state: GlrState, z: float) -> tuple[GlrState, Signal]:
+        """The next state and the signal for standardised residual ``z``; the statistic is
+        ``g_n``, signed by the estimated change's direction; restarted after a signal."""
+        s: FloatArray = self._s  # type: ignore[attr-defined]
+        m = min(state.i + 1, self.window)
+        sums = np.empty(m)
+        sums[0] = 0.0
+        sums[1:] = state.sums[: m - 1]
+        sums += s[:m] * z
+        llr = sums * sums / self._d2[:m]  # type: ignore[attr-defined]
+        k = int(np.argmax(llr))
+        g = float(llr[k])
+        side = "" if g <= self.h else ("high" if sums[k] > 0 else "low")
+        if side:
+            return GlrState(), Signal(g, self.h, side)
+        return GlrState(sums, state.i + 1), Signal(g, self.h, "")
+
+
+def glr_statistics(signature: Sequence[float], window: int, z: FloatArray) -> FloatArray:
+    """The statistic ``g_n`` without restarts for the scores ``z`` (streams, steps), each
+    stream charted from its start: (streams, steps)."""
+    g = Glr(tuple(signature), 1.0, window)
+    s: FloatArray = g._s  # type: ignore[attr-defined]
+    d2: FloatArray = g._d2  # type: ignore[attr-defined]
+    streams, steps = z.shape
+    sums = np.zeros((streams, window))
+    out = np.empty((streams, steps))
+    for t in range(steps):
+        sums[:, 1:] = sums[:, :-1].copy()
+        sums[:, 0] = 0.0
+        sums += s[None, :] * z[:, t: t + 1]
+        m = min(t + 1, window)
+        out[:, t] = np.max(sums[:, :m] ** 2 / d2[None, :m], axis=1)
+    return out
+
+
+def glr_h(signature: Sequence[float], window: int, arl0: float) -> float:
+    """Threshold ``h`` giving in-control ARL ``arl0`` for independent N(0, 1) scores
+    (:func:`glr_rate`)."""
+    if not arl0 > 1:
+        raise ValueError(f"ARL0 = {arl0}, expected > 1")
+    c, a = glr_rate(tuple(round(float(v), 4) for v in signature), int(window))
+    return float(brentq(lambda h: c + a * math.log(h) - h + math.log(arl0), 1.0, 200.0))
+
+
+@lru_cache(maxsize=64)
+def glr_rate(signature: tuple[float, ...], window: int, streams: int = 300,
+             steps: int = 2500, seed: int = 0) -> tuple[float, float]:
+    """``(c, a)`` of the up-crossing rate of ``h`` per product, ``log rate = c + a log(h) -
+    h``, for independent N(0, 1) scores: the statistic simulated on ``streams`` x ``steps``
+    scores (after a burn-in of one window), the form fitted by least squares over the grid
+    ``h`` >= 5 where at least 50 up-crossings are seen (the maximum over change times makes
+    ``a`` about 1-2.5, not a single time's 1/2). Checked against direct simulation in the
+    tests; at ARL0 1e4-1e5 the real ARL is 1-1.5 times the design's."""
+    z = np.random.default_rng(seed).standard_normal((streams, steps + window))
+    g = glr_statistics(signature, window, z)[:, window:]
+    grid = np.arange(5.0, 30.01, 0.5)
+    up = np.array([np.sum((g[:, 1:] > h) & (g[:, :-1] <= h)) for h in grid])
+    ok = up >= 50
+    if ok.sum() < 3:
+        raise ValueError("GLR threshold: too few simulated up-crossings to fit their rate")
+    y = np.log(up[ok] / g[:, 1:].size) + grid[ok]
+    a, c = np.polyfit(np.log(grid[ok]), y, 1)
+    return float(c), float(a)
+
+
+__all__ = ["Glr", "GlrState", "glr_h", "glr_rate", "glr_statistics", "level_signature",
+           "response_signature"]
