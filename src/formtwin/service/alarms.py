@@ -2,8 +2,9 @@
 published and acknowledged.
 
 :class:`ServiceMonitor` runs a :class:`~formtwin.monitoring.Monitor` (EWMA and CUSUM charts
-on the state posterior means and the predicted angles, the model-mismatch CUSUM on the
-filter's health: log-evidence increment and ESS against their in-control distribution). For
+on the state posterior means and the predicted angles, GLR charts for a level change of a
+state variable, the model-mismatch CUSUM on the filter's health: log-evidence increment
+and ESS against their in-control distribution). For
 every accepted product the processor calls :meth:`ServiceMonitor.observe` *before* the
 commit (after the service's model health, :mod:`formtwin.service.health`, whose opening
 ``model_mismatch`` episode becomes an alarm too, chart ``model_mismatch``): the chart
@@ -21,7 +22,7 @@ order (the charts are deterministic).
 The chart configuration is fixed with the store (``meta`` key ``monitor_config``, JSON):
 either calibrated at the store's first start on simulated in-control runs of the service's
 own model, measurement model and tracker settings
-(:func:`~formtwin.monitoring.calibrate.simulate_in_control`: the spec's statistics mu,
+(:func:`~formtwin.monitoring.calibrate.in_control_runs`: the spec's statistics mu,
 sigma, rho, and measurement noise as the likelihood assumes it;
 :func:`~formtwin.monitoring.calibrate.calibrate`), or a user's file
 (:meth:`~formtwin.monitoring.MonitorConfig.to_json` format: in-control means, residual
@@ -40,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from formtwin.monitoring.calibrate import ChartDesign, calibrate, simulate_in_control
+from formtwin.monitoring.calibrate import ChartDesign, calibrate, in_control_runs
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker
@@ -100,11 +101,13 @@ def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> Mon
     else:
         log.info("calibrating the charts on %d simulated in-control runs of %d products",
                  source.runs, source.products)
-        runs = simulate_in_control(tracker.model, tracker.measurement, tracker.config,
-                                   source.products, source.runs, source.seed, noise=True)
+        runs = in_control_runs(tracker.model, tracker.measurement, tracker.config,
+                               source.products, source.runs, source.seed, noise=True)
         c = tracker.config
         mu = tracker.spec.state.mu_mid if c.mu is None else np.asarray(c.mu)
-        config = calibrate(runs, tracker.spec.state.names, mu, source.design)
+        # the true states too: the GLR charts follow how the estimates respond to a step
+        config = calibrate([est for _, est in runs], tracker.spec.state.names, mu,
+                           source.design, truths=[x for x, _ in runs])
     store.set_meta("monitor_config", config.to_json())
     return config
 
