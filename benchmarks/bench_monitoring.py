@@ -62,6 +62,7 @@ from formtwin.monitoring.calibrate import (
     measurement_noise,
     series,
 )
+from formtwin.monitoring.glr import residual_response, step_response
 from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
 from formtwin.monitoring.scenarios import Change, changed_run
 from formtwin.tracker import Tracker, TrackerConfig
@@ -262,6 +263,9 @@ def main() -> None:
     t_config = calibrate_series([t for _, t in calib], names, mu, design)
     oracle = evaluate(t_config, [t for _, t in ic], {k: [(ch, t) for ch, _, t in v]
                                                      for k, v in scenarios.items()}, names, args)
+    response = {n: what_a_step_leaves(config, [e[n] for e, _ in calib], [t[n] for _, t in calib],
+                                      float(mu[j]), float(spec.state.sigma[j]), n, design)
+                for j, n in enumerate(names)}
     steps = figures.pop("step_2sigma")
     figures = {
         "detection_delay_median_products": steps["median"],
@@ -269,6 +273,7 @@ def main() -> None:
         **figures,
         "false_alarms_target": 1,
         "step_2sigma": steps,
+        "step_2sigma_in_the_estimates": response,
         "oracle_true_states": {
             "detection_delay_median_products": oracle["step_2sigma"]["median"],
             **{k: v for k, v in oracle.items() if k != "charts"}},
@@ -284,6 +289,29 @@ def main() -> None:
         "tracking_s": round(track_s, 1),
     }
     write_result("monitoring", figures, directory=args.out, model=info)
+
+
+def what_a_step_leaves(config: MonitorConfig, est: list[np.ndarray], true: list[np.ndarray],
+                       mu: float, sigma: float, name: str, design: ChartDesign
+                       ) -> dict[str, Any]:
+    """How the estimates of state ``name`` respond to a step of the state, from the
+    calibration runs (:func:`~formtwin.monitoring.glr.step_response`): the share of the
+    step they show after 0, 5, 30 products; and for a 2-sigma step the expected GLR
+    statistic at the change's true time after 10 and 30 products (half the noncentrality,
+    ``sum_j s_j^2 / 2``, residual sigma units) and the products until it reaches the
+    chart's limit ``h`` (``None``: not within the window)."""
+    w = design.warmup
+    g = step_response([e[w:] for e in est], [t[w:] for t in true], mu, mu, design.glr_window)
+    q = config.quantities[name]
+    llr = np.cumsum((residual_response(g, q.phi) * 2.0 * sigma / q.sigma) ** 2) / 2.0
+    h = config.glr[name].h * config.widen.get(name, {}).get("glr", 1.0) if name in config.glr \
+        else float("nan")
+    reach = np.nonzero(llr >= h)[0]
+    return {"share_of_step_lag0": round(float(g[0]), 3), "lag5": round(float(g[5]), 3),
+            "lag30": round(float(g[30]), 3),
+            "expected_glr_10": round(float(llr[9]), 2), "expected_glr_30": round(float(llr[29]), 2),
+            "glr_h": round(h, 2),
+            "products_to_reach_h": int(reach[0]) + 1 if reach.size else None}
 
 
 def evaluate(config: MonitorConfig, ic_runs: list[Series],

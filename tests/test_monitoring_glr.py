@@ -15,6 +15,7 @@ from formtwin.monitoring.glr import (
     glr_statistics,
     level_signature,
     response_signature,
+    step_response,
 )
 from formtwin.monitoring.incontrol import InControl, fit_in_control
 from formtwin.monitoring.monitor import Monitor, MonitorConfig
@@ -83,12 +84,14 @@ def test_response_signature_of_an_exponentially_smoothed_state() -> None:
         y[i] = (1 - a) * y[i - 1] + a * x[i]
     y += 0.05 * rng.standard_normal(x.size)  # a little estimation noise
     q = fit_in_control([y], order=2, mean=0.0)
-    sig = np.array(response_signature([y], [x], q.phi, 0.0, 0.0, length=12))
+    got = step_response([y], [x], 0.0, 0.0, length=12)
+    assert got == pytest.approx(1.0 - (1.0 - a) ** (np.arange(12) + 1.0), abs=0.01)
+    sig = np.array(response_signature(got, q.phi))
     g = np.concatenate([[0.0, 0.0], 1.0 - (1.0 - a) ** (np.arange(12) + 1.0)])
     expect = g[2:] - q.phi[0] * g[1:-1] - q.phi[1] * g[:-2]
     assert sig == pytest.approx(expect / np.max(np.abs(expect)), abs=0.02)
     q_x = fit_in_control([x], order=2, mean=0.0)
-    same = response_signature([x], [x], q_x.phi, 0.0, 0.0, length=5)
+    same = response_signature(step_response([x], [x], 0.0, 0.0, length=5), q_x.phi)
     assert same == pytest.approx((*level_signature(q_x.phi), same[-1], same[-1]), abs=1e-9)
 
 

@@ -30,7 +30,13 @@ from scipy.special import ndtri
 from formtwin.estimates import Estimates
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.monitoring.charts import Cusum, Ewma, cusum_h, ewma_L
-from formtwin.monitoring.glr import Glr, glr_h, level_signature, response_signature
+from formtwin.monitoring.glr import (
+    Glr,
+    glr_h,
+    level_signature,
+    response_signature,
+    step_response,
+)
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
 from formtwin.monitoring.monitor import ANGLES, HEALTH, Monitor, MonitorConfig
 from formtwin.tracker import Tracker, TrackerConfig
@@ -179,7 +185,7 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
 
     ``truths``: the runs' true states (n_r, 7) (simulated runs): each state variable's GLR
     chart is then matched to how its estimate responds to a step of the state
-    (:func:`~formtwin.monitoring.glr.response_signature`); without them, to a step of the
+    (:func:`~formtwin.monitoring.glr.step_response`); without them, to a step of the
     estimate itself (:func:`~formtwin.monitoring.glr.level_signature`).
     """
     d = ChartDesign() if design is None else design
@@ -211,9 +217,9 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
     glr = {}
     for j, n in enumerate(state_names if d.glr else ()):
         q = quantities[n]
-        sig = (level_signature(q.phi) if truths is None else response_signature(
-            [v[n] for v in values], [np.asarray(x)[d.warmup:, j] for x in truths], q.phi,
-            float(mu[j]), float(mu[j])))
+        sig = (level_signature(q.phi) if truths is None else response_signature(step_response(
+            [v[n] for v in values], [np.asarray(x)[d.warmup:, j] for x in truths],
+            float(mu[j]), float(mu[j])), q.phi))
         glr[n] = Glr(sig, glr_h(sig, d.glr_window, d.arl0_glr), d.glr_window)
     config = MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
                            d.phase1, tuple(cusum_on), shewhart, glr=glr)

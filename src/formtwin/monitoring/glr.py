@@ -58,21 +58,16 @@ def level_signature(phi: Sequence[float]) -> tuple[float, ...]:
     return tuple(1.0 - float(np.sum(phi[:j])) for j in range(len(phi) + 1))
 
 
-def response_signature(estimates: Sequence[FloatArray], truths: Sequence[FloatArray],
-                       phi: Sequence[float], mean: float, mu: float, length: int = 50
-                       ) -> tuple[float, ...]:
-    """Residual signature (length,) of a unit level step of the *true* state as the
-    estimates of it see it, for estimates that follow the state with a lag and only part
-    of the way (a filter that expects the state about ``mu`` pulls a lasting offset back).
+def step_response(estimates: Sequence[FloatArray], truths: Sequence[FloatArray], mean: float,
+                  mu: float, length: int = 50) -> FloatArray:
+    """Response ``g_j`` (length,) of the estimates of a state to a unit level step of the
+    *true* state at lag 0 (estimates follow the state with a lag and, when the filter
+    expects the state about ``mu``, only part of the way).
 
-    The estimate's response to the state is fitted on in-control runs whose true states
-    are known (simulated): the ARX model ``y_i - m = b_1 (y_{i-1} - m) + b_2 (y_{i-2} - m) +
-    c_0 (x_i - mu) + c_1 (x_{i-1} - mu) + c_2 (x_{i-2} - mu) + noise`` by least squares
-    (each run (n_r,) of ``estimates`` with the true states ``truths`` (n_r,)). Its step
-    response ``g_j`` to ``x - mu`` = 1 from lag 0 on, through the in-control AR model
-    ``phi`` of the estimate, gives the residual signature ``s_j = g_j - sum_l phi_l
-    g_{j-l}``, scaled to a largest ``|s_j|`` of 1. (For estimates equal to the state,
-    ``s`` is :func:`level_signature`.)
+    Fitted on in-control runs whose true states are known (simulated): the ARX model
+    ``y_i - m = b_1 (y_{i-1} - m) + b_2 (y_{i-2} - m) + c_0 (x_i - mu) + c_1 (x_{i-1} - mu)
+    + c_2 (x_{i-2} - mu) + noise`` by least squares (each run (n_r,) of ``estimates`` with
+    its true states ``truths`` (n_r,); ``m`` = ``mean``), run for ``x - mu`` = 1 from lag 0.
     """
     rows, target = [], []
     for y, x in zip(estimates, truths, strict=True):
@@ -85,11 +80,29 @@ def response_signature(estimates: Sequence[FloatArray], truths: Sequence[FloatAr
     g = np.zeros(length + 2)  # g[j + 2] = response at lag j; zeros before the step
     for j in range(length):
         g[j + 2] = b[0] * g[j + 1] + b[1] * g[j] + b[2] + b[3] * (j >= 1) + b[4] * (j >= 2)
-    s = g[2:] - sum(p * g[2 - lag: 2 - lag + length] for lag, p in enumerate(phi, 1))
+    return g[2:]
+
+
+def response_signature(response: FloatArray, phi: Sequence[float]) -> tuple[float, ...]:
+    """Residual signature of a step whose estimates respond by ``response`` (length,) (see
+    :func:`step_response`), through the estimate's in-control AR model ``phi``: ``s_j = g_j
+    - sum_l phi_l g_{j-l}``, scaled to a largest ``|s_j|`` of 1. (For estimates equal to
+    the state, ``g_j`` = 1: :func:`level_signature`.)"""
+    s = residual_response(response, phi)
     top = float(np.max(np.abs(s)))
     if not top > 0:
         raise ValueError("the estimates do not respond to the state: no GLR signature")
     return tuple(float(v) for v in s / top)
+
+
+def residual_response(response: FloatArray, phi: Sequence[float]) -> FloatArray:
+    """``s_j = g_j - sum_l phi_l g_{j-l}`` (len(response),), ``g`` = 0 before lag 0: the
+    one-step residuals' mean after a step whose estimates respond by ``g``."""
+    g = np.concatenate([np.zeros(len(phi)), np.asarray(response, dtype=np.float64)])
+    p, n = len(phi), len(response)
+    out: FloatArray = g[p:] - sum((c * g[p - lag: p - lag + n] for lag, c in enumerate(phi, 1)),
+                                  np.zeros(n))
+    return out
 
 
 @dataclass(frozen=True)
@@ -191,4 +204,4 @@ def glr_rate(signature: tuple[float, ...], window: int, streams: int = 300,
 
 
 __all__ = ["Glr", "GlrState", "glr_h", "glr_rate", "glr_statistics", "level_signature",
-           "response_signature"]
+           "residual_response", "response_signature", "step_response"]
