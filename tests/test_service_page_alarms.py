@@ -24,6 +24,7 @@ from service_fixtures import (
     wait_serving,
 )
 
+from formtwin.monitoring.glr import Glr
 from formtwin.monitoring.incontrol import InControl
 from formtwin.monitoring.monitor import MonitorConfig
 from formtwin.service.mqtt import BrokerConfig, publish_strokes
@@ -40,7 +41,8 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
     # estimates are out of control), the stage-2 angle about its Phase-I level
     config = MonitorConfig({"thickness": InControl(mean=300.0, sigma=1e-3),
                             "angle_stage2": InControl(mean=None, sigma=1e-3)},
-                           warmup=2, phase1=3)
+                           warmup=2, phase1=3,
+                           glr={"thickness": Glr((1.0, 0.3), h=20.0, window=50)})
     (tmp_path / "limits.json").write_text(config.to_json())
     strokes = read_stream(make_stream(tmp_path / "s.npz", 20, seed=4))
     port = free_port()
@@ -63,6 +65,7 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
             # one control chart per monitored variable, with its limits and alarms
             keys = page.evaluate("window.formtwinLive.charts.map(c => c.key)")
             assert "chart:thickness" in keys and "chart:angle_stage2" in keys
+            assert "glr:thickness" in keys and "glr:angle_stage2" not in keys
             chart = page.evaluate(
                 "window.formtwinLive.charts.find(c => c.key === 'chart:thickness')"
                 ".plot.data")
@@ -76,6 +79,14 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
             assert marked == {a["seq"] for a in stored if a["variable"] == "thickness"}
             assert marked
             assert n_alarms == len(stored) == len(collector.get(ALARMS))
+            # the GLR chart: its statistic with its one limit, marked where it alarmed
+            seqs_g, stat_g, upper_g, lower_g, marks_g = page.evaluate(
+                "window.formtwinLive.charts.find(c => c.key === 'glr:thickness').plot.data")
+            assert [v for v in upper_g if v is not None] == [20.0] * (20 - 5)
+            assert all(v is None for v in lower_g)
+            assert {seqs_g[i] for i, v in enumerate(marks_g) if v is not None} == {
+                a["seq"] for a in stored if a["variable"] == "thickness" and a["chart"] == "glr"}
+            assert any(a["chart"] == "glr" for a in stored)
             assert page.inner_text("#n-alarms") == str(n_alarms)
             # acknowledge the newest alarm on the page
             newest = stored[-1]["id"]

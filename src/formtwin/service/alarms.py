@@ -219,7 +219,7 @@ class ServiceMonitor:
     def limits(self) -> dict[str, Any]:
         """What the page draws: the charted quantities, their charts and chart settings."""
         c = self.config
-        return {"quantities": list(c.quantities), "health": list(c.health),
+        return {"quantities": list(c.quantities), "health": list(c.health), "glr": list(c.glr),
                 "ewma": {"lam": c.ewma.lam, "L": c.ewma.L},
                 "cusum": {"k": c.cusum.k, "h": c.cusum.h},
                 "mismatch": {"k": c.mismatch.k, "h": c.mismatch.h},

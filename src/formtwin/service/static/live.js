@@ -84,16 +84,19 @@
   }
 
   // control charts: one per monitored quantity (EWMA of the standardised residual with its
-  // limits; the health statistics' mismatch CUSUM with its decision interval), alarms as
-  // red points
+  // limits; the health statistics' mismatch CUSUM with its decision interval), a GLR chart
+  // (level change, log-likelihood ratio and its limit) per state variable, alarms as red
+  // points
+  const TITLES = {ewma: "EWMA chart: ", mismatch: "model-mismatch CUSUM: ",
+                  glr: "GLR chart (level change): "};
   function buildMonitor(mon) {
     if (!mon) return;
     const charted = mon.quantities.map((n) => [n, "ewma"]).concat(
-      mon.health.map((n) => [n, "mismatch"]));
+      mon.health.map((n) => [n, "mismatch"]), (mon.glr || []).map((n) => [n, "glr"]));
     charted.forEach(([name, chart]) => {
-      const title = (chart === "ewma" ? "EWMA chart: " : "model-mismatch CUSUM: ") + name +
-        " (sigma units)";
-      makeChart(title, "chart:" + name, {
+      const title = TITLES[chart] + name +
+        (chart === "glr" ? " (log-likelihood ratio)" : " (sigma units)");
+      makeChart(title, (chart === "glr" ? "glr:" : "chart:") + name, {
         series: [
           {label: "statistic", stroke: "#444", width: 1.2, points: {show: false}},
           {label: "upper limit", stroke: "#c33", width: 1, dash: [4, 3], points: {show: false}},
@@ -104,7 +107,8 @@
           const m = p.monitoring;
           const c = m && m.charts && m.charts[name] ? m.charts[name][chart] : null;
           if (!c) return [null, null, null, null];
-          const raised = (m.alarms || []).some((a) => a.variable === name);
+          const raised = (m.alarms || []).some(
+            (a) => a.variable === name && (chart !== "glr" || a.chart === "glr"));
           return [c[0], c[1], chart === "ewma" ? -c[1] : null, raised ? c[0] : null];
         },
         label: (ys) => fmt(ys[0]) + " (limit " + fmt(ys[1]) + ")",
