@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import log_ndtr, ndtri_exp
 
 FloatArray = NDArray[np.float64]
 
@@ -144,3 +145,62 @@ def mu_update(m: FloatArray, P: FloatArray, x_prev: FloatArray, x_new: FloatArra
     prec = 1.0 / P + a * a / q
     P_new = 1.0 / prec
     return P_new * (m / P + a * (x_new - rho * x_prev) / q), P_new
+
+
+# With the paper's prior mu ~ U(mu_min, mu_max) (the law the study draws mu from) the
+# posterior given a path is the Normal of the flat-prior update truncated to the range:
+# (m, P) are the same sufficient statistics, started from x_0 (m = x_0, P = sigma^2).
+
+
+def _lower_tail(m: FloatArray, s: FloatArray, lo: FloatArray, hi: FloatArray
+                ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Standardised bounds ``(a, b)`` of ``N(m, s^2)`` truncated to ``[lo, hi]``, mirrored
+    so that the interval lies mostly below the mean (``a + b <= 0``: the stable side of
+    the normal CDF), the sign (+-1) of the mirror, and ``log Z = log(Phi(b) - Phi(a))``."""
+    a, b = (lo - m) / s, (hi - m) / s
+    flip = np.where(a + b > 0, -1.0, 1.0)
+    a, b = np.where(flip > 0, a, -b), np.where(flip > 0, b, -a)
+    la, lb = log_ndtr(a), log_ndtr(b)
+    with np.errstate(divide="ignore"):
+        log_z = lb + np.log1p(-np.exp(la - lb))
+    return a, b, flip, log_z
+
+
+def truncated_normal(m: FloatArray, P: FloatArray, lo: FloatArray, hi: FloatArray,
+                     rng: np.random.Generator) -> FloatArray:
+    """Draws (N, d) of ``N(m, P)`` truncated to ``[lo, hi]`` (inverse CDF in log space,
+    exact also far in a tail).
+
+    >>> import numpy as np
+    >>> v = truncated_normal(np.array([[50.0]]), np.array([[1.0]]), np.array([0.0]),
+    ...                      np.array([1.0]), np.random.default_rng(0))
+    >>> bool(0.9 < v[0, 0] <= 1.0)   # the mean is 49 std above the range: at its top
+    True
+    """
+    s = np.sqrt(P)
+    a, b, flip, log_z = _lower_tail(m, s, lo, hi)
+    log_u = np.logaddexp(log_ndtr(a), np.log(rng.random(np.shape(a))) + log_z)
+    z = np.clip(ndtri_exp(np.minimum(log_u, 0.0)), a, b)
+    out: FloatArray = m + flip * s * z
+    return out
+
+
+def truncated_moments(m: FloatArray, P: FloatArray, lo: FloatArray, hi: FloatArray
+                      ) -> tuple[FloatArray, FloatArray]:
+    """Mean and variance (N, d) of ``N(m, P)`` truncated to ``[lo, hi]``.
+
+    >>> import numpy as np
+    >>> mean, var = truncated_moments(np.zeros(1), np.ones(1), np.zeros(1), np.full(1, np.inf))
+    >>> round(float(mean[0]), 4), round(float(var[0]), 4)   # half-normal: sqrt(2/pi), 1 - 2/pi
+    (0.7979, 0.3634)
+    """
+    s = np.sqrt(P)
+    a, b, flip, log_z = _lower_tail(m, s, lo, hi)
+    half_log_2pi = 0.5 * np.log(2.0 * np.pi)
+    with np.errstate(invalid="ignore", over="ignore"):
+        ra = np.exp(-0.5 * a * a - half_log_2pi - log_z)
+        rb = np.exp(-0.5 * b * b - half_log_2pi - log_z)
+        mz = ra - rb
+        vz = 1.0 + np.where(np.isfinite(a), a * ra, 0.0) - np.where(np.isfinite(b), b * rb,
+                                                                     0.0) - mz * mz
+    return m + flip * s * mz, P * np.clip(vz, 0.0, 1.0)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from formtwin.filters.move import ResampleMoveSIR
 from formtwin.filters.regularised import RegularisedSIR
 from formtwin.filters.resampling import (
     RESAMPLERS,
@@ -16,10 +17,11 @@ from formtwin.filters.resampling import (
     get_resampler,
     register_resampler,
 )
-from formtwin.filters.sir import SIR, StateSpaceModel, Step, log_normalise
+from formtwin.filters.sir import SIR, StateSpaceModel, Step, log_normalise, logsumexp
 
 #: filter name -> class (constructor ``(model, n_particles, rng, resampling, ess_threshold)``)
-FILTERS: dict[str, type[SIR]] = {"sir": SIR, "regularised": RegularisedSIR}
+FILTERS: dict[str, type[SIR]] = {"sir": SIR, "regularised": RegularisedSIR,
+                                  "move": ResampleMoveSIR}
 
 
 def get_filter(name: str | type[SIR]) -> type[SIR]:
@@ -38,5 +40,7 @@ def make_filter(name: str | type[SIR], *args: Any, **kwargs: Any) -> SIR:
     return get_filter(name)(*args, **kwargs)
 
 
-__all__ = ["FILTERS", "RESAMPLERS", "SIR", "RegularisedSIR", "Resampler", "StateSpaceModel", "Step",
-           "get_filter", "get_resampler", "log_normalise", "make_filter", "register_resampler"]
+__all__ = ["FILTERS", "RESAMPLERS", "SIR", "RegularisedSIR", "ResampleMoveSIR", "Resampler",
+           "StateSpaceModel", "Step",
+           "get_filter", "get_resampler", "log_normalise", "logsumexp", "make_filter",
+           "register_resampler"]

@@ -93,6 +93,21 @@ class Step:
         return out
 
 
+def logsumexp(a: FloatArray, axis: int | None = None) -> Any:
+    """``log sum exp(a)`` over ``axis`` (all entries: a float), stable as scipy's (rows of
+    ``-inf`` give ``-inf``) without its per-call overhead (~0.1 ms, 3 calls per product).
+
+    >>> import numpy as np
+    >>> logsumexp(np.array([[0.0, -np.inf], [-np.inf, -np.inf]]), axis=1).tolist()
+    [0.0, -inf]
+    """
+    top = np.max(a, axis=axis, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide="ignore"):
+        out = np.log(np.sum(np.exp(a - top), axis=axis, keepdims=True)) + top
+    return float(out.reshape(())) if axis is None else np.squeeze(out, axis=axis)
+
+
 def log_normalise(logw: FloatArray) -> tuple[FloatArray, float]:
     """Normalised log-weights and ``logsumexp(logw)``; ``logw`` must have a finite entry."""
     top = float(np.max(logw))

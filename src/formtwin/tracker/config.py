@@ -24,6 +24,11 @@ COMPARE = ("model", "measurement")
 #: shared by the products, prior N(0, (1 - kappa) K_res)
 LIKELIHOODS = ("calibrated", "paper", "adaptive", "discrepancy")
 
+#: priors of a learned mu (``learn_mu``): "uniform" is ``U(mu_min, mu_max)``, the law the
+#: paper's statistics are drawn from (posterior: a truncated Normal), "normal" the Normal
+#: with its mean and variance (posterior: a Normal, may leave the range)
+MU_PRIORS = ("uniform", "normal")
+
 #: the grid of the share ``kappa`` of ``K_res`` learned by the adaptive and discrepancy
 #: likelihoods when ``error_share`` is None (0: the paper's likelihood, 1: the calibrated)
 SHARES = (0.0, 0.25, 0.5, 0.75, 1.0)
@@ -64,6 +69,10 @@ class TrackerConfig:
         sufficient statistics (prior with the mean and variance of ``U(mu_min, mu_max)``,
         see :mod:`formtwin.tracker.ssm`); ``mu`` is then ignored. Default off (the paper's
         filter).
+    mu_prior : the prior of a learned mu, see :data:`MU_PRIORS`: ``"uniform"`` (default)
+        ``U(mu_min, mu_max)``, the posterior given a state path a Normal truncated to the
+        range (mu is drawn from it for each step); ``"normal"`` the Normal with the mean and
+        variance of that uniform, integrated out of the step.
     n_mc : Monte-Carlo curves for the measurement model's ``K_MC`` (paper: 10^4).
     nu : Student-t degrees of freedom of the likelihood; ``inf`` is the paper's Gaussian,
         a finite value the heavy-tailed robust option.
@@ -116,6 +125,8 @@ class TrackerConfig:
         "predict angles from this many resampled particles (default: all)"))
     learn_mu: bool = field(default=False, metadata=_help(
         "learn the statistics mu as hyperparameters"))
+    mu_prior: str = field(default="uniform", metadata=_help(
+        "prior of a learned mu: uniform (U(mu_min, mu_max), truncated posterior) or normal"))
     n_mc: int = field(default=10_000, metadata=_help("Monte-Carlo curves for K_MC"))
     nu: float = field(default=math.inf, metadata=_help(
         "Student-t degrees of freedom of the likelihood (inf: Gaussian)", "--robust-nu"))
@@ -141,6 +152,8 @@ class TrackerConfig:
         if self.likelihood not in LIKELIHOODS:
             raise ValueError(f"likelihood = {self.likelihood!r}; known: "
                              f"{', '.join(LIKELIHOODS)}")
+        if self.mu_prior not in MU_PRIORS:
+            raise ValueError(f"mu_prior = {self.mu_prior!r}; known: {', '.join(MU_PRIORS)}")
         if not self.fraction > 0:
             raise ValueError(f"fraction = {self.fraction}, expected > 0")
         if not self.sensor_noise >= 0:
@@ -161,6 +174,9 @@ class TrackerConfig:
         if self.likelihood in ("adaptive", "discrepancy") and self.learn_scale:
             raise ValueError(f"the {self.likelihood} likelihood learns its own scale "
                              "(error_share): learn_scale is for calibrated or paper")
+        if self.likelihood == "discrepancy" and self.filter == "move":
+            raise ValueError("the move filter needs a likelihood without learned statistics: "
+                             "not discrepancy")
         if self.likelihood == "discrepancy" and not math.isinf(self.nu):
             raise ValueError("the discrepancy likelihood is Gaussian (nu = inf)")
         if self.error_share is not None and not 0.0 <= self.error_share <= 1.0:

@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import logsumexp
 
+from formtwin.filters import logsumexp
 from formtwin.tracker.config import SCALES
 
 FloatArray = NDArray[np.float64]

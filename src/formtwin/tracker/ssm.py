@@ -40,16 +40,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import logsumexp
 
 from formtwin.deviation import DeviationModel
-from formtwin.evolution import evolve, jitter, mu_predictive, mu_update, reflect, stationary
+from formtwin.evolution import (
+    evolve,
+    jitter,
+    mu_predictive,
+    mu_update,
+    reflect,
+    stationary,
+    truncated_moments,
+    truncated_normal,
+)
+from formtwin.filters import logsumexp
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker.config import SCALES, SHARES, TrackerConfig
 from formtwin.tracker.discrepancy import Discrepancy
-from formtwin.tracker.hyper import GridPosteriors
+from formtwin.tracker.moves import MoveHooks
 
 FloatArray = NDArray[np.float64]
 
@@ -60,7 +69,7 @@ CHUNK = 512
 
 
 @dataclass(frozen=True)
-class BendingSSM(GridPosteriors):
+class BendingSSM(MoveHooks):
     """The augmented state-space model ``[x, theta, theta_d]`` for the generic filters.
 
     Parameters
@@ -91,8 +100,10 @@ class BendingSSM(GridPosteriors):
     _scale: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
     #: the learned discrepancy (``likelihood="discrepancy"``), else None
     discrepancy: Discrepancy | None = field(init=False, repr=False, default=None)
-    # columns [0, _n_bounded) have finite bounds (the discrepancy's statistics have none)
+    # columns [0, _n_bounded) have finite bounds: [x, theta, theta_d]
     _n_bounded: int = field(init=False, repr=False, default=0)
+    # the discrepancy's statistics are the columns [_disc, d)
+    _disc: int = field(init=False, repr=False, default=0)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
@@ -102,10 +113,11 @@ class BendingSSM(GridPosteriors):
                                             len(spec.augmented)))
         # the spec builds these arrays on every access (~20 us): keep them
         lo, hi = spec.augmented.lo, spec.augmented.hi
-        if self.config.learn_mu:  # bounds of m (the design box) and P (0, P0]
-            lo = np.r_[lo, spec.state.lo, np.full(len(spec.state), 1e-300)]
-            hi = np.r_[hi, spec.state.hi, self.mu_prior[1]]
-        object.__setattr__(self, "_n_bounded", lo.size)
+        object.__setattr__(self, "_n_bounded", lo.size)  # [x, theta, theta_d]
+        if self.config.learn_mu:  # m and P of mu: no bounds (m may leave the range)
+            lo = np.r_[lo, np.full(2 * len(spec.state), -np.inf)]
+            hi = np.r_[hi, np.full(2 * len(spec.state), np.inf)]
+        object.__setattr__(self, "_disc", lo.size)
         if self.config.likelihood in ("adaptive", "discrepancy"):
             k_res = residual_covariance(self.model)
             share = self.config.error_share
@@ -138,16 +150,28 @@ class BendingSSM(GridPosteriors):
 
     @property
     def mu_prior(self) -> tuple[FloatArray, FloatArray]:
-        """Mean and variance (7,) of the Normal prior of a learned mu: those of
-        ``U(mu_min, mu_max)``."""
+        """Mean and variance (7,) of the Normal prior of a learned mu (``mu_prior =
+        "normal"``): those of ``U(mu_min, mu_max)``."""
         st = self.model.spec.state
         return 0.5 * (st.mu_min + st.mu_max), (st.mu_max - st.mu_min) ** 2 / 12.0
 
+    @property
+    def mu_range(self) -> tuple[FloatArray, FloatArray] | None:
+        """``(mu_min, mu_max)`` (7,) that truncate a learned mu (``mu_prior =
+        "uniform"``), else ``None``."""
+        if self.config.mu_prior != "uniform":
+            return None
+        st = self.model.spec.state
+        return st.mu_min, st.mu_max
+
     def mu_moments(self, x: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and std (7,) of a learned mu from particles ``x`` (N, 32) with
-        weights ``w`` (N,): the moments of the mixture of the particles' ``N(m, P)``."""
+        weights ``w`` (N,): the moments of the mixture of the particles' posteriors
+        (``N(m, P)``, truncated to ``[mu_min, mu_max]`` with the uniform prior)."""
         na, nx = self.n_aug, self.n_x
         m, P = x[:, na:na + nx], x[:, na + nx:na + 2 * nx]
+        if self.mu_range is not None:
+            m, P = truncated_moments(m, P, *self.mu_range)
         mean = w @ m
         var = w @ P + w @ (m - mean) ** 2
         return mean, np.sqrt(np.maximum(var, 0.0))
@@ -173,7 +197,15 @@ class BendingSSM(GridPosteriors):
         lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
         out = np.empty((n, lo.size))
         out[:, nx:na] = lo[nx:na] + (hi[nx:na] - lo[nx:na]) * rng.random((n, na - nx))
-        if self.config.learn_mu:  # x_0 ~ N(m0, P0 + sigma^2), then the update by x_0
+        if self.config.learn_mu and self.mu_range is not None:
+            # mu ~ U(mu_min, mu_max), x_0 ~ N(mu, sigma^2); flat-prior statistics of x_0
+            st = self.spec.state
+            mu = st.mu_min + (st.mu_max - st.mu_min) * rng.random((n, nx))
+            x0 = reflect(mu + self._sigma * rng.standard_normal((n, nx)), lo[:nx], hi[:nx])
+            out[:, :nx] = x0
+            out[:, na:na + nx] = x0
+            out[:, na + nx:na + 2 * nx] = self._sigma**2
+        elif self.config.learn_mu:  # x_0 ~ N(m0, P0 + sigma^2), then the update by x_0
             m0, P0 = self.mu_prior
             x0 = reflect(m0 + np.sqrt(P0 + self._sigma**2) * rng.standard_normal((n, nx)),
                          lo[:nx], hi[:nx])
@@ -185,18 +217,24 @@ class BendingSSM(GridPosteriors):
             out[:, :nx] = stationary(n, self._mu, self._sigma, rng, lo[:nx], hi[:nx])
         if not self.config.estimate_deviation:
             out[:, self.n_in:self.n_aug] = 0.0
-        out[:, self._n_bounded:] = 0.0  # the discrepancy's statistics: nothing seen yet
+        if self.discrepancy is not None and self.discrepancy.shared:
+            out[:, self._disc:] = 0.0  # its statistics: nothing seen yet
         return out
 
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
         """Particles (N, d) of the next product given those of this one (N, d)."""
         lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
         out = np.empty_like(x)
-        if self.config.learn_mu:  # the predictive with mu ~ N(m, P) integrated out
+        if self.config.learn_mu:  # a draw of the predictive with mu integrated out
             m, P = x[:, na:na + nx], x[:, na + nx:na + 2 * nx]
-            mean, var = mu_predictive(m, P, x[:, :nx], self._sigma, self._rho)
-            out[:, :nx] = _into_box(mean + np.sqrt(var) * rng.standard_normal(mean.shape),
-                                    lo[:nx], hi[:nx])
+            rng_mu = self.mu_range
+            if rng_mu is not None:  # mu from its truncated posterior, then eq. 4-5
+                mu = truncated_normal(m, P, *rng_mu, rng)
+                new = evolve(x[:, :nx], mu, self._sigma, self._rho, rng)
+            else:  # the Normal predictive
+                mean, var = mu_predictive(m, P, x[:, :nx], self._sigma, self._rho)
+                new = mean + np.sqrt(var) * rng.standard_normal(mean.shape)
+            out[:, :nx] = _into_box(new, lo[:nx], hi[:nx])
             out[:, na:na + nx], out[:, na + nx:na + 2 * nx] = mu_update(
                 m, P, x[:, :nx], out[:, :nx], self._sigma, self._rho)
         else:  # eq. 4-5, then reflection of the few rows that left the box
@@ -206,7 +244,7 @@ class BendingSSM(GridPosteriors):
         out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                  self.config.alpha)
         out[:, stop:na] = x[:, stop:na]
-        out[:, self._n_bounded:] = x[:, self._n_bounded:]
+        out[:, self._disc:] = x[:, self._disc:]
         return out
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:
@@ -223,7 +261,7 @@ class BendingSSM(GridPosteriors):
             ll = np.concatenate([p[0] for p in parts])
         disc = self.discrepancy
         if disc is not None:  # residuals net of each particle's shared discrepancy,
-            stats = x[:, self._n_bounded:] if disc.shared else None  # then this product
+            stats = x[:, self._disc:] if disc.shared else None  # then this product
             logp = self.share_logpost  # joins the statistics
             w = np.exp(logp)
             self._last["cov"] = disc.predictive_cov(stats, w)
@@ -332,7 +370,7 @@ class BendingSSM(GridPosteriors):
         r = np.atleast_2d(obs - curves)
         if self.discrepancy is not None:
             c = self.discrepancy.whiten(r)
-            stats = x[:, self._n_bounded:] if self.discrepancy.shared else None
+            stats = x[:, self._disc:] if self.discrepancy.shared else None
             return self.discrepancy.loglik(r, stats, c), r, c
         ll = self.measurement.loglik_scaled(curves, obs, np.array(SCALES)) \
             if self.config.learn_scale else self.measurement.loglik(curves, obs)
