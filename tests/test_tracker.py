@@ -280,7 +280,8 @@ def test_into_box_reflects_only_the_rows_that_left() -> None:
 def test_angles_from_a_subsample_of_particles(
         model: AnalyticModel, mm: MeasurementModel, series1: dict[str, np.ndarray]) -> None:
     curves = series1["curves"][:20]
-    cfg = TrackerConfig(n_particles=400, mu=tuple(series1["mu"]), estimate_deviation=False)
+    cfg = TrackerConfig(n_particles=400, mu=tuple(series1["mu"]), estimate_deviation=False,
+                        angle_particles=None)
     full = Tracker(model, mm, cfg).run(curves)
     sub = Tracker(model, mm, dataclasses.replace(cfg, angle_particles=100)).run(curves)
     # the subsample's draws shift the RNG stream, so the two runs agree only statistically:
