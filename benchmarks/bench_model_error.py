@@ -10,7 +10,9 @@ On the embedded default (bundled physics DOE, its metamodel with the statistics 
    6): ``study_s`` is its wall time on this machine;
 2. in the same folder (same data): a second repetition of the paper's likelihood in series
    1, 5, 6; repetitions 0-1 of the calibrated likelihood (``K_res`` fixed, the previous
-   default) there too; series 8 (learned mu) for 2 repetitions.
+   default) there too; series 8 (learned mu) for 2 repetitions;
+3. the resample-move filter (``filter="move"``, an option) in series 3, 5, 6, repetition 0,
+   in a sibling folder ``<out>_move`` sharing the data, against the default's repetition 0.
 
 Figures (default likelihood unless said; ratios over repetitions 0-1 of every dataset,
 identical data for both likelihoods):
@@ -92,6 +94,19 @@ def main() -> None:
                                             paper_repetitions=0), out, mm, mm_path, physics)
     full = run_study(base, out, mm, mm_path, physics)  # cached: the default study's numbers
     extra_s = time.perf_counter() - t1
+    move_dir = out.parent / f"{out.name}_move"  # same data, K_MC and metamodel
+    move_dir.mkdir(parents=True, exist_ok=True)
+    if not args.reuse:
+        shutil.rmtree(move_dir / "runs", ignore_errors=True)
+    for sub in ("data", "measurement", "model"):
+        if not (move_dir / sub).exists():
+            (move_dir / sub).symlink_to((out / sub).resolve())
+    t2 = time.perf_counter()
+    move = run_study(dataclasses.replace(
+        base, series=(3, 5, 6), n_repetitions=1, paper_repetitions=0,
+        tracker=dataclasses.replace(base.tracker, filter="move")), move_dir, mm, mm_path,
+        physics)
+    move_s = time.perf_counter() - t2
     nx = len(mm.spec.state)
     n_aug = len(mm.spec.augmented)
 
@@ -156,6 +171,25 @@ def main() -> None:
                   for s in (1, 5, 6)},
             "paper": {f"series{s}": round(float(_mean(paper.paper["log_evidence"][s - 1])))
                       for s in (1, 5, 6)}},
+        "move_filter": {
+            "what": ("filter='move' (resample-move) against the default filter, same "
+                     "likelihood, repetition 0 of every dataset"),
+            "state_nrmse": {f"series{s}": {
+                "move": round(float(_mean(move.nrmse[s - 1, :, 0, :nx])), 4),
+                base.tracker.filter: round(float(_mean(full.nrmse[s - 1, :, 0, :nx])), 4)}
+                for s in (3, 5, 6)},
+            "skill_state_min": {f"series{s}": {
+                "move": round(float(np.nanmin(_mean(move.skill[s - 1, :, 0, :nx], axis=0))), 3),
+                base.tracker.filter: round(float(np.nanmin(
+                    _mean(full.skill[s - 1, :, 0, :nx], axis=0))), 3)} for s in (3, 5, 6)},
+            "coverage_states_angles": {
+                f"series{s}": states_angles(_mean(move.coverage[s - 1, :, 0], axis=0))
+                for s in (3, 5, 6)},
+            "log_evidence": {f"series{s}": {
+                "move": round(float(_mean(move.log_evidence[s - 1, :, 0]))),
+                base.tracker.filter: round(float(_mean(full.log_evidence[s - 1, :, 0])))}
+                for s in (3, 5, 6)},
+            "runs_s": round(move_s, 1)},
         "load_average_1min_start": round(load0, 2),
         "load_average_1min_end": round(os.getloadavg()[0], 2),
         "settings": {"particles": base.tracker.n_particles, "products": base.n_products,
