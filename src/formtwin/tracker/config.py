@@ -63,10 +63,9 @@ class TrackerConfig:
     compare : ``"model"`` (paper eq. 12) or ``"measurement"``, see :data:`COMPARE`.
     angle_particles : predict the angles from this many particles drawn from the weighted
         cloud by systematic resampling (cuts the cost of the angle models, adds Monte-Carlo
-        error of order ``std / sqrt(angle_particles)``); default 100: with an ESS of
-        20-100 of 500 the systematic draw holds the cloud's distinct particles, and the two
-        angle models cost ~15 % of a step at N = 500; ``None`` (or a value >= N): all
-        particles with their weights.
+        error of order ``std / sqrt(angle_particles)``; with an ESS of 20-100 of 500, 100
+        hold the cloud's distinct particles and save ~15 % of a step at N = 500); ``None``
+        (default, or a value >= N): all particles with their weights.
     learn_mu : learn the statistics mu by conjugate Normal updates of per-particle
         sufficient statistics (prior with the mean and variance of ``U(mu_min, mu_max)``,
         see :mod:`formtwin.tracker.ssm`); ``mu`` is then ignored. Default off (the paper's
@@ -123,7 +122,7 @@ class TrackerConfig:
         "resample when ESS < this fraction of N (1: every step)"))
     compare: str = field(default="model", metadata=_help(
         "compare curves in model space (eq. 12) or measurement space"))
-    angle_particles: int | None = field(default=100, metadata=_help(
+    angle_particles: int | None = field(default=None, metadata=_help(
         "predict angles from this many resampled particles (>= N: all)"))
     learn_mu: bool = field(default=False, metadata=_help(
         "learn the statistics mu as hyperparameters"))
