@@ -114,3 +114,31 @@ def test_ewma_run_to_run() -> None:
     assert r.update(88.0, 0.0) == pytest.approx(-10.0)
     with pytest.raises(ValueError, match="gain"):
         EwmaRunToRun(T, 0.0, 0.5, act)
+
+
+def test_combined_removes_a_constant_model_bias() -> None:
+    """Plant a = c_i + b u + d with the model missing the offset d: the open feedforward
+    misses by d, the combined controller's trim converges to d and puts the plant on
+    target; with lam = 0 it is the open feedforward."""
+    from formtwin.control import Combined
+
+    rng = np.random.default_rng(4)
+    b, d = -0.05, 0.7
+    act = Actuator(-100.0, 100.0)
+    for lam, miss in ((0.0, d), (0.3, 0.0)):
+        ctl = Combined(Feedforward(T, act), lam)
+        u_prev, pred, err = None, None, []
+        for _ in range(60):
+            ci = 88.0 + rng.normal(0, 0.3)
+            s = ctl.choose(lambda u, ci=ci: np.array([[ci]]) + b * np.asarray(u)[None, :],
+                           u_prev=u_prev)
+            pred = s.angle_mean - ctl.bias  # the model's own prediction at s.u
+            assert pred == pytest.approx(ci + b * s.u, abs=1e-9)
+            angle = ci + b * s.u + d  # the plant
+            err.append(angle - T)
+            ctl.measured(angle, pred)
+            u_prev = s.u
+        assert np.mean(err[-10:]) == pytest.approx(miss, abs=1e-6)
+        assert np.std(err[-10:]) < 1e-6  # the feedforward takes out the product's own c_i
+    with pytest.raises(ValueError, match="lam"):
+        Combined(Feedforward(T, act), 1.5)

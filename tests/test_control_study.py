@@ -1,7 +1,8 @@
 """The closed-loop control study end to end on the analytic stand-in as both plant and
 model, target within reach: the oracle hits the target exactly (the plant's angle is
 linear in u, so the three-point interpolation is exact), feedforward from the estimates
-beats no control, results are reused on a second call."""
+beats no control, the trims remove the open feedforward's bias, results are reused on a
+second call; the measure of what the estimates know of the angle against known relations."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ import numpy as np
 import pytest
 
 from formtwin.defaults import analytic_model, physics_model
-from formtwin.study.control import ControlStudySettings, PlantAngles
-from formtwin.study.control_run import run_control_study
+from formtwin.study.control import R2R_LAMS, ControlStudySettings, PlantAngles
+from formtwin.study.control_run import estimate_worth, run_control_study
 from formtwin.tracker import TrackerConfig
 
 
@@ -29,11 +30,17 @@ def test_control_study_on_the_analytic_stand_in(tmp_path: Path) -> None:
     physics = physics_model("analytic", model.spec)
     settings = ControlStudySettings(
         products=60, datasets=1, burn_in=10, interp_check=5, workers=1, seed=3, target=90.0,
+        angle_sd=0.05,
         tracker=TrackerConfig(n_particles=100, n_mc=1000, estimate_deviation=True))
     s = run_control_study(model, physics, settings, tmp_path)
     assert s["plant_interpolation_max_abs_error_deg"] < 1e-9
     assert s["oracle"]["std_deg"] < 1e-6 and abs(s["oracle"]["mean_error_deg"]) < 1e-6
     assert s["feedforward"]["std_deg"] < s["fixed"]["std_deg"]
+    assert s["feedforward_angle"]["std_deg"] < s["fixed"]["std_deg"]
+    # the trims bring the mean error near 0 where the open feedforward is biased (mu unknown)
+    assert abs(s["feedforward"]["mean_error_deg"]) < 0.2 < s["feedforward_open"]["mean_error_deg"]
+    assert s["ff_lam"] in R2R_LAMS and s["r2r_lam"] in R2R_LAMS
+    assert -1 <= s["estimate_change_corr"] <= 1
     assert s["angle2_std_ratio_ff_vs_fixed"] == pytest.approx(
         s["feedforward"]["std_deg"] / s["fixed"]["std_deg"], rel=1e-3)
     assert 0 <= s["feedforward_interval_coverage"] <= 1
@@ -56,3 +63,18 @@ def test_results_are_keyed_by_the_model_not_only_its_version() -> None:
     assert key == _key(settings, 90.0, "v1", model)
     assert key != _key(settings, 90.0, "v1", shifted)  # type: ignore[arg-type]
     assert key != _key(settings, 90.1, "v1", model)
+
+
+def test_estimate_worth_against_known_relations() -> None:
+    """Estimates that are the plant's angle halved plus a per-dataset offset: levels and
+    changes correlate exactly, the plant's change is twice the estimate's."""
+    rng = np.random.default_rng(0)
+    results = []
+    for off in (0.0, 3.0):
+        a = 72.0 + np.cumsum(rng.normal(0, 0.05, 200))
+        results.append({"angle_fixed": a, "nominal_mean": off + 0.5 * a})
+    w = estimate_worth(results, burn_in=20)
+    assert w["estimate_level_corr"] == pytest.approx(1.0)
+    assert w["estimate_change_corr"] == pytest.approx(1.0)
+    assert w["estimate_change_slope"] == pytest.approx(2.0, abs=1e-4)
+    assert w["plant_change_std_deg"] == pytest.approx(2 * w["estimate_change_std_deg"], rel=1e-3)

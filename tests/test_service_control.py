@@ -1,6 +1,7 @@
 """Feedforward control in the service: each accepted estimate carries the suggested press
 setting, within the actuator's limits and maximum step, with the predicted final angle
-on target when the setting is not limited; a restart continues from the stored one."""
+on target when the setting is not limited; the trim follows the measured angles; a restart
+continues from the stored setting and trim."""
 
 from __future__ import annotations
 
@@ -34,15 +35,25 @@ def test_estimates_carry_the_suggested_setting(tmp_path: Path) -> None:
     assert all(abs(b - a) <= step + 1e-12 for a, b in zip(u, u[1:], strict=False))
     free = [c for c in ctl if not c["limited"]]
     assert free  # the target is reachable: most suggestions hit it in expectation
-    for c in free:
+    for c in free:  # the prediction includes the trim in use
         assert c["final_angle_deg"] == pytest.approx(target, abs=0.05)
         assert c["interval_deg"][0] <= c["interval_deg"][1]
     assert ctl[0]["target_deg"] == target and ctl[0]["u_unit"] == "mm"
+    # the trim: an EWMA (lam 0.7) of the measured minus predicted final angle at the u used
+    trim = 0.0
+    for o in outs:
+        m = o.message
+        assert "measured_angles_deg" in m  # the stream carries the measured angles
+        trim = 0.7 * (m["measured_angles_deg"][1] - m["angles_mean"][1]) + 0.3 * trim
+        assert m["control"]["trim_deg"] == pytest.approx(trim, abs=1e-12)
     proc.close()
     proc.store.close()
-    # a restart continues from the last stored suggestion
+    # a restart continues from the last stored suggestion and trim
     proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
     again = ServiceController(proc.tracker, ControlSettings(target, 0.1), proc.store)
     assert again.u_prev == u[-1]
+    assert again.controller.bias == pytest.approx(trim, abs=1e-12)
+    with pytest.raises(ValueError, match="lam"):
+        ControlSettings(target, 0.1, lam=1.5)
     proc.close()
     proc.store.close()

@@ -4,14 +4,17 @@
   setting ``u`` after its stage-1 curve, minimising the posterior expected squared error of
   the final angle over the particle cloud, within the actuator's limits and maximum step;
 * :mod:`~formtwin.control.runtorun`: :class:`EwmaRunToRun`, today's practice: an EWMA
-  run-to-run controller on the measured final angles of earlier products.
+  run-to-run controller on the measured final angles of earlier products;
+* :mod:`~formtwin.control.combined`: :class:`Combined`, feedforward plus feedback: the
+  feedforward aimed at the target minus an EWMA of its own prediction error.
 
 Generic numerics: the process enters only as a function ``final_angle(u) -> (N, n_u)``
 (the final angle of every particle at each candidate setting), so this package sits beside
 the filters, below the tracker. See ``docs/control.md``.
 """
 
+from formtwin.control.combined import Combined
 from formtwin.control.feedforward import Actuator, Feedforward, Suggestion, weighted_quantile
 from formtwin.control.runtorun import EwmaRunToRun
 
-__all__ = ["Actuator", "EwmaRunToRun", "Feedforward", "Suggestion", "weighted_quantile"]
+__all__ = ["Actuator", "Combined", "EwmaRunToRun", "Feedforward", "Suggestion", "weighted_quantile"]

@@ -3,26 +3,37 @@ setting for its product.
 
 After the tracker has assimilated a product's stage-1 curve, :class:`ServiceController`
 asks it for the setting ``u`` of the spec's one control that minimises the posterior
-expected squared error of the final angle against the target
-(:meth:`formtwin.tracker.Tracker.suggest`, :class:`formtwin.control.Feedforward`), within
-the actuator's limits (the spec's bounds of the control) and a maximum step from the
-previous suggestion. The estimate message gets::
+expected squared error of the final angle against the target minus a trim
+(:meth:`formtwin.tracker.Tracker.suggest` with :class:`formtwin.control.Combined`:
+feedforward plus feedback), within the actuator's limits (the spec's bounds of the control)
+and a maximum step from the previous suggestion. The trim is an EWMA (weight ``lam``) of the
+model's prediction error on measured final angles: a stroke message's optional
+``angles_deg`` (the product's measured angles, final angle second; validated like the curve)
+against the tracker's predicted final angle at the stroke's ``u``. A stroke without them
+leaves the trim as it is (``lam = 0`` or no measured angles: the open feedforward). The
+estimate message gets::
 
     "control": {"target_deg": 90.0, "u": [0.012], "u_unit": "mm",
                 "final_angle_deg": 89.98, "final_angle_std_deg": 0.11,
-                "interval_deg": [89.8, 90.2], "coverage": 0.9, "limited": false}
+                "interval_deg": [89.8, 90.2], "coverage": 0.9, "limited": false,
+                "trim_deg": -0.05}
 
-The previous suggestion (for the maximum step) is the one stored with the last accepted
-product, so a restarted service continues from it.
+``final_angle_deg`` and the interval include the trim used for the suggestion; ``trim_deg``
+is the trim after this product's measured angle (used for the next product). The suggestion
+is made before the product's own measured angle is used. The previous suggestion (for the
+maximum step) and the trim are those stored with the last accepted product, so a restarted
+service continues from them. The closed-loop study (``docs/control.md``) measured this
+controller against the open feedforward, the run-to-run EWMA and an oracle.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
-from formtwin.control import Actuator, Feedforward
+from formtwin.control import Actuator, Combined, Feedforward
 from formtwin.service.store import Store
 
 log = logging.getLogger(__name__)
@@ -36,14 +47,19 @@ class ControlSettings:
     ----------
     target_deg : wanted final angle, degrees.
     max_step : largest change of ``u`` per product as a share of its range (0 < s <= 1).
+    lam : EWMA weight of the trim (the newest measured prediction error), in [0, 1]; the
+        default is the weight the closed-loop study tuned (``docs/control.md``).
     """
 
     target_deg: float
     max_step: float = 0.25
+    lam: float = 0.7
 
     def __post_init__(self) -> None:
         if not 0 < self.max_step <= 1:
             raise ValueError(f"control max_step = {self.max_step}, expected in (0, 1]")
+        if not 0 <= self.lam <= 1:
+            raise ValueError(f"control lam = {self.lam}, expected in [0, 1]")
 
 
 class ServiceController:
@@ -52,8 +68,8 @@ class ServiceController:
     Parameters
     ----------
     tracker : the service's tracker (needs ``suggest`` and ``spec`` with one control).
-    settings : target and maximum step.
-    store : the store, to continue from the last stored suggestion.
+    settings : target, maximum step and the trim's weight.
+    store : the store, to continue from the last stored suggestion and trim.
     """
 
     def __init__(self, tracker: Any, settings: ControlSettings, store: Store) -> None:
@@ -66,31 +82,38 @@ class ServiceController:
         self.tracker = tracker
         self.settings = settings
         self.unit = str(c.variables[0].internal_unit)
-        self.controller = Feedforward(settings.target_deg,
-                                      Actuator(lo, hi, settings.max_step * (hi - lo)))
+        self.controller = Combined(Feedforward(settings.target_deg,
+                                               Actuator(lo, hi, settings.max_step * (hi - lo))),
+                                   settings.lam)
         self.u_prev: float | None = None
         for row in store.products(since_seq=max(store.next_seq() - 50, 0), status="accepted"):
             ctl = (row.estimate or {}).get("control")
             if ctl and ctl.get("u"):
                 self.u_prev = float(ctl["u"][0])
-        self._saved: tuple[float | None] | None = None
+                self.controller.bias = float(ctl.get("trim_deg") or 0.0)
+        self._saved: tuple[float | None, float] | None = None
 
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:
         """The ``"control"`` entry for the product just stepped (:meth:`rollback` undoes
         the change of the previous suggestion)."""
-        self._saved = (self.u_prev,)
+        self._saved = (self.u_prev, self.controller.bias)
         s = self.tracker.suggest(self.controller, self.u_prev)
         self.u_prev = s.u
         d = s.to_dict()
+        measured = message.get("measured_angles_deg")
+        predicted = (message.get("angles_mean") or [None, None])[1]
+        if measured is not None and predicted is not None:  # the model's error at the u used
+            self.controller.measured(float(measured[1]), float(predicted))
+        trim = self.controller.bias
         return {"target_deg": self.settings.target_deg, "u": [d["u"]], "u_unit": self.unit,
                 "final_angle_deg": d["angle_mean"], "final_angle_std_deg": d["angle_std"],
-                "interval_deg": d["interval"], "coverage": self.controller.coverage,
-                "limited": d["limited"]}
+                "interval_deg": d["interval"], "coverage": self.controller.feedforward.coverage,
+                "limited": d["limited"], "trim_deg": trim if math.isfinite(trim) else None}
 
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
         if self._saved is not None:
-            (self.u_prev,) = self._saved
+            self.u_prev, self.controller.bias = self._saved
             self._saved = None
 
 

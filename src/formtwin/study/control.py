@@ -1,4 +1,5 @@
-"""Closed-loop study of the final angle: no control, run-to-run EWMA, feedforward, oracle.
+"""Closed-loop study of the final angle: no control, run-to-run EWMA, feedforward (open, with
+feedback, with the angles in the filter), oracle.
 
 The plant is the physics model under the realistic conditions of the paper's series 6:
 state means mu drawn in ``[mu_min, mu_max]`` and unknown to the tracker (it assumes the
@@ -10,11 +11,16 @@ with the deviation estimated. Per dataset (``products`` products):
 * ``ewma``: run-to-run EWMA on the measured final angles of earlier products
   (:class:`~formtwin.control.EwmaRunToRun`; gain from the metamodel, ``lam`` the best of
   :data:`R2R_LAMS` on the first dataset, measurements ``r2r_delay`` products late);
-* ``feedforward``: after each product's curve, :class:`~formtwin.control.Feedforward` over
-  the tracker's particles (the metamodel's final angle at each candidate ``u``), aiming at
-  the target minus a trim: an EWMA of its prediction error on the measured angles of
-  earlier products (the estimates can be biased: mu unknown, deviation estimated);
-  ``feedforward_open`` is the same without the trim;
+* ``feedforward``: feedforward plus feedback (:class:`~formtwin.control.Combined`): after
+  each product's curve, :class:`~formtwin.control.Feedforward` over the tracker's
+  particles (the metamodel's final angle at each candidate ``u``), aiming at the target
+  minus a trim: an EWMA of its prediction error on the measured angles of earlier products
+  (its weight the best of :data:`R2R_LAMS` on the first dataset, as the run-to-run
+  controller's); ``feedforward_open`` is the same without the trim;
+* ``feedforward_angle``: ``feedforward`` with each measured final angle also entering the
+  filter as a second measurement of its product's state
+  (:func:`formtwin.tracker.angle.update_angle`, likelihood sd the metamodel's held-out
+  error of the final angle, offset the trim);
 * ``oracle``: the same choice knowing the true state and machine parameters (the
   metamodel's angle at the true inputs): what a perfect estimate could give.
 
@@ -42,14 +48,15 @@ from formtwin.doe import run_design
 from formtwin.measurement import ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.simulator import Simulator
-from formtwin.tracker import TrackerConfig, build_tracker
+from formtwin.study.control_ff import track_and_choose
+from formtwin.tracker import TrackerConfig
 
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
 #: the controllers compared
-CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open")
+CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "feedforward_angle")
 #: EWMA weights tried for the run-to-run controller (the best on the first dataset is used)
 R2R_LAMS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 
@@ -71,7 +78,12 @@ class ControlStudySettings:
     band : half-width of the tolerance band scored, degrees.
     interp_check : products per dataset also run at their feedforward setting.
     trim_lam : EWMA weight of the feedforward's trim (its prediction error on earlier
-        products' measured angles, ``r2r_delay`` late); 0: open-loop feedforward only.
+        products' measured angles, ``r2r_delay`` late); None: the best of
+        :data:`R2R_LAMS` on the first dataset (tuned as the run-to-run controller's).
+    angle_in_filter : also run the combined feedforward with the measured angles in the
+        filter (``feedforward_angle``; needs ``r2r_delay`` 1).
+    angle_sd : sd of that angle likelihood, degrees; None: the metamodel's held-out error
+        of the final angle.
     seed : master seed.
     workers : physics worker processes.
     """
@@ -86,7 +98,9 @@ class ControlStudySettings:
     r2r_delay: int = 1
     band: float = 0.5
     interp_check: int = 20
-    trim_lam: float = 0.2
+    trim_lam: float | None = None
+    angle_in_filter: bool = True
+    angle_sd: float | None = None
     seed: int = 0
     workers: int | None = None
 
@@ -165,10 +179,13 @@ def r2r_gain(metamodel: ProcessModel, rng: np.random.Generator, n: int = 200) ->
 
 
 def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
-                k: int, folder: Path, target: float, gain: float, lam: float | None
-                ) -> dict[str, Any]:
+                k: int, folder: Path, target: float, gain: float, lam: float | None,
+                ff_lam: float | None = None) -> dict[str, Any]:
     """All controllers on dataset ``k``: per controller the settings ``u`` (n,) and the
-    plant's final angles (n,); plus the feedforward's predicted means and intervals."""
+    plant's final angles (n,); the feedforward's predicted means and intervals, the
+    posterior mean of the final angle at the nominal setting. ``lam``, ``ff_lam``: the EWMA
+    weights of the run-to-run controller and of the feedforward's trim (None: tuned here,
+    the best on this dataset's scored products)."""
     spec = metamodel.spec
     run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
     n = run.n
@@ -177,24 +194,30 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
                    settings.max_step * float(c.hi[0] - c.lo[0]))
     ff = Feedforward(target, act)
     nominal = float(c.nominal[0])
-    u = {name: np.full(n, nominal) for name in CONTROLLERS}
-    # feedforward from the tracker (series 6: deviation estimated, mu mid-range), with and
-    # without the trim: an EWMA of the measured minus predicted angle of earlier products
-    tracker = build_tracker(metamodel, replace(settings.tracker, seed=settings.seed + k))
-    pred = np.full((n, 3), np.nan)  # mean, interval lo, hi (trimmed feedforward)
-    prev, prev_open, bias = nominal, nominal, 0.0
-    for i in range(n):
-        j = i - settings.r2r_delay  # the newest product whose angle is known now
-        if settings.trim_lam > 0 and j >= 0 and ok[j] and np.isfinite(pred[j, 0]):
-            err = plant(j, u["feedforward"][j]) - pred[j, 0]
-            bias = settings.trim_lam * err + (1 - settings.trim_lam) * bias
-        if ok[i]:
-            tracker.step(curves[i])
-            s = replace(ff, target=target - bias).choose(tracker.final_angle, u_prev=prev)
-            prev = s.u
-            pred[i] = (s.angle_mean + bias, s.interval[0] + bias, s.interval[1] + bias)
-            prev_open = ff.choose(tracker.final_angle, u_prev=prev_open).u
-        u["feedforward"][i], u["feedforward_open"][i] = prev, prev_open
+    names = [c for c in CONTROLLERS if c != "feedforward_angle" or settings.angle_in_filter]
+    u = {name: np.full(n, nominal) for name in names}
+    # feedforward from the tracker (series 6: deviation estimated, mu mid-range): open, and
+    # combined with the EWMA trim (its weight tuned on the first dataset from R2R_LAMS, as
+    # the run-to-run controller's), and the combined one with the angles in the filter
+    config = replace(settings.tracker, seed=settings.seed + k)
+    tune = ff_lam is None and settings.trim_lam is None
+    lam_ff = settings.trim_lam if settings.trim_lam is not None else ff_lam
+    lams = (0.0, *(R2R_LAMS if tune else (lam_ff,)))
+    p = track_and_choose(metamodel, config, curves, ok, plant, ff, lams, nominal,
+                         settings.r2r_delay)
+    b = settings.burn_in
+    sds = [float(np.nanstd([plant(i, p.u[c, i]) for i in range(b, n) if ok[i]]))
+           for c in range(1, len(lams))]
+    top = 1 + int(np.argmin(sds))
+    lam_ff = lams[top]
+    u["feedforward_open"], u["feedforward"] = p.u[0], p.u[top]
+    out: dict[str, Any] = {"ok": ok, "target": target, "pred": p.pred[top],
+                           "nominal_mean": p.nominal_mean, "ff_lam": lam_ff}
+    if settings.angle_in_filter:
+        q = track_and_choose(metamodel, config, curves, ok, plant, ff, (lam_ff,), nominal,
+                             settings.r2r_delay, angle_in_filter=True, sd=settings.angle_sd)
+        u["feedforward_angle"] = q.u[0]
+        out.update(pred_angle=q.pred[0], angle_sd=q.angle_sd)
     # oracle: the true inputs, one particle
     prev = nominal
     for i in range(n):
@@ -205,7 +228,6 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
 
         s = ff.choose(truth, u_prev=prev)
         prev = u["oracle"][i] = s.u
-    out: dict[str, Any] = {"ok": ok, "target": target, "pred": pred}
     lams = R2R_LAMS if lam is None else (lam,)
     best: tuple[float, float, FloatArray] | None = None
     for lm in lams:
@@ -216,7 +238,7 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
             best = (sd, lm, uu)
     assert best is not None
     u["ewma"], out["r2r_lam"] = best[2], best[1]
-    for name in CONTROLLERS:
+    for name in names:
         out[f"u_{name}"] = u[name]
         out[f"angle_{name}"] = np.where(ok, [plant(i, u[name][i]) for i in range(n)], np.nan)
     if settings.interp_check > 0:  # physics at the feedforward's own settings

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from formtwin.figures import pyplot
 from formtwin.measurement import ProcessModel
@@ -28,9 +29,12 @@ from formtwin.study.control import (
 
 log = logging.getLogger(__name__)
 
+FloatArray = NDArray[np.float64]
+
 LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
           "feedforward": "feedforward (formtwin, with trim)", "oracle": "oracle (true state)",
-          "feedforward_open": "feedforward without trim"}
+          "feedforward_open": "feedforward without trim",
+          "feedforward_angle": "feedforward with trim, angles in the filter"}
 #: the four cases of the figure
 SHOWN = ("fixed", "ewma", "feedforward", "oracle")
 
@@ -72,46 +76,45 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     key = _key(settings, target, str(getattr(physics, "version", "")), metamodel)
     results: list[dict[str, Any]] = []
     lam: float | None = None
+    ff_lam: float | None = None
     for k in range(settings.datasets):
         path = out / f"dataset_{k}.npz"
+        res = {}
         if path.exists():
             with np.load(path, allow_pickle=False) as f:
                 if str(f["key"]) == key:
                     res = {n: f[n] for n in f.files}
-                    res["r2r_lam"] = float(res["r2r_lam"])
-                    results.append(res)
-                    lam = res["r2r_lam"] if lam is None else lam
-                    continue
-        log.info("control study: dataset %d of %d", k + 1, settings.datasets)
-        res = run_dataset(metamodel, physics, settings, k, out, target, gain, lam)
+                    for name in ("r2r_lam", "ff_lam"):
+                        res[name] = float(res[name])
+        if not res:
+            log.info("control study: dataset %d of %d", k + 1, settings.datasets)
+            res = run_dataset(metamodel, physics, settings, k, out, target, gain, lam, ff_lam)
+            arrays = {n: np.asarray(v) for n, v in res.items()}
+            np.savez(path, key=np.array(key), **arrays)  # type: ignore[arg-type]
         lam = res["r2r_lam"] if lam is None else lam
-        arrays = {n: np.asarray(v) for n, v in res.items()}
-        np.savez(path, key=np.array(key), **arrays)  # type: ignore[arg-type]
+        ff_lam = res["ff_lam"] if ff_lam is None else ff_lam
         results.append(res)
     b = settings.burn_in
-    pooled = {c: np.concatenate([r[f"angle_{c}"][b:] for r in results]) for c in CONTROLLERS}
-    summary: dict[str, Any] = {c: scores(pooled[c], target, settings.band)
-                               for c in CONTROLLERS}
-    sd = {c: summary[c]["std_deg"] for c in CONTROLLERS}
-    def ratio(other: str) -> float | None:
-        return round(sd["feedforward"] / sd[other], 4) if sd[other] > 0 else None
-
+    names = [c for c in CONTROLLERS if f"angle_{c}" in results[0]]
+    pooled = {c: np.concatenate([r[f"angle_{c}"][b:] for r in results]) for c in names}
+    summary: dict[str, Any] = {c: scores(pooled[c], target, settings.band) for c in names}
+    sd = {c: summary[c]["std_deg"] for c in names}
+    for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle")):
+        for other in ("fixed", "oracle", "ewma"):
+            if ff in sd:
+                summary[f"angle2_std_ratio_{tag}_vs_{other}"] = (
+                    round(sd[ff] / sd[other], 4) if sd[other] > 0 else None)
     summary.update({
-        "angle2_std_ratio_ff_vs_fixed": ratio("fixed"),
-        "angle2_std_ratio_ff_vs_oracle": ratio("oracle"),
-        "angle2_std_ratio_ff_vs_ewma": ratio("ewma"),
         "target_deg": target, "r2r_gain_deg_per_unit": round(gain, 6),
-        "r2r_lam": lam, "burn_in": b,
+        "r2r_lam": lam, "ff_lam": ff_lam, "burn_in": b,
         "per_dataset_std_deg": {c: [round(float(np.nanstd(r[f"angle_{c}"][b:])), 4)
-                                    for r in results] for c in CONTROLLERS},
+                                    for r in results] for c in names},
     })
-    pred = np.concatenate([r["pred"][b:] for r in results])
-    ang = pooled["feedforward"]
-    ok = np.all(np.isfinite(pred), axis=1) & np.isfinite(ang)
-    summary["feedforward_interval_coverage"] = round(float(np.mean(
-        (ang[ok] >= pred[ok, 1]) & (ang[ok] <= pred[ok, 2]))), 4)
-    summary["feedforward_prediction_rmse_deg"] = round(float(np.sqrt(np.mean(
-        (ang[ok] - pred[ok, 0]) ** 2))), 4)
+    for ff, key in (("feedforward", "pred"), ("feedforward_angle", "pred_angle")):
+        if ff in names:
+            summary.update(prediction_scores(np.concatenate([r[key][b:] for r in results]),
+                                             pooled[ff], ff))
+    summary.update(estimate_worth(results, b))
     errs = [r["interp_error"] for r in results if "interp_error" in r]
     if errs:
         e = np.concatenate(errs)
@@ -121,6 +124,38 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     plot_control(results[0], target, settings.band, out / "control_study.png")
     (out / "control_study.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def prediction_scores(pred: FloatArray, angle: FloatArray, name: str) -> dict[str, float]:
+    """Coverage of the 90 % intervals and RMSE of the predicted final angles ``pred``
+    (n, 3: mean, lo, hi) against the plant's ``angle`` (n,)."""
+    ok = np.all(np.isfinite(pred), axis=1) & np.isfinite(angle)
+    a, p = angle[ok], pred[ok]
+    return {f"{name}_interval_coverage": round(float(np.mean((a >= p[:, 1]) & (a <= p[:, 2]))), 4),
+            f"{name}_prediction_rmse_deg": round(float(np.sqrt(np.mean((a - p[:, 0]) ** 2))), 4)}
+
+
+def estimate_worth(results: list[dict[str, Any]], burn_in: int) -> dict[str, float]:
+    """What the estimates know of the products' final angles before any setting is chosen:
+    the correlation, within each dataset after ``burn_in``, of the posterior mean of the
+    final angle at the nominal setting (from the stage-1 curve alone) with the plant's angle
+    there, of their levels and of their product-to-product changes (what feedforward can
+    act on), and the regression slope of the plant's change on the estimate's."""
+    lev_a, lev_p, d_a, d_p = [], [], [], []
+    for r in results:
+        a, p = r["angle_fixed"][burn_in:], r["nominal_mean"][burn_in:]
+        ok = np.isfinite(a) & np.isfinite(p)
+        lev_a.append(a[ok] - a[ok].mean())
+        lev_p.append(p[ok] - p[ok].mean())
+        both = ok[1:] & ok[:-1]
+        d_a.append(np.diff(a)[both])
+        d_p.append(np.diff(p)[both])
+    la, lp, da, dp = (np.concatenate(v) for v in (lev_a, lev_p, d_a, d_p))
+    return {"estimate_level_corr": round(float(np.corrcoef(la, lp)[0, 1]), 4),
+            "estimate_change_corr": round(float(np.corrcoef(da, dp)[0, 1]), 4),
+            "estimate_change_slope": round(float(np.polyfit(dp, da, 1)[0]), 4),
+            "plant_change_std_deg": round(float(da.std()), 4),
+            "estimate_change_std_deg": round(float(dp.std()), 4)}
 
 
 def plot_control(res: dict[str, Any], target: float, band: float, path: Path) -> Path:
@@ -143,4 +178,4 @@ def plot_control(res: dict[str, Any], target: float, band: float, path: Path) ->
     return path
 
 
-__all__ = ["LABELS", "plot_control", "run_control_study"]
+__all__ = ["LABELS", "estimate_worth", "plot_control", "prediction_scores", "run_control_study"]

@@ -1,0 +1,106 @@
+"""The control study's controllers that use the tracker: one pass of a tracker over a
+dataset's measured curves, with one or more feedforward controllers choosing their settings
+after each product's curve (:func:`track_and_choose`).
+
+Every controller is :class:`~formtwin.control.Combined`: the feedforward over the posterior
+aimed at the target minus an EWMA (weight ``lam``) of its own prediction error on the
+measured final angles of earlier products (``lam = 0``: the open feedforward). The tracker
+does not depend on the settings chosen, so several controllers can share one pass; with
+``angle_in_filter`` the one controller's measured angles also enter the filter as a second
+measurement of the state (:func:`formtwin.tracker.angle.update_angle`), so that pass serves
+that controller alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin._threads import single_blas_thread
+from formtwin.control import Combined, Feedforward
+from formtwin.measurement import ProcessModel
+from formtwin.tracker import TrackerConfig, build_tracker
+from formtwin.tracker.angle import angle_sd, update_angle
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Pass:
+    """What one tracker pass gave (``m`` controllers, ``n`` products).
+
+    Attributes
+    ----------
+    u : (m, n) the settings chosen (the previous one where a product's physics failed).
+    pred : (m, n, 3) the predicted final angle at ``u`` (mean with the trim, 90 % interval).
+    nominal_mean : (n,) the posterior mean of the metamodel's final angle at the nominal
+        setting (NaN where not tracked): what the estimates say of each product before any
+        setting is chosen.
+    angle_sd : the ``sd`` of the angle likelihood, degrees (NaN without angles in the filter).
+    """
+
+    u: FloatArray
+    pred: FloatArray
+    nominal_mean: FloatArray
+    angle_sd: float
+
+
+def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: FloatArray,
+                     ok: NDArray[np.bool_], plant: Callable[[int, float], float],
+                     ff: Feedforward, lams: Sequence[float], nominal: float, delay: int = 1,
+                     angle_in_filter: bool = False, sd: float | None = None) -> Pass:
+    """Run a tracker (``config``) over the measured ``curves`` (n, n_t) of the products with
+    ``ok``; after each curve every controller ``Combined(ff, lam)`` (one per ``lams``) chooses
+    its product's setting (start ``nominal``); ``plant(i, u)`` is product ``i``'s measured
+    final angle at ``u``, known ``delay`` products later. With ``angle_in_filter`` (one
+    controller, ``delay`` 1: the angle arrives before the next curve) the measured angle also
+    reweights the particles (likelihood sd ``sd``, None: the metamodel's held-out error;
+    offset: the controller's trim before this angle)."""
+    if angle_in_filter and (len(lams) != 1 or delay != 1):
+        raise ValueError("angles in the filter: one controller and delay 1 (got "
+                         f"{len(lams)} controllers, delay {delay})")
+    tracker = build_tracker(metamodel, config)
+    ctl = [Combined(ff, lam) for lam in lams]
+    m, n = len(ctl), curves.shape[0]
+    u = np.full((m, n), nominal)
+    pred = np.full((m, n, 3), np.nan)
+    model_pred = np.full((m, n), np.nan)  # m_j(u_j): the prediction without the trim
+    nominal_mean = np.full(n, np.nan)
+    prev = [nominal] * m
+    s_angle = angle_sd(tracker) if sd is None else float(sd)
+    with single_blas_thread():
+        for i in range(n):
+            j = i - delay  # the newest product whose angle is known now
+            if j >= 0 and ok[j]:
+                if angle_in_filter:  # the particles are still product j's posterior
+                    update_angle(tracker, plant(j, u[0, j]), u[0, j], s_angle, ctl[0].bias)
+                for c, ctrl in enumerate(ctl):
+                    ctrl.measured(plant(j, u[c, j]), model_pred[c, j])
+            if ok[i]:
+                tracker.step(curves[i])
+                w = _weights(tracker)
+                for c, ctrl in enumerate(ctl):
+                    s = ctrl.choose(tracker.final_angle, w, prev[c])
+                    prev[c] = s.u
+                    pred[c, i] = (s.angle_mean, *s.interval)
+                    model_pred[c, i] = s.angle_mean - ctrl.bias
+                a0 = tracker.final_angle(np.array([nominal]))[:, 0]
+                nominal_mean[i] = a0.mean() if w is None else (w / w.sum()) @ a0
+            u[:, i] = prev
+    return Pass(u, pred, nominal_mean, s_angle if angle_in_filter else float("nan"))
+
+
+def _weights(tracker: Any) -> FloatArray | None:
+    """The particles' weights (None: equal, as after resampling)."""
+    logw = np.asarray(tracker.filter.logw, dtype=np.float64)
+    if np.ptp(logw) == 0:
+        return None
+    out: FloatArray = np.exp(logw - logw.max())
+    return out
+
+
+__all__ = ["Pass", "track_and_choose"]
