@@ -1,5 +1,6 @@
 """``formtwin control-study``: the final angle in closed loop (no control, run-to-run EWMA,
-feedforward from the estimates, oracle) with the physics model as the plant."""
+feedforward from the estimates: open, with feedback, with the angles in the filter; oracle)
+with the physics model as the plant."""
 
 from __future__ import annotations
 
@@ -29,6 +30,12 @@ def register(sub: Any) -> None:
     p.add_argument("--delay", type=int, default=1,
                    help="products between a product and the use of its measured angle by "
                    "the run-to-run controller (default: %(default)s)")
+    p.add_argument("--trim-lam", type=float, help="EWMA weight of the feedforward's trim "
+                   "(default: tuned on the first dataset)")
+    p.add_argument("--no-angle-filter", action="store_true",
+                   help="skip the feedforward with the measured angles in the filter")
+    p.add_argument("--angle-sd", type=float, help="sd of the measured angle's likelihood, "
+                   "deg (default: the metamodel's held-out error of the final angle)")
     p.add_argument("--seed", type=int, default=0, help="master seed")
     p.add_argument("--workers", type=int, help="physics worker processes")
     add_tracker_options(p, exclude=FIXED)
@@ -50,16 +57,22 @@ def run(args: argparse.Namespace) -> int:
     settings = ControlStudySettings(
         products=args.products, datasets=args.datasets, burn_in=args.burn_in,
         tracker=tracker, target=args.target, max_step=args.max_step, r2r_delay=args.delay,
-        seed=args.seed, workers=args.workers)
+        trim_lam=args.trim_lam, angle_in_filter=not args.no_angle_filter,
+        angle_sd=args.angle_sd, seed=args.seed, workers=args.workers)
     print(f"control study into {out}: {settings.datasets} datasets x {settings.products} "
           f"products, N = {tracker.n_particles}", flush=True)
     s = run_control_study(metamodel, physics, settings, out)
-    for c in ("fixed", "ewma", "feedforward", "feedforward_open", "oracle"):
+    for c in ("fixed", "ewma", "feedforward", "feedforward_open", "feedforward_angle",
+              "oracle"):
+        if c not in s:
+            continue
         v = s[c]
         print(f"  {c:16s} mean error {v['mean_error_deg']:+.3f} deg, std {v['std_deg']:.3f} "
               f"deg, within +-0.5 deg {v['within_band_share']:.1%}")
     print(f"  std ratio feedforward / fixed {s['angle2_std_ratio_ff_vs_fixed']}, "
           f"/ EWMA {s['angle2_std_ratio_ff_vs_ewma']}, / oracle "
-          f"{s['angle2_std_ratio_ff_vs_oracle']}")
+          f"{s['angle2_std_ratio_ff_vs_oracle']} (trim weight {s['ff_lam']})")
+    print(f"  what the estimates know of the final angle: correlation with the plant's "
+          f"{s['estimate_level_corr']} (levels), {s['estimate_change_corr']} (changes)")
     print(f"  -> {out / 'control_study.json'}, {out / 'control_study.png'}")
     return 0

@@ -35,8 +35,8 @@ LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
           "feedforward": "feedforward (formtwin, with trim)", "oracle": "oracle (true state)",
           "feedforward_open": "feedforward without trim",
           "feedforward_angle": "feedforward with trim, angles in the filter"}
-#: the four cases of the figure
-SHOWN = ("fixed", "ewma", "feedforward", "oracle")
+#: the cases of the figure (those the study ran)
+SHOWN = ("fixed", "ewma", "feedforward", "feedforward_angle", "oracle")
 
 
 #: packages whose code does not change a control-study result
@@ -159,10 +159,13 @@ def estimate_worth(results: list[dict[str, Any]], burn_in: int) -> dict[str, flo
 
 
 def plot_control(res: dict[str, Any], target: float, band: float, path: Path) -> Path:
-    """The final angle over the products of one dataset for the four controllers."""
+    """The final angle over the products of one dataset for the controllers of
+    :data:`SHOWN`."""
     plt = pyplot()
-    fig, axes = plt.subplots(len(SHOWN), 1, figsize=(10, 9), sharex=True, sharey=True)
-    for ax, c in zip(axes, SHOWN, strict=True):
+    shown = [c for c in SHOWN if f"angle_{c}" in res]
+    fig, axes = plt.subplots(len(shown), 1, figsize=(10, 2.25 * len(shown)), sharex=True,
+                             sharey=True)
+    for ax, c in zip(axes, shown, strict=True):
         a = res[f"angle_{c}"]
         ax.plot(np.arange(a.size), a, ".", ms=2, color="#1f5fa8")
         ax.axhline(target, color="k", lw=0.8)
