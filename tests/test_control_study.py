@@ -14,7 +14,7 @@ import pytest
 
 from formtwin.defaults import analytic_model, physics_model
 from formtwin.study.control import R2R_LAMS, ControlStudySettings, PlantAngles
-from formtwin.study.control_run import estimate_worth, run_control_study
+from formtwin.study.control_run import angle_drivers, estimate_worth, run_control_study
 from formtwin.tracker import TrackerConfig
 
 
@@ -78,3 +78,22 @@ def test_estimate_worth_against_known_relations() -> None:
     assert w["estimate_change_corr"] == pytest.approx(1.0)
     assert w["estimate_change_slope"] == pytest.approx(2.0, abs=1e-4)
     assert w["plant_change_std_deg"] == pytest.approx(2 * w["estimate_change_std_deg"], rel=1e-3)
+
+
+def test_angle_drivers_against_a_linear_angle() -> None:
+    """Angle = 2 x0 - x1 (x2 inert, constant): shares 2 std(x0) and -std(x1) in that order;
+    an exact estimate of x0 correlates 1, a noise-only one of x1 about 0."""
+    rng = np.random.default_rng(1)
+    results = []
+    for _ in range(2):
+        x = np.c_[rng.normal(0, 1, 300), rng.normal(0, 0.5, 300), np.full(300, 3.0)]
+        est = np.c_[x[:, 0], rng.normal(0, 1, 300), x[:, 2]]
+        results.append({"inputs": x, "input_mean": est, "truth_nominal": 2 * x[:, 0] - x[:, 1]})
+    d = angle_drivers(results, 10, ["a", "b", "c"])
+    assert list(d) == ["a", "b"]  # c does not vary
+    assert d["a"]["angle_std_deg"] == pytest.approx(2 * np.concatenate(
+        [r["inputs"][10:, 0] - r["inputs"][10:, 0].mean() for r in results]).std(), abs=1e-4)
+    assert d["b"]["angle_std_deg"] < 0
+    assert d["a"]["estimate_level_corr"] == pytest.approx(1.0)
+    assert d["a"]["estimate_change_corr"] == pytest.approx(1.0)
+    assert abs(d["b"]["estimate_level_corr"]) < 0.15

@@ -183,9 +183,10 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
                 ff_lam: float | None = None) -> dict[str, Any]:
     """All controllers on dataset ``k``: per controller the settings ``u`` (n,) and the
     plant's final angles (n,); the feedforward's predicted means and intervals, the
-    posterior mean of the final angle at the nominal setting. ``lam``, ``ff_lam``: the EWMA
-    weights of the run-to-run controller and of the feedforward's trim (None: tuned here,
-    the best on this dataset's scored products)."""
+    posterior mean of the final angle at the nominal setting and of the run inputs, the
+    true inputs and the metamodel's final angle there at the nominal setting. ``lam``,
+    ``ff_lam``: the EWMA weights of the run-to-run controller and of the feedforward's trim
+    (None: tuned here, the best on this dataset's scored products)."""
     spec = metamodel.spec
     run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
     n = run.n
@@ -212,7 +213,10 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
     lam_ff = lams[top]
     u["feedforward_open"], u["feedforward"] = p.u[0], p.u[top]
     out: dict[str, Any] = {"ok": ok, "target": target, "pred": p.pred[top],
-                           "nominal_mean": p.nominal_mean, "ff_lam": lam_ff}
+                           "nominal_mean": p.nominal_mean, "ff_lam": lam_ff,
+                           "input_mean": p.input_mean, "inputs": run.inputs,
+                           "truth_nominal": metamodel_final(metamodel, run.inputs,
+                                                            np.array([nominal]))[:, 0]}
     if settings.angle_in_filter:
         q = track_and_choose(metamodel, config, curves, ok, plant, ff, (lam_ff,), nominal,
                              settings.r2r_delay, angle_in_filter=True, sd=settings.angle_sd)

@@ -41,12 +41,15 @@ class Pass:
         setting (NaN where not tracked): what the estimates say of each product before any
         setting is chosen.
     angle_sd : the ``sd`` of the angle likelihood, degrees (NaN without angles in the filter).
+    input_mean : (n, n_in) the posterior means of the run inputs (state, machine
+        parameters) after each product's curve (NaN where not tracked).
     """
 
     u: FloatArray
     pred: FloatArray
     nominal_mean: FloatArray
     angle_sd: float
+    input_mean: FloatArray
 
 
 def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: FloatArray,
@@ -70,6 +73,8 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
     pred = np.full((m, n, 3), np.nan)
     model_pred = np.full((m, n), np.nan)  # m_j(u_j): the prediction without the trim
     nominal_mean = np.full(n, np.nan)
+    n_in = metamodel.spec.inputs.lo.size
+    input_mean = np.full((n, n_in), np.nan)
     prev = [nominal] * m
     s_angle = angle_sd(tracker) if sd is None else float(sd)
     with single_blas_thread():
@@ -81,7 +86,7 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                 for c, ctrl in enumerate(ctl):
                     ctrl.measured(plant(j, u[c, j]), model_pred[c, j])
             if ok[i]:
-                tracker.step(curves[i])
+                input_mean[i] = tracker.step(curves[i]).mean[:n_in]
                 w = _weights(tracker)
                 for c, ctrl in enumerate(ctl):
                     s = ctrl.choose(tracker.final_angle, w, prev[c])
@@ -91,7 +96,8 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                 a0 = tracker.final_angle(np.array([nominal]))[:, 0]
                 nominal_mean[i] = a0.mean() if w is None else (w / w.sum()) @ a0
             u[:, i] = prev
-    return Pass(u, pred, nominal_mean, s_angle if angle_in_filter else float("nan"))
+    return Pass(u, pred, nominal_mean, s_angle if angle_in_filter else float("nan"),
+                input_mean)
 
 
 def _weights(tracker: Any) -> FloatArray | None:

@@ -115,6 +115,7 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
             summary.update(prediction_scores(np.concatenate([r[key][b:] for r in results]),
                                              pooled[ff], ff))
     summary.update(estimate_worth(results, b))
+    summary["angle_drivers"] = angle_drivers(results, b, list(metamodel.spec.inputs.names))
     errs = [r["interp_error"] for r in results if "interp_error" in r]
     if errs:
         e = np.concatenate(errs)
@@ -140,7 +141,8 @@ def estimate_worth(results: list[dict[str, Any]], burn_in: int) -> dict[str, flo
     the correlation, within each dataset after ``burn_in``, of the posterior mean of the
     final angle at the nominal setting (from the stage-1 curve alone) with the plant's angle
     there, of their levels and of their product-to-product changes (what feedforward can
-    act on), and the regression slope of the plant's change on the estimate's."""
+    act on), and the regression slope of the plant's change on the estimate's; and the
+    correlation of the plant's changes with those of the metamodel at the true inputs."""
     lev_a, lev_p, d_a, d_p = [], [], [], []
     for r in results:
         a, p = r["angle_fixed"][burn_in:], r["nominal_mean"][burn_in:]
@@ -151,11 +153,48 @@ def estimate_worth(results: list[dict[str, Any]], burn_in: int) -> dict[str, flo
         d_a.append(np.diff(a)[both])
         d_p.append(np.diff(p)[both])
     la, lp, da, dp = (np.concatenate(v) for v in (lev_a, lev_p, d_a, d_p))
-    return {"estimate_level_corr": round(float(np.corrcoef(la, lp)[0, 1]), 4),
+    truth = {}
+    if all("truth_nominal" in r for r in results):  # the metamodel at the true inputs
+        dt = np.concatenate([np.diff(r["truth_nominal"][burn_in:]) for r in results])
+        da_all = np.concatenate([np.diff(r["angle_fixed"][burn_in:]) for r in results])
+        okt = np.isfinite(da_all) & np.isfinite(dt)
+        truth = {"metamodel_at_truth_change_corr": round(float(np.corrcoef(
+            da_all[okt], dt[okt])[0, 1]), 4)}
+    return {**truth, "estimate_level_corr": round(float(np.corrcoef(la, lp)[0, 1]), 4),
             "estimate_change_corr": round(float(np.corrcoef(da, dp)[0, 1]), 4),
             "estimate_change_slope": round(float(np.polyfit(dp, da, 1)[0]), 4),
             "plant_change_std_deg": round(float(da.std()), 4),
             "estimate_change_std_deg": round(float(dp.std()), 4)}
+
+
+def angle_drivers(results: list[dict[str, Any]], burn_in: int, names: list[str]
+                  ) -> dict[str, dict[str, float]]:
+    """Per run input: its share of the final angle's variation along the runs (the slope of
+    the metamodel's angle at the true inputs and nominal setting, fitted on all inputs
+    within each dataset, times the input's std there), degrees, and how well the estimates
+    follow it: the correlation of its posterior mean with the truth, of levels and of
+    product-to-product changes (within datasets, after ``burn_in``)."""
+    xs, ys, es = [], [], []
+    for r in results:
+        ok = np.isfinite(r["truth_nominal"][burn_in:]) & np.all(
+            np.isfinite(r["input_mean"][burn_in:]), axis=1)
+        x, e = r["inputs"][burn_in:][ok], r["input_mean"][burn_in:][ok]
+        xs.append(x - x.mean(axis=0))
+        es.append(e - e.mean(axis=0))
+        ys.append(r["truth_nominal"][burn_in:][ok] - r["truth_nominal"][burn_in:][ok].mean())
+    x, e, y = np.concatenate(xs), np.concatenate(es), np.concatenate(ys)
+    slope = np.linalg.lstsq(x, y, rcond=None)[0]
+    out: dict[str, dict[str, float]] = {}
+    for j in np.argsort(-np.abs(slope * x.std(axis=0))):
+        if x[:, j].std() == 0:
+            continue
+        dx = np.concatenate([np.diff(v[:, j]) for v in xs])
+        de = np.concatenate([np.diff(v[:, j]) for v in es])
+        out[names[j]] = {"angle_std_deg": round(float(slope[j] * x[:, j].std()), 4),
+                         "estimate_level_corr": round(float(np.corrcoef(
+                             x[:, j], e[:, j])[0, 1]), 3),
+                         "estimate_change_corr": round(float(np.corrcoef(dx, de)[0, 1]), 3)}
+    return out
 
 
 def plot_control(res: dict[str, Any], target: float, band: float, path: Path) -> Path:
@@ -181,4 +220,5 @@ def plot_control(res: dict[str, Any], target: float, band: float, path: Path) ->
     return path
 
 
-__all__ = ["LABELS", "estimate_worth", "plot_control", "prediction_scores", "run_control_study"]
+__all__ = ["LABELS", "angle_drivers", "estimate_worth", "plot_control", "prediction_scores",
+           "run_control_study"]
