@@ -48,6 +48,14 @@ def test_glr_statistic_is_the_likelihood_ratio_of_its_definition() -> None:
         got.append(s.statistic)
     assert np.allclose(got, ref, rtol=1e-12)
     assert np.allclose(glr_statistics(sig, window, z[None, :])[0], ref, rtol=1e-12)
+    clipped = Glr(sig, h=1e9, window=window, clip=1.5)
+    state, got = GlrState(), []
+    for v in z:
+        state, s = clipped.update(state, float(v))
+        got.append(s.statistic)
+    ref_clip = _brute_force(sig, window, np.clip(z, -1.5, 1.5))
+    assert np.allclose(got, ref_clip, rtol=1e-12) and not np.allclose(ref_clip, ref)
+    assert np.allclose(glr_statistics(sig, window, z[None, :], clip=1.5)[0], ref_clip)
 
 
 def test_glr_signals_the_side_and_restarts() -> None:

@@ -78,6 +78,10 @@ class ChartDesign:
         in the mean leaves in the AR residuals).
     arl0_glr : in-control ARL of each state variable's GLR chart.
     glr_window : the GLR's window of candidate change times (products).
+    glr_clip : the GLR sees each score clipped to +-this (Huber's bounded influence): the
+        particle filter's estimates jump now and then by several residual sigmas for a
+        product or a few (its particles thin out), which an unclipped GLR takes for the
+        jump a step makes (docs/monitoring.md); ``None``: unclipped.
     state_cusum : the CUSUM on the state variables (off: the GLR detects the step).
     widen_margin : raise a chart's limit where charting the calibration runs would have
         come closer than this factor to it (:func:`widen`); ``None``: off.
@@ -97,8 +101,9 @@ class ChartDesign:
     health_phase1: bool = False
     angle_cusum: bool = False
     glr: bool = True
-    arl0_glr: float = 2.0e5
+    arl0_glr: float = 1.0e5
     glr_window: int = 200
+    glr_clip: float | None = 3.0
     state_cusum: bool = True
     widen_margin: float | None = 1.2
     warmup: int = 50
@@ -220,7 +225,8 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
         sig = (level_signature(q.phi) if truths is None else response_signature(step_response(
             [v[n] for v in values], [np.asarray(x)[d.warmup:, j] for x in truths],
             float(mu[j]), float(mu[j])), q.phi))
-        glr[n] = Glr(sig, glr_h(sig, d.glr_window, d.arl0_glr), d.glr_window)
+        glr[n] = Glr(sig, glr_h(sig, d.glr_window, d.arl0_glr, d.glr_clip), d.glr_window,
+                     d.glr_clip)
     config = MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
                            d.phase1, tuple(cusum_on), shewhart, glr=glr)
     return config if d.widen_margin is None else widen(config, runs, d.widen_margin)
