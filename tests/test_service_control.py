@@ -26,7 +26,7 @@ def test_estimates_carry_the_suggested_setting(tmp_path: Path) -> None:
     lo, hi = float(spec.controls.lo[0]), float(spec.controls.hi[0])
     step = 0.1 * (hi - lo)
     target = float(proc.handle(payloads[0]).message["angles_mean"][1]) + 0.5
-    proc.controller = ServiceController(proc.tracker, ControlSettings(target, 0.1),
+    proc.controller = ServiceController(proc.tracker, ControlSettings(target, 0.1, lam=0.5),
                                         proc.store)
     outs = [proc.handle(p) for p in payloads[1:20]]
     ctl = [o.message["control"] for o in outs]
@@ -39,12 +39,12 @@ def test_estimates_carry_the_suggested_setting(tmp_path: Path) -> None:
         assert c["final_angle_deg"] == pytest.approx(target, abs=0.05)
         assert c["interval_deg"][0] <= c["interval_deg"][1]
     assert ctl[0]["target_deg"] == target and ctl[0]["u_unit"] == "mm"
-    # the trim: an EWMA (lam 0.7) of the measured minus predicted final angle at the u used
+    # the trim: an EWMA (lam 0.5) of the measured minus predicted final angle at the u used
     trim = 0.0
     for o in outs:
         m = o.message
         assert "measured_angles_deg" in m  # the stream carries the measured angles
-        trim = 0.7 * (m["measured_angles_deg"][1] - m["angles_mean"][1]) + 0.3 * trim
+        trim = 0.5 * (m["measured_angles_deg"][1] - m["angles_mean"][1]) + 0.5 * trim
         assert m["control"]["trim_deg"] == pytest.approx(trim, abs=1e-12)
     proc.close()
     proc.store.close()

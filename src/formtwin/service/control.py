@@ -53,7 +53,7 @@ class ControlSettings:
 
     target_deg: float
     max_step: float = 0.25
-    lam: float = 0.7
+    lam: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 < self.max_step <= 1:

@@ -173,7 +173,8 @@ def angle_drivers(results: list[dict[str, Any]], burn_in: int, names: list[str]
     the metamodel's angle at the true inputs and nominal setting, fitted on all inputs
     within each dataset, times the input's std there), degrees, and how well the estimates
     follow it: the correlation of its posterior mean with the truth, of levels and of
-    product-to-product changes (within datasets, after ``burn_in``)."""
+    product-to-product changes (within datasets, after ``burn_in``). Inputs fixed within
+    every dataset (the machine parameters) are left out."""
     xs, ys, es = [], [], []
     for r in results:
         ok = np.isfinite(r["truth_nominal"][burn_in:]) & np.all(
@@ -183,10 +184,13 @@ def angle_drivers(results: list[dict[str, Any]], burn_in: int, names: list[str]
         es.append(e - e.mean(axis=0))
         ys.append(r["truth_nominal"][burn_in:][ok] - r["truth_nominal"][burn_in:][ok].mean())
     x, e, y = np.concatenate(xs), np.concatenate(es), np.concatenate(ys)
-    slope = np.linalg.lstsq(x, y, rcond=None)[0]
+    scale = np.max([np.abs(r["inputs"]).max(axis=0) for r in results], axis=0)
+    varies = x.std(axis=0) > 1e-9 * np.maximum(scale, 1e-300)  # not fixed within every run
+    slope = np.zeros(x.shape[1])
+    slope[varies] = np.linalg.lstsq(x[:, varies], y, rcond=None)[0]
     out: dict[str, dict[str, float]] = {}
     for j in np.argsort(-np.abs(slope * x.std(axis=0))):
-        if x[:, j].std() == 0:
+        if not varies[j]:
             continue
         dx = np.concatenate([np.diff(v[:, j]) for v in xs])
         de = np.concatenate([np.diff(v[:, j]) for v in es])
