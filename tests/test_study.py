@@ -128,3 +128,17 @@ def test_the_study_counts_its_filter_runs(tmp_path: Path) -> None:
                {"paper_repetitions": 2, "n_repetitions": 3}):
         st = StudySettings(**kw)  # type: ignore[arg-type]
         assert st.n_filter_runs == len(_tasks(st, tmp_path, tmp_path / "mm.npz", tmp_path))
+
+
+def test_the_papers_runs_are_eq_12_whatever_the_tracker_compares(tmp_path: Path) -> None:
+    """The study's paper-likelihood runs use eq. 12 as written (paper covariance, curves
+    compared in model space), also when the tracker compares in measurement space."""
+    from formtwin.study.run import StudySettings, _tasks
+    from formtwin.tracker import TrackerConfig
+
+    st = StudySettings(tracker=TrackerConfig(compare="measurement"))
+    tasks = _tasks(st, tmp_path, tmp_path / "mm.npz", tmp_path)
+    paper = [t for t in tasks if t.tracker.likelihood == "paper"]
+    mine = [t for t in tasks if t.tracker.likelihood != "paper"]
+    assert paper and all(t.tracker.compare == "model" for t in paper)
+    assert mine and all(t.tracker.compare == "measurement" for t in mine)
