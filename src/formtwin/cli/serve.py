@@ -60,7 +60,8 @@ def add_monitor_options(p: argparse.ArgumentParser) -> None:
                    help="products after the warm-up that set the angles' in-control level "
                    "(default: %(default)s)")
     g.add_argument("--monitor-arl0", type=float, default=1.0e6,
-                   help="in-control average run length of each chart (default: %(default)g)")
+                   help="in-control average run length of each state variable's CUSUM chart "
+                   "(default: %(default)g; EWMA, GLR and mismatch charts: 1e7, 1e5, 1e7)")
 
 
 def _controller(args: argparse.Namespace, proc: Any) -> None:
