@@ -14,6 +14,7 @@ from formtwin.measurement import MeasurementModel
 from formtwin.monitoring.calibrate import (
     ChartDesign,
     calibrate,
+    in_control_runs,
     measurement_noise,
     series,
     simulate_in_control,
@@ -31,6 +32,7 @@ from formtwin.monitoring.charts import (
     ewma_L,
     ewma_limit,
 )
+from formtwin.monitoring.glr import level_signature
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
 from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
 from formtwin.monitoring.scenarios import Change, changed_run
@@ -329,3 +331,28 @@ def test_model_mismatch_raises_the_mismatch_alarm(spec: ProcessSpec, line: tuple
     mismatch = [a for a in alarms if a.chart == "mismatch"]
     assert [a for a in alarms if a.index < at] == []
     assert mismatch and mismatch[0].index - at + 1 <= 10
+
+
+def test_in_control_runs_give_the_same_draws_with_their_true_states(
+        spec: ProcessSpec, line: tuple[AnalyticModel, MeasurementModel, TrackerConfig]) -> None:
+    """in_control_runs is simulate_in_control with the true states: the same estimates, and
+    states that stay in the design box and that the best observed estimate follows; a
+    monitor calibrated with them matches each GLR chart to the estimates' response (not
+    the level signature)."""
+    model, mm, cfg = line
+    est = simulate_in_control(model, mm, cfg, 300, 2, seed=9)
+    runs = in_control_runs(model, mm, cfg, 300, 2, seed=9)
+    names = spec.state.names
+    for e, (x, e2) in zip(est, runs, strict=True):
+        assert np.array_equal(e.mean, e2.mean) and x.shape == (300, len(names))
+        assert np.all((x >= spec.state.lo) & (x <= spec.state.hi))
+        j = names.index("punch_end_distance")
+        assert np.corrcoef(x[50:, j], e.mean[50:, j])[0, 1] > 0.8
+    design = ChartDesign(warmup=30, phase1=50, widen_margin=None)
+    with_x = calibrate(est, names, spec.state.mu_mid, design, truths=[x for x, _ in runs])
+    without = calibrate(est, names, spec.state.mu_mid, design)
+    assert set(with_x.glr) == set(without.glr) == set(names)
+    for n in names:
+        assert without.glr[n].signature == level_signature(without.quantities[n].phi)
+        assert len(with_x.glr[n].signature) > len(without.glr[n].signature)
+        assert with_x.glr[n].signature != without.glr[n].signature
