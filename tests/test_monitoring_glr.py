@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from formtwin.monitoring.calibrate import ChartDesign, calibrate_series
 from formtwin.monitoring.glr import (
     Glr,
     GlrState,
@@ -142,3 +143,25 @@ def test_monitor_with_glr_charts_round_trips_config_and_state() -> None:
     # expected statistic (3 + 0.6 (n - 1))^2 / (2 (1 + 0.04 (n - 1))): 12.6 after 5 products
     assert glr[0].side == "high" and glr[0].index - 300 < 25
     assert "glr" in whole.last["a"]
+
+
+def test_a_bounded_statistic_gets_no_glr_chart() -> None:
+    """A signature without a lasting part and clipped scores: the statistic cannot pass
+    clip^2 / 2, so no threshold has the design's ARL; calibrate leaves such a variable
+    without a GLR chart (its other charts stay) instead of failing."""
+    with pytest.raises(ValueError, match="bounded"):
+        glr_h((1.0, 0.0), 50, 1e5, clip=3.0)
+    rng = np.random.default_rng(1)
+    names = ("a", "b")
+    runs = []
+    for _ in range(2):
+        walk = np.cumsum(rng.standard_normal(700))  # AR fit phi_1 + phi_2 ~ 1: no lasting
+        ar = np.zeros(700)
+        for i in range(1, 700):
+            ar[i] = 0.7 * ar[i - 1] + rng.standard_normal()
+        runs.append({"a": walk, "b": ar})
+    config = calibrate_series(runs, names, np.zeros(2),
+                              ChartDesign(warmup=10, phase1=20, widen_margin=None))
+    lasting = {n: config.quantities[n].phi for n in names}
+    assert 1.0 - sum(lasting["a"]) < 0.02 and set(config.glr) == {"b"}
+    assert set(config.cusum_on or ()) == {"a", "b"}

@@ -20,6 +20,7 @@ limit. The benchmark (``benchmarks/bench_monitoring.py``) counts the real rate.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -42,6 +43,7 @@ from formtwin.monitoring.monitor import ANGLES, HEALTH, Monitor, MonitorConfig
 from formtwin.tracker import Tracker, TrackerConfig
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -191,7 +193,9 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
     ``truths``: the runs' true states (n_r, 7) (simulated runs): each state variable's GLR
     chart is then matched to how its estimate responds to a step of the state
     (:func:`~formtwin.monitoring.glr.step_response`); without them, to a step of the
-    estimate itself (:func:`~formtwin.monitoring.glr.level_signature`).
+    estimate itself (:func:`~formtwin.monitoring.glr.level_signature`). A variable whose
+    signature has (almost) no lasting part gets no GLR chart when the scores are clipped:
+    its statistic is then bounded near ``clip^2 / 2`` and no limit has the design's ARL.
     """
     d = ChartDesign() if design is None else design
     if d.phase1 < 2:
@@ -225,8 +229,12 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
         sig = (level_signature(q.phi) if truths is None else response_signature(step_response(
             [v[n] for v in values], [np.asarray(x)[d.warmup:, j] for x in truths],
             float(mu[j]), float(mu[j])), q.phi))
-        glr[n] = Glr(sig, glr_h(sig, d.glr_window, d.arl0_glr, d.glr_clip), d.glr_window,
-                     d.glr_clip)
+        try:
+            h = glr_h(sig, d.glr_window, d.arl0_glr, d.glr_clip)
+        except ValueError as exc:  # e.g. no lasting shift: clipped, the statistic is bounded
+            log.info("no GLR chart for %s: %s", n, exc)
+            continue
+        glr[n] = Glr(sig, h, d.glr_window, d.glr_clip)
     config = MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
                            d.phase1, tuple(cusum_on), shewhart, glr=glr)
     return config if d.widen_margin is None else widen(config, runs, d.widen_margin)

@@ -216,7 +216,8 @@ def glr_rate(signature: tuple[float, ...], window: int, clip: float | None = Non
     up = np.array([np.sum((g[:, 1:] > h) & (g[:, :-1] <= h)) for h in grid])
     ok = up >= 50
     if ok.sum() < 3:
-        raise ValueError("GLR threshold: too few simulated up-crossings to fit their rate")
+        raise ValueError("GLR threshold: too few simulated up-crossings to fit their rate "
+                         f"(largest statistic {float(g.max()):.2f}: bounded?)")
     y = np.log(up[ok] / g[:, 1:].size) + grid[ok]
     a, c = np.polyfit(np.log(grid[ok]), y, 1)
     return float(c), float(a)
