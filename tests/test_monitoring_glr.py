@@ -145,6 +145,16 @@ def test_monitor_with_glr_charts_round_trips_config_and_state() -> None:
     assert "glr" in whole.last["a"]
 
 
+def test_glr_clip_survives_the_stored_config() -> None:
+    """The service stores its monitor config as JSON and reloads it on restart: a GLR chart
+    designed for clipped scores must come back clipped (its threshold is for those)."""
+    q = InControl(mean=0.0, sigma=1.0, phi=(0.8,))
+    config = MonitorConfig({"a": q}, warmup=0, phase1=0, cusum_on=(),
+                           glr={"a": Glr(level_signature(q.phi), h=12.0, window=50, clip=3.0)})
+    back = MonitorConfig.from_json(config.to_json())
+    assert back.glr["a"].clip == 3.0 and back == config
+
+
 def test_a_bounded_statistic_gets_no_glr_chart() -> None:
     """A signature without a lasting part and clipped scores: the statistic cannot pass
     clip^2 / 2, so no threshold has the design's ARL; calibrate leaves such a variable

@@ -153,8 +153,8 @@ class MonitorConfig:
             "warmup": self.warmup, "phase1": self.phase1, "cusum_on": self.cusum_on,
             "shewhart": self.shewhart,
             "widen": {n: dict(d) for n, d in self.widen.items()},
-            "glr": {n: {"signature": list(g.signature), "h": g.h, "window": g.window}
-                    for n, g in self.glr.items()}})
+            "glr": {n: {"signature": list(g.signature), "h": g.h, "window": g.window,
+                        "clip": g.clip} for n, g in self.glr.items()}})
 
     @classmethod
     def from_json(cls, text: str) -> MonitorConfig:
@@ -171,7 +171,8 @@ class MonitorConfig:
                    shewhart=None if d.get("shewhart") is None else float(d["shewhart"]),
                    widen={n: {c: float(f) for c, f in w.items()}
                           for n, w in d.get("widen", {}).items()},
-                   glr={n: Glr(tuple(g["signature"]), float(g["h"]), int(g["window"]))
+                   glr={n: Glr(tuple(g["signature"]), float(g["h"]), int(g["window"]),
+                               None if g.get("clip") is None else float(g["clip"]))
                         for n, g in d.get("glr", {}).items()})
 
 
