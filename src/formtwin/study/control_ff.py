@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -87,9 +86,9 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                     ctrl.measured(plant(j, u[c, j]), model_pred[c, j])
             if ok[i]:
                 input_mean[i] = tracker.step(curves[i]).mean[:n_in]
-                w = _weights(tracker)
+                w = tracker.weights()
                 for c, ctrl in enumerate(ctl):
-                    s = ctrl.choose(tracker.final_angle, w, prev[c])
+                    s = tracker.suggest(ctrl, prev[c])
                     prev[c] = s.u
                     pred[c, i] = (s.angle_mean, *s.interval)
                     model_pred[c, i] = s.angle_mean - ctrl.bias
@@ -98,15 +97,6 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
             u[:, i] = prev
     return Pass(u, pred, nominal_mean, s_angle if angle_in_filter else float("nan"),
                 input_mean)
-
-
-def _weights(tracker: Any) -> FloatArray | None:
-    """The particles' weights (None: equal, as after resampling)."""
-    logw = np.asarray(tracker.filter.logw, dtype=np.float64)
-    if np.ptp(logw) == 0:
-        return None
-    out: FloatArray = np.exp(logw - logw.max())
-    return out
 
 
 __all__ = ["Pass", "track_and_choose"]

@@ -32,7 +32,9 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import norm
 
+from formtwin.filters import log_normalise
 from formtwin.tracker.core import Tracker
 
 FloatArray = NDArray[np.float64]
@@ -67,14 +69,12 @@ def update_angle(tracker: Tracker, angle: float, u: float, sd: float | None = No
         raise ValueError(f"update_angle: sd = {sd}, expected a positive number of degrees "
                          "(the metamodel has no held-out angle error: give sd)")
     a = tracker.final_angle(np.array([float(u)]))[:, 0] + float(offset)
-    ll = -0.5 * ((float(angle) - a) / s) ** 2 - math.log(s * math.sqrt(2 * math.pi))
-    ll = np.where(np.isfinite(ll), ll, -np.inf)
-    logw = np.asarray(tracker.filter.logw, dtype=np.float64) + ll
+    ll = norm.logpdf(float(angle), loc=a, scale=s)
+    logw = np.asarray(tracker.filter.logw, dtype=np.float64) + np.where(np.isfinite(ll), ll,
+                                                                         -np.inf)
     if not np.isfinite(logw).any():
         return -math.inf
-    top = float(logw.max())
-    lse = top + math.log(float(np.sum(np.exp(logw - top))))
-    tracker.filter.logw = logw - lse
+    tracker.filter.logw, lse = log_normalise(logw)
     return lse
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
-from formtwin.control import Feedforward, Suggestion
+from formtwin.control import Combined, Feedforward, Suggestion
 from formtwin.estimates import Estimate, Estimates
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
@@ -201,18 +201,24 @@ class Tracker:
             raise RuntimeError("final_angle: no particles yet (call step first)")
         return self.ssm.final_angle(self.filter.x, np.asarray(u, dtype=np.float64))
 
-    def suggest(self, controller: Feedforward, u_prev: float | None = None) -> Suggestion:
+    def weights(self) -> FloatArray | None:
+        """Relative weights (N,) of the current particles (largest 1), ``None`` when they
+        are equal (as after resampling)."""
+        logw = np.asarray(self.filter.logw, dtype=np.float64)
+        if self.filter.x is None or logw.shape != (self.filter.x.shape[0],) or np.ptp(logw) == 0:
+            return None
+        out: FloatArray = np.exp(logw - logw.max())
+        return out
+
+    def suggest(self, controller: Feedforward | Combined, u_prev: float | None = None
+                ) -> Suggestion:
         """The press setting for the product just assimilated: ``controller``'s choice over
         the current particles and weights (:mod:`formtwin.control.feedforward`: least
         posterior expected squared error of the final angle, within the actuator's limits
         and maximum step after ``u_prev``), with the predicted final angle there."""
         if self.filter.x is None:
             raise RuntimeError("suggest: no particles yet (call step first)")
-        logw = np.asarray(self.filter.logw, dtype=np.float64)
-        w = None
-        if logw.shape == (self.filter.x.shape[0],) and np.ptp(logw) > 0:
-            w = np.exp(logw - logw.max())
-        return controller.choose(self.final_angle, w, u_prev)
+        return controller.choose(self.final_angle, self.weights(), u_prev)
 
     def _estimate(self, s: Step, v: FloatArray, scale: float = 1.0,
                   u: FloatArray | None = None) -> Estimate:

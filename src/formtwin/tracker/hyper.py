@@ -52,6 +52,19 @@ class GridPosteriors:
         logp = self.share_logpost + ev
         self.set_share_logpost(logp - logsumexp(logp))
 
+    def mix_share(self, ll: FloatArray) -> FloatArray:
+        """Log-likelihoods (N,) from those on the share's grid ``ll`` (N, n_k): their
+        mixture over the share's posterior."""
+        logp = self.share_logpost
+        out: FloatArray = logsumexp(ll + logp, axis=1) if logp.size > 1 else ll[:, 0]
+        return out
+
+    def mix_scale(self, ll: FloatArray) -> FloatArray:
+        """Log-likelihoods (N,) from those on the scale's grid ``ll`` (N, n_scales): their
+        mixture over the scale's posterior."""
+        out: FloatArray = logsumexp(ll + self.scale_logpost, axis=1)
+        return out
+
     @property
     def scale_logpost(self) -> FloatArray:
         """Log-posterior (n_scales,) of the factor on the likelihood covariance over

@@ -75,11 +75,8 @@ class MoveHooks(GridPosteriors):
         ll = np.concatenate([self._loglik(x[i: i + self.chunk], y)[0]
                              for i in range(0, x.shape[0], self.chunk)])
         if d is not None:
-            logp = self.share_logpost
-            ll = logsumexp(ll + logp, axis=1) if logp.size > 1 else ll[:, 0]
-        if self.config.learn_scale:
-            ll = logsumexp(ll + self.scale_logpost, axis=1)
-        out: FloatArray = ll
+            ll = self.mix_share(ll)
+        out: FloatArray = self.mix_scale(ll) if self.config.learn_scale else ll
         return out
 
 
@@ -90,7 +87,5 @@ def _reflected_logpdf(v: FloatArray, mean: FloatArray, std: FloatArray, lo: Floa
     the mirror images at both bounds (further images matter only for ``std`` near the
     width of the box)."""
     terms = np.stack([v - mean, 2.0 * lo - v - mean, 2.0 * hi - v - mean])
-    q = -0.5 * (terms / std) ** 2
-    top = q.max(axis=0)
-    out: FloatArray = np.sum(top + np.log(np.exp(q - top).sum(axis=0)), axis=1)
+    out: FloatArray = np.sum(logsumexp(-0.5 * (terms / std) ** 2, axis=0), axis=1)
     return out

@@ -52,7 +52,6 @@ from formtwin.evolution import (
     truncated_moments,
     truncated_normal,
 )
-from formtwin.filters import logsumexp
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
@@ -262,19 +261,17 @@ class BendingSSM(MoveHooks):
         disc = self.discrepancy
         if disc is not None:  # residuals net of each particle's shared discrepancy,
             stats = x[:, self._disc:] if disc.shared else None  # then this product
-            logp = self.share_logpost  # joins the statistics
-            w = np.exp(logp)
+            w = np.exp(self.share_logpost)  # joins the statistics
             self._last["cov"] = disc.predictive_cov(stats, w)
             if stats is not None:
                 self._last["r"] = self._last["r"] - disc.bias(stats, w)
                 disc.update(stats, np.concatenate([p[2] for p in parts]))
             self._last["grid"] = ll  # (N, n_k): the mixture over the share's posterior
-            ll = logsumexp(ll + logp, axis=1) if logp.size > 1 else ll[:, 0]
+            ll = self.mix_share(ll)
         if not self.config.learn_scale:
             return ll
         self._last["scaled"] = ll  # (N, n_scales): the mixture over the scale posterior
-        out: FloatArray = logsumexp(ll + self.scale_logpost, axis=1)
-        return out
+        return self.mix_scale(ll)
 
     def angle_error(self) -> FloatArray:
         """Variance (2,) deg^2 the predicted angles' variance adds for the metamodel's own
