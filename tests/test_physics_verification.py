@@ -206,11 +206,14 @@ def test_cowper_symonds_plastic_bending(kappa_rate: float) -> None:
 
 
 @pytest.mark.parametrize("slip", [False, True])
-def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool) -> None:
-    """Contact on the sheet's faces (the point ``x + f t/2 n(theta)`` of each node, force
-    and moment there): the assembled band tangent and the punch column ``dR/dp`` are the
-    finite-difference derivatives of the residual, in stick and in slip, on a nose (arc)
-    and on a flat die, with rotated nodes."""
+@pytest.mark.parametrize("n_sub", [1, 3])
+def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool, n_sub: int) -> None:
+    """Contact on the sheet's faces (at the nodes' face points ``x + f t/2 n(theta)``, and
+    with ``n_sub`` > 1 at Hermite-interpolated points inside the elements too): the
+    assembled band tangent and the punch column ``dR/dp`` are the finite-difference
+    derivatives of the residual, in stick and in slip, on a nose (arc) and on a flat die,
+    with rotated nodes."""
+    from formtwin.physics.bending.contact import contact_points
     from formtwin.physics.bending.solver import BW, assemble
 
     sheet = Sheet.straight(0.0, 0.6, 0.5 * T, 3, T, 15, 2)
@@ -225,24 +228,26 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool) -> N
     p = T - 0.3 - 2e-4 - 0.01  # the punch's nose pressed into the sheet's upper face
     mesh = (sheet.X, sheet.phi0, T, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg, ELASTIC.array)
     zeros = np.zeros_like(sheet.sig)
-    pen = np.full((sheet.X.shape[0], 2), 5.0e4)
+    el, xi, Xp, _ = contact_points(sheet.X, sheet.phi0, n_sub)
+    n_p = el.size
+    pen = np.full((n_p, 2), 5.0e4 / n_sub)
     mu = np.full(2, 0.3)
     # the committed face points: a slip far beyond mu N / penalty, or a tiny stick offset
-    ct_rel = np.zeros((sheet.X.shape[0], 2, 2))
-    ct_rel[:, :, 0] = sheet.X[:, [0]] + (5e-3 if slip else 1e-7)
+    ct_rel = np.zeros((n_p, 2, 2))
+    ct_rel[:, :, 0] = Xp[:, [0]] + (5e-3 if slip else 1e-7)
     ct_rel[:, :, 1] = 0.0
     ct_rel[:, 1, 1] = T - p
-    contact = (np.zeros((sheet.X.shape[0], 2)), ct_rel, np.zeros((sheet.X.shape[0], 2), np.int64),
+    contact = (np.zeros((n_p, 2)), ct_rel, np.zeros((n_p, 2), np.int64),
                np.zeros((sheet.X.shape[0], 2)))
     press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0, 5e-4])
-    toolarr = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, pen)
+    toolarr = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, el, xi,
+               pen, Xp)
 
     def residual(uu: np.ndarray, pp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         Kb, R = np.zeros((n, 2 * BW + 1)), np.zeros(n)
         col, row, out = np.zeros(n), np.zeros(n), np.zeros(5)
         trial = (np.zeros_like(zeros), np.zeros_like(zeros), np.zeros_like(zeros))
-        ct_trial = (np.zeros((sheet.X.shape[0], 2)), np.zeros((sheet.X.shape[0], 2), np.int64),
-                    np.zeros((sheet.X.shape[0], 2)))
+        ct_trial = (np.zeros((n_p, 2)), np.zeros((n_p, 2), np.int64), np.zeros((n_p, 2)))
         assemble(0.0, uu, pp, mesh, zeros, zeros, zeros, zeros, trial, toolarr, contact,
                  ct_trial, press, np.zeros(n), Kb, R, col, row, out)
         assert ct_trial[1].sum() >= 4  # several contacts active
@@ -283,18 +288,66 @@ def test_face_pressure_spreads_forces_without_changing_their_sum() -> None:
     """Uniform normal forces ``f`` per node at spacing ``h``, spread by a hat of half-width
     ``3 h``: the pressure away from the ends is ``f / h`` (exactly: the hat's weights sum
     to 1/h); a single force keeps its total ``sum p h``; the faces are kept apart."""
-    from formtwin.physics.bending.kernels import face_pressure
+    from formtwin.physics.bending.contact import face_pressure
 
     h, n = 0.05, 41
     X = np.column_stack([h * np.arange(n), np.zeros(n)])
     fn = np.zeros((n, 2))
     fn[:, 0] = 2.0  # a lower-face tool (face -1) pressing every node with 2 N/mm
     p = np.zeros((n, 2))
-    face_pressure(X, fn, np.array([-1.0, 1.0]), 3 * h, p)
+    face_pressure(X, X, fn, np.array([-1.0, 1.0]), 3 * h, p)
     np.testing.assert_allclose(p[5:-5, 0], 2.0 / h, rtol=1e-12)
     assert np.all(p[:, 1] == 0.0)
     fn[:] = 0.0
     fn[20, 1] = 3.0  # one force on the upper face
-    face_pressure(X, fn, np.array([-1.0, 1.0]), 3 * h, p)
+    face_pressure(X, X, fn, np.array([-1.0, 1.0]), 3 * h, p)
     assert np.sum(p[:, 1]) * h == pytest.approx(3.0, rel=1e-12)
     assert np.count_nonzero(p[:, 1] > 1e-9 * p[:, 1].max()) == 5 and np.all(p[:, 0] == 0.0)
+
+
+def test_contact_points_lie_on_the_face_of_a_bent_sheet() -> None:
+    """Nodes on a circle of radius ``r`` with their directions along it: the Hermite face
+    points inside the elements lie on the offset circle ``r -+ t/2`` to the interpolation's
+    O(h^4) (exactly on a straight sheet), their derivatives by the nodes' rotations match
+    finite differences, and the points' shares of the length sum to the sheet's length."""
+    from formtwin.physics.bending.contact import contact_points, hermite_face, point_face
+
+    r, errors = 1.0, []
+    for n_el in (8, 16):
+        a = np.linspace(0.0, 0.5 * math.pi, n_el + 1)  # quarter circle about (0, r) from (0, 0)
+        X = np.column_stack([r * np.sin(a), r - r * np.cos(a)])
+        phi0 = a.copy()  # the circle's direction at each node
+        el, xi, Xp, share = contact_points(X, phi0, 4)
+        assert el.size == 4 * n_el + 1 and share.sum() == pytest.approx(
+            np.linalg.norm(np.diff(X, axis=0), axis=1).sum(), rel=1e-14)
+        np.testing.assert_allclose(xi[:5], [0.0, 0.25, 0.5, 0.75, 0.0])
+        u = np.zeros(3 * (n_el + 1))
+        for s in (+1.0, -1.0):  # upper face: inside the bend, radius r - t/2
+            radii = [np.hypot(*(np.array(point_face(X, phi0, u, el, xi, q, s, T / 2))
+                                - [0.0, r])) for q in range(el.size)]
+            errors.append(np.max(np.abs(np.array(radii) - (r - s * T / 2))))
+    assert max(errors[:2]) < 2e-5 * r and max(errors[2:]) < max(errors[:2]) / 12  # O(h^4)
+    flat = np.column_stack([np.linspace(0.0, 1.0, 5), np.zeros(5)])
+    el, xi, _, _ = contact_points(flat, np.zeros(5), 3)
+    pts = np.array([point_face(flat, np.zeros(5), np.zeros(15), el, xi, q, 1.0, T / 2)
+                    for q in range(el.size)])
+    np.testing.assert_allclose(pts, np.column_stack([np.linspace(0.0, 1.0, 13),
+                                                     np.full(13, T / 2)]), atol=1e-15)
+    d = np.zeros((5, 2))
+    args = (0.1, 0.2, 0.3, 0.4, 0.25, -0.2, -1.0, T / 2, 0.3, 0.35)
+    hermite_face(*args, d)
+    h = 1e-6
+
+    def shifted(i: int, step: float) -> tuple[np.ndarray, np.ndarray]:
+        a = list(args)
+        a[i] += step
+        dd = np.zeros((5, 2))
+        return np.array(hermite_face(*a, dd)), dd
+
+    for i, first, second in ((2, 0, 2), (5, 1, 3)):  # the rotations of node a and node b
+        (yp, dp), (yn, dn) = shifted(i, h), shifted(i, -h)
+        np.testing.assert_allclose((yp - yn) / (2 * h), d[first], rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose((dp[first] - dn[first]) / (2 * h), d[second], rtol=1e-6,
+                                   atol=1e-8)
+    (_, dp), (_, dn) = shifted(5, h), shifted(5, -h)
+    np.testing.assert_allclose((dp[0] - dn[0]) / (2 * h), d[4], rtol=1e-6, atol=1e-8)

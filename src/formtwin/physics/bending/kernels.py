@@ -1,4 +1,4 @@
-"""Numba kernels of the bending model: material point, corotational beam, contact, band LU.
+"""Numba kernels of the bending model: material point, corotational beam, band LU.
 
 Units are mm, N, s, MPa; all forces are per mm of width (2D plane strain).
 
@@ -22,15 +22,11 @@ Through-thickness stress
     through-thickness stress ``sigma_yy``, linear from ``-p_lower`` on the lower face to
     ``-p_upper`` on the upper face, with the pressures of the last converged increment
     (lagged, so the tangent stays exact for the increment) spread along the sheet over
-    about a thickness (:func:`face_pressure`). In plane strain with incompressible flow the
+    about a thickness (:func:`.contact.face_pressure`). In plane strain with incompressible flow the
     yield condition becomes ``|sigma_xx - sigma_yy| = (2/sqrt 3) sigma_flow``: a sheet pressed
     onto a tool yields at a shifted axial stress, which a plain beam misses.
 
-Contact
-    Node-to-rigid-surface penalty contact with the sheet surface offset ``t/2`` from the
-    mid-surface node, Coulomb friction by an elastic-predictor / slip-corrector return map
-    on the tangential force, consistent tangent (including the rotation of the normal on
-    arcs).
+Contact: :mod:`.contact`.
 """
 
 from __future__ import annotations
@@ -181,119 +177,6 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
         for j in range(6):
             K[i, j] = (g0 * B[0, j] + g1 * B[1, j] + g2 * B[2, j] + z[i] * z[j] * f0 / ln
                        + (r[i] * z[j] + z[i] * r[j]) * msum)
-
-
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def face_pressure(X, fn, tface, a, pface):  # type: ignore[no-untyped-def]
-    """Contact pressure (MPa) on the lower and upper face at each node, ``pface (n, 2)``.
-
-    The normal contact forces of the nodes ``fn (n_nodes, n_tools)`` (N/mm, per mm width)
-    on the faces ``tface (n_tools,)`` (+1 upper, -1 lower), spread along the sheet by a
-    hat of half-width ``a`` (mm; a load on a face spreads through the thickness over about
-    the thickness), so the pressure is independent of the node spacing ``X (n_nodes, 2)``.
-    """
-    n = X.shape[0]
-    pface[:, :] = 0.0
-    for j in range(n):
-        for k in range(tface.shape[0]):
-            if fn[j, k] == 0.0:
-                continue
-            side = 1 if tface[k] > 0.0 else 0
-            for i in range(n):
-                d = math.hypot(X[i, 0] - X[j, 0], X[i, 1] - X[j, 1])
-                if d < a:
-                    pface[i, side] += fn[j, k] * (1.0 - d / a) / a
-
-
-# ----------------------------------------------------------------------------- contact
-
-
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
-def closest_point(px, py, p0, p1, ptype, pdata):  # type: ignore[no-untyped-def]
-    """Closest point of a tool (primitives ``p0:p1``) to ``(px, py)`` (tool frame).
-
-    Returns ``(distance, signed_distance, nx, ny, rho)`` with the outward normal at the
-    closest point and ``rho`` the distance to the arc centre (0 for a straight face).
-    Segments have the tool on their right; arcs are convex corners (tool inside).
-    """
-    best = 1e300
-    sd = 0.0
-    bnx = 0.0
-    bny = 0.0
-    brho = 0.0
-    for j in range(p0, p1):
-        if ptype[j] == 0:
-            x0, y0, x1, y1 = pdata[j, 0], pdata[j, 1], pdata[j, 2], pdata[j, 3]
-            tx, ty = x1 - x0, y1 - y0
-            L = math.sqrt(tx * tx + ty * ty)
-            tx /= L
-            ty /= L
-            nx, ny = -ty, tx
-            sp = (px - x0) * tx + (py - y0) * ty
-            spc = min(max(sp, 0.0), L)
-            qx, qy = x0 + spc * tx, y0 + spc * ty
-            dist = math.hypot(px - qx, py - qy)
-            sgn = (px - x0) * nx + (py - y0) * ny
-            rho = 0.0
-        else:
-            cx, cy, R, a0, a1 = pdata[j, 0], pdata[j, 1], pdata[j, 2], pdata[j, 3], pdata[j, 4]
-            rx, ry = px - cx, py - cy
-            rho = math.hypot(rx, ry)
-            ang = (math.atan2(ry, rx) - a0) % (2.0 * math.pi)
-            if ang <= a1 - a0 and rho > 0.0:
-                nx, ny = rx / rho, ry / rho
-                sgn = rho - R
-                dist = abs(sgn)
-            else:
-                aa = a0 if ang > 0.5 * (a1 - a0) + math.pi else a1
-                qx, qy = cx + R * math.cos(aa), cy + R * math.sin(aa)
-                nx, ny = math.cos(aa), math.sin(aa)
-                dist = math.hypot(px - qx, py - qy)
-                sgn = (px - qx) * nx + (py - qy) * ny
-                rho = 0.0
-        if dist < best:
-            best = dist
-            sd = sgn
-            bnx, bny, brho = nx, ny, rho
-    return best, sd, bnx, bny, brho
-
-
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
-def contact_node(gap, g0, nx, ny, rho, epn, ept, mu, tt_n, drx, dry, J):  # type: ignore[no-untyped-def]
-    """Penalty contact force on a node and its derivative ``J = df/d(x_node - x_tool)``.
-
-    ``gap < 0`` is the penetration; the normal force is ``epn (-gap - g0/2)`` beyond
-    ``g0`` and quadratic ``epn gap^2 / (2 g0)`` within it (continuous stiffness at first
-    touch). ``(drx, dry)`` is the relative displacement of the node against the tool since
-    the last converged state, ``tt_n`` the committed tangential force along
-    ``tau = (-ny, nx)``. Returns ``(fx, fy, tt, slip)``.
-    """
-    if gap < -g0:
-        lam = -epn * (gap + 0.5 * g0)
-        kn = epn
-    else:
-        lam = epn * gap * gap / (2.0 * g0)
-        kn = -epn * gap / g0
-    tx, ty = -ny, nx
-    ds = tx * drx + ty * dry
-    tt = tt_n - ept * ds
-    cap = mu * lam
-    slip = abs(tt) > cap
-    if slip:
-        tt = math.copysign(cap, tt)
-    nn = (nx, ny)
-    ta = (tx, ty)
-    for a in range(2):
-        for b in range(2):
-            v = -kn * nn[a] * nn[b]
-            if rho > 0.0:
-                v += (lam * ta[a] * ta[b] - tt * nn[a] * ta[b]) / rho
-            if slip:
-                v -= mu * math.copysign(1.0, tt) * kn * ta[a] * nn[b]
-            else:
-                v -= ept * ta[a] * ta[b]
-            J[a, b] = v
-    return lam * nx + tt * tx, lam * ny + tt * ty, tt, slip
 
 
 # ------------------------------------------------------------------------------ band LU

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.physics.bending.contact import contact_points, point_face
 from formtwin.physics.bending.geometry import FlapGeometry, ToolSet, make_toolset
 from formtwin.physics.bending.material import Material
 from formtwin.physics.bending.solver import OK, crank, run_history
@@ -28,7 +29,7 @@ from formtwin.spec import ProcessSpec, load_spec
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-VERSION = "bending-2.1"
+VERSION = "bending-2.2"
 
 #: the control input (spec ``[[control]]``) that sets the stage-2 depth, mm
 CONTROL = "stage2_depth"
@@ -72,6 +73,9 @@ class Discretisation:
         Half-width, in sheet thicknesses, of the hat over which the nodes' normal contact
         forces are spread into face pressures, which the layers carry as a through-thickness
         stress (:mod:`.kernels`); 0 switches the through-thickness stress off (model 2.0).
+    contact_points
+        Contact points per element on each face (:mod:`.contact`): 1 puts them at the nodes
+        only (model 2.1); more let a tool corner slide smoothly along the sheet.
     """
 
     n_elements: int = 32
@@ -91,6 +95,7 @@ class Discretisation:
     easy_steps: int = 2
     rate_window: float = 2.7
     pressure_spread: float = 1.0
+    contact_points: int = 4
 
     def opts(self, dt_max: float, rate_tau: float = 0.0) -> FloatArray:
         """Solver option array for :func:`~.solver.run_history` (``rate_tau`` in s)."""
@@ -150,10 +155,6 @@ class Sheet:
         """Current node positions ``(n_nodes, 2)``."""
         return np.asarray(self.X + self.u.reshape(-1, 3)[:, :2], dtype=np.float64)
 
-    def tributary(self) -> FloatArray:
-        """Reference length belonging to each node ``(n_nodes,)``."""
-        le = np.linalg.norm(np.diff(self.X, axis=0), axis=1)
-        return np.asarray(np.r_[0.5 * le, 0.0] + np.r_[0.0, 0.5 * le], dtype=np.float64)
 
 
 @dataclass
@@ -195,7 +196,8 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
                         np.zeros(0, np.int64), np.zeros(0), ())
     n_tools = tools.owner.size
     n_nodes = sheet.X.shape[0]
-    pen = np.repeat((penalty * sheet.tributary())[:, None], 2, axis=1)
+    el, xi, Xp, share = contact_points(sheet.X, sheet.phi0, disc.contact_points)
+    pen = np.repeat((penalty * share)[:, None], 2, axis=1)
     press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0]) if press is None else press
     press = np.r_[press, smooth]
     fix = np.array([0, 1, 2], dtype=np.int64) if fix is None else fix
@@ -206,13 +208,14 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     mu = np.zeros(n_tools) if mu is None else mu
     t0 = float(targets[0]) if t_start is None else t_start
     pa = np.array([crank(t0, press)[0]])
-    phi = sheet.phi0 + sheet.u[2::3]
-    ct_t = np.zeros((n_nodes, n_tools))
-    ct_rel = np.repeat(sheet.positions[:, None, :], n_tools, axis=1)  # the face points
-    ct_rel[:, :, 0] -= 0.5 * sheet.thickness * np.sin(phi)[:, None] * tools.face[None, :]
-    ct_rel[:, :, 1] += 0.5 * sheet.thickness * np.cos(phi)[:, None] * tools.face[None, :]
+    ct_t = np.zeros((el.size, n_tools))
+    ct_rel = np.zeros((el.size, n_tools, 2))  # the points' face positions (tool frame)
+    for q in range(el.size):
+        for k in range(n_tools):
+            ct_rel[q, k] = point_face(sheet.X, sheet.phi0, sheet.u, el, xi, q,
+                                      float(tools.face[k]), 0.5 * sheet.thickness)
     ct_rel[:, :, 1] -= pa[0] * (tools.owner == 1)[None, :]
-    ct_act = np.zeros((n_nodes, n_tools), dtype=np.int64)
+    ct_act = np.zeros((el.size, n_tools), dtype=np.int64)
     rec_u = np.zeros((targets.size, n))
     rec_f = np.zeros((targets.size, 8))
     rec_r = np.zeros((targets.size, n))
@@ -220,7 +223,8 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     mesh = (sheet.X, sheet.phi0, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg,
             material.array)
     state = (sheet.u, pa, sheet.sig, sheet.epb, sheet.eps, sheet.rate)
-    tool_arrays = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, pen)
+    tool_arrays = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, el, xi,
+                   pen, Xp)
     status = run_history(targets, lam, lam_fix, t0, mesh, state, tool_arrays,
                          (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 2))),
                          (press, fref, fix, fix_ref),

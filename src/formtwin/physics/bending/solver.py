@@ -25,15 +25,8 @@ import math
 import numpy as np
 from numba import njit
 
-from formtwin.physics.bending.kernels import (
-    BW,
-    band_lu,
-    band_solve,
-    beam_element,
-    closest_point,
-    contact_node,
-    face_pressure,
-)
+from formtwin.physics.bending.contact import contact_forces, face_pressure, point_face
+from formtwin.physics.bending.kernels import BW, band_lu, band_solve, beam_element
 
 # indices into the ``press`` array
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
@@ -60,19 +53,19 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     """Residual ``R = f_int - f_contact - f_ext`` and band tangent ``Kb``.
 
     ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``trial = (sig_t, epb_t, eps_t)``
-    (written), ``tools = (ptype, pdata, tstart, towner, tface, tmu, pen)``, ``contact =
-    (ct_t, ct_rel, ct_act, pface)`` (committed; ``pface`` the face pressures, MPa),
+    (written), ``tools = (ptype, pdata, tstart, towner, tface, tmu, el, xi, pen, Xp)``: the
+    tools and the contact points (element, ``xi``, penalties, reference positions;
+    :mod:`.contact`), ``contact = (ct_t, ct_rel, ct_act, pface)``
+    (per point and tool, committed; ``pface`` the face pressures at the nodes, MPa),
     ``ct_trial = (ct_t_t, ct_act_t, ct_n_t)`` (written; ``ct_n_t`` normal forces, N/mm).
-    Contact acts on the sheet's face: the point ``x + f (t/2) n(phi0 + theta)`` of each node
-    (``f = tface[k]``: +1 upper, -1 lower face, ``n`` the sheet's normal), so the normal
-    and friction forces there also load the node's rotation with their moment about it.
+    Contact acts at points on the sheet's faces (:func:`.contact.contact_forces`), so the
+    normal and friction forces also load the nodes' rotations.
     ``col = dR/dp``, ``row = dG/du``; ``out = [G, dG/dp, F_v, F_lat, spring/measured force]``.
     """
     X, phi0, thick, ylay, wlay, xg, wg, mat = mesh
     sig_t, epb_t, eps_t = trial
-    ptype, pdata, tstart, towner, tface, tmu, pen = tools
-    ct_t, ct_rel, ct_act, pface = contact
-    ct_t_t, ct_act_t, ct_n_t = ct_trial
+    ptype, pdata, tstart, towner, tface, tmu, el, xi, pen = tools[:9]
+    pface = contact[3]
     n_dof = u.shape[0]
     n_el = X.shape[0] - 1
     Kb[:, :] = 0.0
@@ -91,65 +84,11 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
             R[i0 + a] += fe[a]
             for b in range(6):
                 Kb[i0 + a, b - a + BW] += Ke[a, b]
-    J = np.zeros((2, 2))
-    K3 = np.zeros((3, 3))
     n_nodes = X.shape[0]
-    n_tools = towner.shape[0]
     Jp = np.zeros((n_nodes, 2, 3))
-    fv = 0.0
-    flat = 0.0
-    half = 0.5 * thick
-    for k in range(n_tools):
-        ty = p if towner[k] == 1 else 0.0
-        for nd in range(n_nodes):
-            ct_act_t[nd, k] = 0
-            ct_t_t[nd, k] = 0.0
-            ct_n_t[nd, k] = 0.0
-            phi = phi0[nd] + u[3 * nd + 2]
-            sf, cf = math.sin(phi), math.cos(phi)
-            rx, ry = -tface[k] * half * sf, tface[k] * half * cf  # node -> face point
-            drx_dth, dry_dth = -tface[k] * half * cf, -tface[k] * half * sf
-            px = X[nd, 0] + u[3 * nd] + rx
-            py = X[nd, 1] + u[3 * nd + 1] - ty + ry
-            dist, gap, nx, ny, rho = closest_point(px, py, tstart[k], tstart[k + 1], ptype,
-                                                   pdata)
-            if gap >= 0.0 or gap < -thick:
-                continue
-            tt_n = ct_t[nd, k] if ct_act[nd, k] == 1 else 0.0
-            drx = px - ct_rel[nd, k, 0]
-            dry = py - ct_rel[nd, k, 1]
-            fx, fy, tt, slip = contact_node(gap, press[G0], nx, ny, rho, pen[nd, 0],
-                                            pen[nd, 1], tmu[k], tt_n, drx, dry, J)
-            ct_act_t[nd, k] = 1
-            ct_t_t[nd, k] = tt
-            ct_n_t[nd, k] = fx * nx + fy * ny
-            # force (fx, fy) at the face point and its moment about the node, and their
-            # derivatives by (u_x, u_y, theta) of the node
-            jx = J[0, 0] * drx_dth + J[0, 1] * dry_dth
-            jy = J[1, 0] * drx_dth + J[1, 1] * dry_dth
-            for b in range(2):
-                K3[0, b] = J[0, b]
-                K3[1, b] = J[1, b]
-                K3[2, b] = rx * J[1, b] - ry * J[0, b]
-            K3[0, 2] = jx
-            K3[1, 2] = jy
-            K3[2, 2] = drx_dth * fy - dry_dth * fx + rx * jy - ry * jx
-            i0 = 3 * nd
-            R[i0] -= fx
-            R[i0 + 1] -= fy
-            R[i0 + 2] -= rx * fy - ry * fx
-            for a in range(3):
-                for b in range(3):
-                    Kb[i0 + a, b - a + BW] -= K3[a, b]
-            if towner[k] == 1:
-                fv -= fy
-                flat -= fx
-                col[i0] += J[0, 1]
-                col[i0 + 1] += J[1, 1]
-                col[i0 + 2] += rx * J[1, 1] - ry * J[0, 1]
-                for a in range(2):
-                    for b in range(3):
-                        Jp[nd, a, b] += K3[a, b]
+    fv, flat = contact_forces(p, u, X, phi0, thick, (el, xi, pen),
+                              (ptype, pdata, tstart, towner, tface, tmu), contact[:3], ct_trial,
+                              press[G0], Kb, R, col, Jp)
     c, v = crank(t, press)
     sdir = -math.tanh(v / press[V_EPS])
     mtt = sdir * press[MU_TT] * (1.0 if flat >= 0.0 else -1.0)
@@ -268,9 +207,9 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     """Advance the state and the contact state in place through ``targets``.
 
     Grouped arguments: ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``state =
-    (u, pa, sig, epb, eps, rate)``, ``tools = (ptype, pdata, tstart, towner, tface, tmu,
-    pen)``, ``contact = (ct_t, ct_rel, ct_act, pface)``, ``loads = (press, fref, fix_idx,
-    fix_ref)``, ``record = (rec_u, rec_f, rec_r, counters)``.
+    (u, pa, sig, epb, eps, rate)``, ``tools = (ptype, pdata, tstart, towner, tface, tmu, el,
+    xi, pen, Xp)`` (:func:`assemble`), ``contact = (ct_t, ct_rel, ct_act, pface)``,
+    ``loads = (press, fref, fix_idx, fix_ref)``, ``record = (rec_u, rec_f, rec_r, counters)``.
 
     Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam_fix(t) * fix_ref``
     (both piecewise linear through their values at ``targets``). At each
@@ -281,21 +220,21 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     """
     X, phi0, thick = mesh[0], mesh[1], mesh[2]
     u, pa, sig, epb, eps, rate = state
-    towner, tface = tools[3], tools[4]
+    towner, tface, el, xi, Xp = tools[3], tools[4], tools[6], tools[7], tools[9]
     ct_t, ct_rel, ct_act, pface = contact
     press, fref, fix_idx, fix_ref = loads
     rec_u, rec_f, rec_r, counters = record
     n = u.shape[0]
     n_el = X.shape[0] - 1
     n_tools = towner.shape[0]
-    n_nodes = X.shape[0]
+    n_p = el.shape[0]
     sig_t = np.empty_like(sig)
     epb_t = np.empty_like(epb)
     eps_t = np.empty_like(eps)
     trial = (sig_t, epb_t, eps_t)
-    ct_t_t = np.zeros((n_nodes, n_tools))
-    ct_act_t = np.zeros((n_nodes, n_tools), dtype=np.int64)
-    ct_trial = (ct_t_t, ct_act_t, np.zeros((n_nodes, n_tools)))
+    ct_t_t = np.zeros((n_p, n_tools))
+    ct_act_t = np.zeros((n_p, n_tools), dtype=np.int64)
+    ct_trial = (ct_t_t, ct_act_t, np.zeros((n_p, n_tools)))
     Kb = np.zeros((n, 2 * BW + 1))
     R = np.zeros(n)
     col = np.zeros(n)
@@ -361,16 +300,15 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                         epb[e, g, k] = epb_t[e, g, k]
                         eps[e, g, k] = eps_t[e, g, k]
             if opts[SPREAD] > 0.0:  # face pressures for the next increment
-                face_pressure(X, ct_trial[2], tface, opts[SPREAD] * thick, pface)
-            for nd in range(n_nodes):
-                phi = phi0[nd] + u_trial[3 * nd + 2]
+                face_pressure(X, Xp, ct_trial[2], tface, opts[SPREAD] * thick, pface)
+            for q in range(el.shape[0]):
                 for k in range(n_tools):
-                    ct_act[nd, k] = ct_act_t[nd, k]
-                    ct_t[nd, k] = ct_t_t[nd, k]
-                    ty = pt[0] if towner[k] == 1 else 0.0
-                    h = 0.5 * thick * tface[k]  # the face point of the node (tool frame)
-                    ct_rel[nd, k, 0] = X[nd, 0] + u_trial[3 * nd] - h * math.sin(phi)
-                    ct_rel[nd, k, 1] = X[nd, 1] + u_trial[3 * nd + 1] - ty + h * math.cos(phi)
+                    ct_act[q, k] = ct_act_t[q, k]
+                    ct_t[q, k] = ct_t_t[q, k]
+                    # the point's face position in the tool's frame
+                    fx, fy = point_face(X, phi0, u_trial, el, xi, q, tface[k], 0.5 * thick)
+                    ct_rel[q, k, 0] = fx
+                    ct_rel[q, k, 1] = fy - (pt[0] if towner[k] == 1 else 0.0)
             for i in range(n):
                 du_prev[i] = u_trial[i] - u[i]
                 u[i] = u_trial[i]

@@ -1,0 +1,292 @@
+"""Contact of the sheet's faces with rigid tools (Numba kernels).
+
+Contact points
+    Penalty contact acts at points on the sheet's faces: at the nodes and at
+    ``n_sub - 1`` points inside each element (``contact_points`` of the discretisation).
+    A point at ``xi`` in element ``e`` (nodes ``a = e``, ``b = e + 1``) lies ``s t/2``
+    along the normal ``n = (-sin, cos)`` of the direction ``(1 - xi) phi_a + xi phi_b``
+    from the cubic Hermite mid-surface ``H1 x_a + H2 L0 t(phi_a) + H3 x_b + H4 L0 t(phi_b)``
+    (:func:`hermite_face`), where ``phi_i`` is the node's direction, ``t = (cos, sin)``,
+    ``s = +-1`` the face and ``L0`` the element's reference length. Points at the nodes (``xi = 0``)
+    are the node's face point, as in a node-to-surface scheme; the inner points let a tool
+    corner (a nose of a few element lengths) slide along the sheet without the force
+    jumping from node to node, which made the final angle saw-toothed in the stage-2
+    setting with a period of one element. Each point's penalty is the penalty per length
+    times its share of the sheet (trapezoidal).
+
+Each point's force ``F`` acts on its element's six dofs as ``B^T F`` with
+``B = dy/d(u_a, v_a, theta_a, u_b, v_b, theta_b)``; the tangent is ``B^T J B`` plus
+``F . d^2 y / d theta_i d theta_j`` on the rotations (``J = dF/dy`` of :func:`contact_node`).
+Node-to-rigid-surface penalty contact with Coulomb friction by an elastic-predictor /
+slip-corrector return map on the tangential force, consistent tangent (including the
+rotation of the normal on arcs).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from formtwin.physics.bending.kernels import BW
+
+#: fast-math flags that keep NaN/inf semantics (failed runs must still be detected)
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
+def closest_point(px, py, p0, p1, ptype, pdata):  # type: ignore[no-untyped-def]
+    """Closest point of a tool (primitives ``p0:p1``) to ``(px, py)`` (tool frame).
+
+    Returns ``(distance, signed_distance, nx, ny, rho)`` with the outward normal at the
+    closest point and ``rho`` the distance to the arc centre (0 for a straight face).
+    Segments have the tool on their right; arcs are convex corners (tool inside).
+    """
+    best = 1e300
+    sd = 0.0
+    bnx = 0.0
+    bny = 0.0
+    brho = 0.0
+    for j in range(p0, p1):
+        if ptype[j] == 0:
+            x0, y0, x1, y1 = pdata[j, 0], pdata[j, 1], pdata[j, 2], pdata[j, 3]
+            tx, ty = x1 - x0, y1 - y0
+            L = math.sqrt(tx * tx + ty * ty)
+            tx /= L
+            ty /= L
+            nx, ny = -ty, tx
+            sp = (px - x0) * tx + (py - y0) * ty
+            spc = min(max(sp, 0.0), L)
+            qx, qy = x0 + spc * tx, y0 + spc * ty
+            dist = math.hypot(px - qx, py - qy)
+            sgn = (px - x0) * nx + (py - y0) * ny
+            rho = 0.0
+        else:
+            cx, cy, R, a0, a1 = pdata[j, 0], pdata[j, 1], pdata[j, 2], pdata[j, 3], pdata[j, 4]
+            rx, ry = px - cx, py - cy
+            rho = math.hypot(rx, ry)
+            ang = (math.atan2(ry, rx) - a0) % (2.0 * math.pi)
+            if ang <= a1 - a0 and rho > 0.0:
+                nx, ny = rx / rho, ry / rho
+                sgn = rho - R
+                dist = abs(sgn)
+            else:
+                aa = a0 if ang > 0.5 * (a1 - a0) + math.pi else a1
+                qx, qy = cx + R * math.cos(aa), cy + R * math.sin(aa)
+                nx, ny = math.cos(aa), math.sin(aa)
+                dist = math.hypot(px - qx, py - qy)
+                sgn = (px - qx) * nx + (py - qy) * ny
+                rho = 0.0
+        if dist < best:
+            best = dist
+            sd = sgn
+            bnx, bny, brho = nx, ny, rho
+    return best, sd, bnx, bny, brho
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
+def contact_node(gap, g0, nx, ny, rho, epn, ept, mu, tt_n, drx, dry, J):  # type: ignore[no-untyped-def]
+    """Penalty contact force on a node and its derivative ``J = df/d(x_node - x_tool)``.
+
+    ``gap < 0`` is the penetration; the normal force is ``epn (-gap - g0/2)`` beyond
+    ``g0`` and quadratic ``epn gap^2 / (2 g0)`` within it (continuous stiffness at first
+    touch). ``(drx, dry)`` is the relative displacement of the node against the tool since
+    the last converged state, ``tt_n`` the committed tangential force along
+    ``tau = (-ny, nx)``. Returns ``(fx, fy, tt, slip)``.
+    """
+    if gap < -g0:
+        lam = -epn * (gap + 0.5 * g0)
+        kn = epn
+    else:
+        lam = epn * gap * gap / (2.0 * g0)
+        kn = -epn * gap / g0
+    tx, ty = -ny, nx
+    ds = tx * drx + ty * dry
+    tt = tt_n - ept * ds
+    cap = mu * lam
+    slip = abs(tt) > cap
+    if slip:
+        tt = math.copysign(cap, tt)
+    nn = (nx, ny)
+    ta = (tx, ty)
+    for a in range(2):
+        for b in range(2):
+            v = -kn * nn[a] * nn[b]
+            if rho > 0.0:
+                v += (lam * ta[a] * ta[b] - tt * nn[a] * ta[b]) / rho
+            if slip:
+                v -= mu * math.copysign(1.0, tt) * kn * ta[a] * nn[b]
+            else:
+                v -= ept * ta[a] * ta[b]
+            J[a, b] = v
+    return lam * nx + tt * tx, lam * ny + tt * ty, tt, slip
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def face_pressure(X, Xp, fn, tface, a, pface):  # type: ignore[no-untyped-def]
+    """Contact pressure (MPa) on the lower and upper face at each node, ``pface (n, 2)``.
+
+    The normal contact forces of the contact points ``fn (n_points, n_tools)`` (N/mm, per
+    mm width) at the reference positions ``Xp (n_points, 2)``, on the faces ``tface
+    (n_tools,)`` (+1 upper, -1 lower), spread along the sheet by a hat of half-width ``a``
+    (mm; a load on a face spreads through the thickness over about the thickness), so the
+    pressure at the nodes ``X (n_nodes, 2)`` is independent of the point spacing.
+    """
+    n = X.shape[0]
+    pface[:, :] = 0.0
+    for j in range(Xp.shape[0]):
+        for k in range(tface.shape[0]):
+            if fn[j, k] == 0.0:
+                continue
+            side = 1 if tface[k] > 0.0 else 0
+            for i in range(n):
+                d = math.hypot(X[i, 0] - Xp[j, 0], X[i, 1] - Xp[j, 1])
+                if d < a:
+                    pface[i, side] += fn[j, k] * (1.0 - d / a) / a
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
+def hermite_face(xa, ya, pa, xb, yb, pb, s, h, L0, xi, d):  # type: ignore[no-untyped-def]
+    """Face point ``y`` (returned as ``(yx, yy)``) of a contact point, and its derivatives.
+
+    Nodes ``a, b`` at ``(x, y)`` with directions ``p`` (rad); face ``s`` (+-1) at ``h`` (mm)
+    from the mid-surface; element reference length ``L0``; ``xi`` in [0, 1]. The mid-surface
+    point is the cubic Hermite ``H1 x_a + H2 L0 t(p_a) + H3 x_b + H4 L0 t(p_b)``, the face
+    point lies ``s h`` along the normal of the interpolated direction ``(1 - xi) p_a + xi
+    p_b`` (on a circular arc both are exact to O(L0^4)). Writes ``d (5, 2)``: ``dy/dp_a``,
+    ``dy/dp_b``, ``d2y/dp_a2``, ``d2y/dp_b2``, ``d2y/dp_a dp_b``; ``dy/dx_a = H1``,
+    ``dy/dx_b = H3`` (times the identity).
+    """
+    x2 = xi * xi
+    x3 = x2 * xi
+    H1, H2, H3, H4 = 1.0 - 3.0 * x2 + 2.0 * x3, xi - 2.0 * x2 + x3, 3.0 * x2 - 2.0 * x3, x3 - x2
+    ca, sa, cb, sb = math.cos(pa), math.sin(pa), math.cos(pb), math.sin(pb)
+    ang = (1.0 - xi) * pa + xi * pb
+    cp, sp = math.cos(ang), math.sin(ang)
+    sh = s * h
+    wa, wb = 1.0 - xi, xi
+    d[0, 0] = -H2 * L0 * sa - sh * cp * wa
+    d[0, 1] = H2 * L0 * ca - sh * sp * wa
+    d[1, 0] = -H4 * L0 * sb - sh * cp * wb
+    d[1, 1] = H4 * L0 * cb - sh * sp * wb
+    d[2, 0] = -H2 * L0 * ca + sh * sp * wa * wa
+    d[2, 1] = -H2 * L0 * sa - sh * cp * wa * wa
+    d[3, 0] = -H4 * L0 * cb + sh * sp * wb * wb
+    d[3, 1] = -H4 * L0 * sb - sh * cp * wb * wb
+    d[4, 0] = sh * sp * wa * wb
+    d[4, 1] = -sh * cp * wa * wb
+    return (H1 * xa + H2 * L0 * ca + H3 * xb + H4 * L0 * cb - sh * sp,
+            H1 * ya + H2 * L0 * sa + H3 * yb + H4 * L0 * sb + sh * cp)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def contact_points(X, phi0, n_sub):  # type: ignore[no-untyped-def]
+    """Contact points of a sheet ``X (n_nodes, 2)``: element ``(n_p,)``, ``xi (n_p,)``,
+    reference position ``(n_p, 2)`` and share of the sheet's length ``(n_p,)`` (mm)."""
+    n_el = X.shape[0] - 1
+    n_p = n_el * n_sub + 1
+    el = np.zeros(n_p, dtype=np.int64)
+    xi = np.zeros(n_p)
+    Xp = np.zeros((n_p, 2))
+    w = np.zeros(n_p)
+    for e in range(n_el):
+        L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+        for m in range(n_sub + 1 if e == n_el - 1 else n_sub):
+            p = e * n_sub + m
+            el[p] = e
+            xi[p] = m / n_sub
+            Xp[p, 0] = X[e, 0] + xi[p] * (X[e + 1, 0] - X[e, 0])
+            Xp[p, 1] = X[e, 1] + xi[p] * (X[e + 1, 1] - X[e, 1])
+        for m in range(n_sub):
+            w[e * n_sub + m] += 0.5 * L0 / n_sub
+            w[e * n_sub + m + 1] += 0.5 * L0 / n_sub
+    return el, xi, Xp, w
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def point_face(X, phi0, u, el, xi, p, s, h):  # type: ignore[no-untyped-def]
+    """Current face point ``(x, y)`` of contact point ``p`` (face ``s``, offset ``h``)."""
+    e = el[p]
+    L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+    d = np.zeros((5, 2))
+    yx, yy = hermite_face(X[e, 0] + u[3 * e], X[e, 1] + u[3 * e + 1],
+                                phi0[e] + u[3 * e + 2], X[e + 1, 0] + u[3 * e + 3],
+                                X[e + 1, 1] + u[3 * e + 4], phi0[e + 1] + u[3 * e + 5],
+                                s, h, L0, xi[p], d)
+    return yx, yy
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore[no-untyped-def]
+                   ct_trial, g0, Kb, R, col, Jp):
+    """Add the contact forces of all points to ``R`` (as ``-B^T F``) and their tangent to the
+    band ``Kb``; ``col += dR/dp`` and ``Jp (n_nodes, 2, 3) += dF/du`` of the punch's tools.
+
+    ``points = (el, xi, pen (n_p, 2))``, ``tools = (ptype, pdata, tstart, towner, tface, tmu)``,
+    ``contact = (ct_t, ct_rel, ct_act)`` committed, ``ct_trial = (ct_t_t, ct_act_t, ct_n_t)``
+    written. Returns the punch's ``(F_v, F_lat)``.
+    """
+    el, xi, pen = points
+    ptype, pdata, tstart, towner, tface, tmu = tools
+    ct_t, ct_rel, ct_act = contact
+    ct_t_t, ct_act_t, ct_n_t = ct_trial
+    J = np.zeros((2, 2))
+    d = np.zeros((5, 2))
+    B = np.zeros((2, 6))
+    JB = np.zeros((2, 6))
+    fv = 0.0
+    flat = 0.0
+    half = 0.5 * thick
+    for k in range(towner.shape[0]):
+        ty = p if towner[k] == 1 else 0.0
+        s = tface[k]
+        for q in range(el.shape[0]):
+            ct_act_t[q, k] = 0
+            ct_t_t[q, k] = 0.0
+            ct_n_t[q, k] = 0.0
+            e = el[q]
+            i0 = 3 * e
+            L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+            px, py = hermite_face(
+                X[e, 0] + u[i0], X[e, 1] + u[i0 + 1], phi0[e] + u[i0 + 2],
+                X[e + 1, 0] + u[i0 + 3], X[e + 1, 1] + u[i0 + 4], phi0[e + 1] + u[i0 + 5],
+                s, half, L0, xi[q], d)
+            py -= ty
+            dist, gap, nx, ny, rho = closest_point(px, py, tstart[k], tstart[k + 1], ptype,
+                                                   pdata)
+            if gap >= 0.0 or gap < -thick:
+                continue
+            tt_n = ct_t[q, k] if ct_act[q, k] == 1 else 0.0
+            fx, fy, tt, slip = contact_node(gap, g0, nx, ny, rho, pen[q, 0], pen[q, 1],
+                                            tmu[k], tt_n, px - ct_rel[q, k, 0],
+                                            py - ct_rel[q, k, 1], J)
+            ct_act_t[q, k] = 1
+            ct_t_t[q, k] = tt
+            ct_n_t[q, k] = fx * nx + fy * ny
+            H3 = 3.0 * xi[q] * xi[q] - 2.0 * xi[q] ** 3
+            B[:, :] = 0.0
+            B[0, 0] = B[1, 1] = 1.0 - H3
+            B[0, 3] = B[1, 4] = H3
+            B[0, 2], B[1, 2] = d[0, 0], d[0, 1]
+            B[0, 5], B[1, 5] = d[1, 0], d[1, 1]
+            for a in range(2):
+                for b in range(6):
+                    JB[a, b] = J[a, 0] * B[0, b] + J[a, 1] * B[1, b]
+            for a in range(6):
+                R[i0 + a] -= B[0, a] * fx + B[1, a] * fy
+                for b in range(6):
+                    Kb[i0 + a, b - a + BW] -= B[0, a] * JB[0, b] + B[1, a] * JB[1, b]
+            Kb[i0 + 2, BW] -= fx * d[2, 0] + fy * d[2, 1]
+            Kb[i0 + 5, BW] -= fx * d[3, 0] + fy * d[3, 1]
+            Kb[i0 + 2, 3 + BW] -= fx * d[4, 0] + fy * d[4, 1]
+            Kb[i0 + 5, -3 + BW] -= fx * d[4, 0] + fy * d[4, 1]
+            if towner[k] == 1:
+                fv -= fy
+                flat -= fx
+                for a in range(6):
+                    col[i0 + a] += B[0, a] * J[0, 1] + B[1, a] * J[1, 1]
+                for a in range(2):
+                    for b in range(3):
+                        Jp[e, a, b] += JB[a, b]
+                        Jp[e + 1, a, b] += JB[a, 3 + b]
+    return fv, flat
