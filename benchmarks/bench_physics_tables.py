@@ -6,7 +6,7 @@ One core, the default :class:`~formtwin.physics.bending.BendingModel`:
   Table 1 (``BendingModel.centre``): peak and mean force, angle after stage 1 and final
   angle at both ends;
 * ``convergence``: peak force, force at t = -30 ms, both angles and CPU seconds per run at
-  the centre for several element and layer counts;
+  the centre for several element and layer counts and contact points per element;
 * ``smoothness``: the final angle over the actuator's range of ``u`` (41 settings):
   its std about a cubic in ``u`` (``u_scatter_deg``: what no smooth model can follow) and the
   smallest and largest gain ``d angle / d u`` between neighbouring settings.
@@ -26,7 +26,8 @@ import numpy as np
 from formtwin._bench import write_result
 from formtwin.physics.bending import VERSION, BendingModel
 
-MESHES = ((16, 15), (24, 15), (32, 15), (48, 15), (64, 15), (32, 31))
+MESHES = ((16, 15, None), (24, 15, None), (32, 15, None), (48, 15, None), (64, 15, None),
+          (32, 31, None), (32, 15, 1), (32, 15, 2), (64, 15, 1), (64, 15, 2))
 
 
 def sensitivity() -> list[dict[str, Any]]:
@@ -52,20 +53,23 @@ def sensitivity() -> list[dict[str, Any]]:
 
 
 def convergence() -> list[dict[str, Any]]:
-    """Centre run for each mesh of :data:`MESHES` ``(elements, layers)``."""
+    """Centre run for each mesh of :data:`MESHES` ``(elements, layers, contact points per
+    element or None for the default)``."""
     rows = []
-    for n_el, n_lay in MESHES:
-        m = BendingModel(n_elements=n_el, n_layers=n_lay)
+    for n_el, n_lay, n_cp in MESHES:
+        kw = {} if n_cp is None else {"contact_points": n_cp}
+        m = BendingModel(n_elements=n_el, n_layers=n_lay, **kw)
         x = m.centre()
         m.run(x)  # compile / load the cache
         tic = time.process_time()
         r = m.run(x)
         cpu = time.process_time() - tic
         k = int(np.argmin(np.abs(np.asarray(m.spec.time) + 0.03)))
-        rows.append({"elements": n_el, "layers": n_lay,
+        cp = m.disc.contact_points
+        rows.append({"elements": n_el, "layers": n_lay, "contact_points": cp,
                      "peak_n": r.curve.max(), "force_m30ms_n": r.curve[k],
                      "angle1_deg": r.angles[0], "angle2_deg": r.angles[1], "cpu_s": cpu})
-        print(f"| {n_el} | {n_lay} | {r.curve.max():.1f} | {r.curve[k]:.2f} | "
+        print(f"| {n_el} | {n_lay} | {cp} | {r.curve.max():.1f} | {r.curve[k]:.2f} | "
               f"{r.angles[0]:.3f} | {r.angles[1]:.3f} | {cpu:.2f} |", flush=True)
     return rows
 
