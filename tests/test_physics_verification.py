@@ -238,7 +238,7 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool, n_su
     ct_rel[:, :, 1] = 0.0
     ct_rel[:, 1, 1] = T - p
     contact = (np.zeros((n_p, 2)), ct_rel, np.zeros((n_p, 2), np.int64),
-               np.zeros((sheet.X.shape[0], 2)))
+               np.zeros((sheet.X.shape[0], 2)), np.zeros(sheet.X.shape[0] - 1))
     press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0, 5e-4])
     toolarr = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, el, xi,
                pen, Xp)
@@ -282,6 +282,42 @@ def test_yield_under_through_thickness_pressure(p: float) -> None:
     sig, epb, et = layer_update(small, 0.0, 0.0, 0.0, E, 300.0, np.inf, 1.0, 0.0,
                                 -min(p, 0.4 * SQ * 300.0))
     assert sig == pytest.approx(E * small) and epb == 0.0 and et == E
+
+
+@pytest.mark.parametrize("ratio", [0.0, 0.6, 0.9])
+def test_yield_under_transverse_shear(ratio: float) -> None:
+    """Plane-strain von Mises with a shear stress ``tau = ratio k``, ``k = sigma_y/sqrt 3``:
+    ``(sigma_xx - sigma_yy)^2/4 + tau^2 = k^2``, so the layer yields at ``|sigma_xx -
+    sigma_yy| = (2/sqrt 3) sigma_y sqrt(1 - ratio^2)`` (perfect plasticity), with and
+    without a through-thickness pressure; elastic below it."""
+    from formtwin.physics.bending.kernels import SQ, layer_update
+
+    sy = 300.0
+    mat = Material(yield_stress=sy, rate=False, hardening=False).array
+    E = mat[0]
+    tau = ratio * sy / math.sqrt(3.0)
+    for p in (0.0, 100.0):
+        for sign in (+1.0, -1.0):
+            sig, _, et = layer_update(sign * 0.05, 0.0, 0.0, 0.0, E, sy, np.inf, 1.0, 0.0, -p,
+                                      tau)
+            assert sig == pytest.approx(-p + sign * SQ * sy * math.sqrt(1 - ratio**2),
+                                        rel=1e-12)
+            assert et == pytest.approx(0.0, abs=1e-9)
+    small = 0.9 * SQ * sy * math.sqrt(1 - ratio**2) / E
+    sig, epb, et = layer_update(small, 0.0, 0.0, 0.0, E, sy, np.inf, 1.0, 0.0, 0.0, tau)
+    assert sig == pytest.approx(E * small) and epb == 0.0 and et == E
+
+
+def test_element_shear_of_a_cantilever_is_the_tip_load() -> None:
+    """An elastic cantilever with a tip load ``P``: the shear force is ``P`` all along, so
+    every element's mean shear stress (from the moments at its Gauss points) is ``P / t``."""
+    from formtwin.physics.bending.kernels import element_shear
+
+    p = 1e-3
+    sheet, _ = tip_load(1.0, 10, p)
+    tshear = np.zeros(10)
+    element_shear(sheet.X, sheet.sig, T, sheet.ylay, sheet.wlay, sheet.xg, tshear)
+    np.testing.assert_allclose(np.abs(tshear), p / T, rtol=1e-6)
 
 
 def test_face_pressure_spreads_forces_without_changing_their_sum() -> None:

@@ -26,6 +26,18 @@ Through-thickness stress
     yield condition becomes ``|sigma_xx - sigma_yy| = (2/sqrt 3) sigma_flow``: a sheet pressed
     onto a tool yields at a shifted axial stress, which a plain beam misses.
 
+Transverse shear stress (2.3)
+    An Euler-Bernoulli beam carries any shear force ``V = dM/ds``, but a layer cannot: where
+    the punch pinches the flap against the die radius over a span of about one thickness
+    (near bottom dead centre), the mean shear stress ``V/t`` of the sheet reaches the shear
+    yield stress ``k = sigma_flow/sqrt 3``, and the continuum shears plastically there. Each
+    element's mean shear stress ``tau = V/t`` of the last converged increment (lagged, as
+    the pressure; :func:`element_shear`) enters each of its layers' plane-strain von Mises
+    condition ``(sigma_xx - sigma_yy)^2/4 + tau^2 = k^2``, i.e.
+    ``|sigma_xx - sigma_yy| = (2/sqrt 3) sigma_flow sqrt(1 - (tau/k)^2)``: the axial
+    capacity, and with it the moment, drops where the shear force is high. The uniform
+    ``tau`` is the fully plastic shear distribution; the shear strain itself is not modelled.
+
 Contact: :mod:`.contact`.
 """
 
@@ -38,6 +50,9 @@ from numba import njit
 from formtwin.physics.bending.material import HARD_EPS, HARD_RATIO
 
 SQ = 2.0 / math.sqrt(3.0)  # plane-strain factor between sigma_xx and the von Mises stress
+#: smallest fraction of a layer's axial yield stress left by the shear stress (a lagged
+#: ``tau`` may exceed ``k`` for an increment)
+SHEAR_FLOOR = 0.2
 BW = 5  # semi-bandwidth of the stiffness of a chain of 3-dof nodes
 #: fast-math flags that keep NaN/inf semantics (failed runs must still be detected)
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -62,14 +77,16 @@ def hardening(eb, hard):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[no-untyped-def]
-                 syy=0.0):
+                 syy=0.0, tau=0.0):
     """Return map of one layer point.
 
     ``E`` plane-strain modulus, ``sy`` yield stress (MPa), ``e0, q`` Cowper-Symonds
     constants, ``hard`` hardening switch (1 tabulated, 0 perfectly plastic); ``de`` the
     axial strain increment, ``rate_n`` the lagged equivalent strain rate (1/s); ``syy``
     the through-thickness stress (MPa, <= 0 under contact pressure), which shifts the
-    yield condition to ``|sigma - syy| = (2/sqrt 3) sigma_flow``.
+    yield condition to ``|sigma - syy| = (2/sqrt 3) sigma_flow``; ``tau`` the transverse
+    shear stress (MPa), which scales it by ``sqrt(1 - (tau/k)^2)``, ``k = sigma_flow/sqrt 3``
+    at the committed hardening and rate (at least :data:`SHEAR_FLOOR`).
     Returns ``(sigma, eps_bar, E_tangent)``.
     """
     sig_tr = sig_n + E * de - syy  # the stress difference that yields
@@ -77,12 +94,15 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[n
     r = 1.0
     if epb_n > 0.0:
         r, h = hardening(epb_n, hard)
-    if a <= SQ * sy * r:  # inside the rate-free (smallest) yield surface
-        return sig_tr + syy, epb_n, E
     rf = 1.0
     if rate_n > 0.0:
         rf = 1.0 + (rate_n / e0) ** q
-    s0 = SQ * rf * sy
+    fac = 1.0
+    if tau != 0.0:  # von Mises with the shear stress: (s_xx - s_yy)^2/4 + tau^2 = k^2
+        fac = math.sqrt(max(1.0 - 3.0 * (tau / (rf * sy * r)) ** 2, SHEAR_FLOOR ** 2))
+    if a <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
+        return sig_tr + syy, epb_n, E
+    s0 = SQ * rf * sy * fac
     if a - s0 * r <= 0.0:
         return sig_tr + syy, epb_n, E
     dg = 0.0
@@ -104,13 +124,14 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[n
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
-                 sig, epb, eps, rate, sig_t, epb_t, eps_t, f, K, B, pface):
+                 sig, epb, eps, rate, sig_t, epb_t, eps_t, f, K, B, pface, tshear):
     """Internal force ``f (6,)`` and tangent ``K (6, 6)`` of element ``e`` (nodes e, e+1).
 
     Reads the committed layer state ``sig, epb, eps, rate [e]`` and writes the trial state
     into ``sig_t, epb_t, eps_t [e]``; ``B (3, 6)`` is work space; ``pface (n_nodes, 2)``
     the contact pressures (MPa) on the lower and upper face, interpolated linearly along
-    the element, give each layer its through-thickness stress.
+    the element, give each layer its through-thickness stress; ``tshear (n_el,)`` the
+    elements' mean transverse shear stresses (MPa, :func:`element_shear`).
     """
     X1, Y1, X2, Y2 = X[e, 0], X[e, 1], X[e + 1, 0], X[e + 1, 1]
     dX, dY = X2 - X1, Y2 - Y1
@@ -140,7 +161,8 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
             ek = ul / l0 - y * kap
             syy = -(p_lo * (0.5 - ylay[k]) + p_up * (0.5 + ylay[k]))
             sg, eb, et = layer_update(ek - eps[e, g, k], sig[e, g, k], epb[e, g, k],
-                                      rate[e, g, k], E, sy, e0, q, hard, syy)
+                                      rate[e, g, k], E, sy, e0, q, hard, syy,
+                                      tshear[e])
             sig_t[e, g, k] = sg
             epb_t[e, g, k] = eb
             eps_t[e, g, k] = ek
@@ -177,6 +199,26 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
         for j in range(6):
             K[i, j] = (g0 * B[0, j] + g1 * B[1, j] + g2 * B[2, j] + z[i] * z[j] * f0 / ln
                        + (r[i] * z[j] + z[i] * r[j]) * msum)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def element_shear(X, sig, thick, ylay, wlay, xg, tshear):  # type: ignore[no-untyped-def]
+    """Mean transverse shear stress ``V / t`` (MPa) of each element into ``tshear (n_el,)``.
+
+    ``V = dM/ds`` from the bending moments ``M = -int sigma y dy`` (N mm/mm) of the layer
+    stresses ``sig (n_el, n_g, n_layers)`` at the first and last Gauss point ``xg`` (moment
+    linear along the element, as its curvature).
+    """
+    n_g = xg.shape[0]
+    for e in range(sig.shape[0]):
+        m0 = 0.0
+        m1 = 0.0
+        for k in range(ylay.shape[0]):
+            wy = thick * thick * wlay[k] * ylay[k]
+            m0 -= wy * sig[e, 0, k]
+            m1 -= wy * sig[e, n_g - 1, k]
+        l0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+        tshear[e] = (m1 - m0) / (l0 * (xg[n_g - 1] - xg[0]) * thick)
 
 
 # ------------------------------------------------------------------------------ band LU

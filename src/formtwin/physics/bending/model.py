@@ -29,7 +29,7 @@ from formtwin.spec import ProcessSpec, load_spec
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-VERSION = "bending-2.2"
+VERSION = "bending-2.3"
 
 #: the control input (spec ``[[control]]``) that sets the stage-2 depth, mm
 CONTROL = "stage2_depth"
@@ -76,6 +76,10 @@ class Discretisation:
     contact_points
         Contact points per element on each face (:mod:`.contact`): 1 puts them at the nodes
         only (model 2.1); more let a tool corner slide smoothly along the sheet.
+    transverse_shear
+        Whether each element's mean transverse shear stress ``V/t`` (lagged one increment)
+        lowers its layers' axial yield stress (von Mises, :mod:`.kernels`); False gives
+        model 2.2.
     """
 
     n_elements: int = 32
@@ -96,12 +100,14 @@ class Discretisation:
     rate_window: float = 2.7
     pressure_spread: float = 1.0
     contact_points: int = 4
+    transverse_shear: bool = True
 
     def opts(self, dt_max: float, rate_tau: float = 0.0) -> FloatArray:
         """Solver option array for :func:`~.solver.run_history` (``rate_tau`` in s)."""
         return np.array([dt_max, self.dt_min, self.max_iter, self.tol_force, self.tol_disp,
                          self.cap_disp, self.predict, self.line_search, self.ls_ratio,
-                         self.easy_iter, self.easy_steps, rate_tau, self.pressure_spread])
+                         self.easy_iter, self.easy_steps, rate_tau, self.pressure_spread,
+                         float(self.transverse_shear)])
 
 
 @dataclass
@@ -226,7 +232,7 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     tool_arrays = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, el, xi,
                    pen, Xp)
     status = run_history(targets, lam, lam_fix, t0, mesh, state, tool_arrays,
-                         (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 2))),
+                         (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 2)), np.zeros(n_nodes - 1)),
                          (press, fref, fix, fix_ref),
                          disc.opts(dt_max, rate_tau), (rec_u, rec_f, rec_r, counters))
     return History(targets, rec_u, rec_f, rec_r, int(status), counters)

@@ -26,13 +26,19 @@ import numpy as np
 from numba import njit
 
 from formtwin.physics.bending.contact import contact_forces, face_pressure, point_face
-from formtwin.physics.bending.kernels import BW, band_lu, band_solve, beam_element
+from formtwin.physics.bending.kernels import (
+    BW,
+    band_lu,
+    band_solve,
+    beam_element,
+    element_shear,
+)
 
 # indices into the ``press`` array
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 (DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
- RATE_TAU, SPREAD) = range(13)
+ RATE_TAU, SPREAD, SHEAR) = range(14)
 # status codes
 OK, FAIL_STEP = 0, 1
 
@@ -55,8 +61,9 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``trial = (sig_t, epb_t, eps_t)``
     (written), ``tools = (ptype, pdata, tstart, towner, tface, tmu, el, xi, pen, Xp)``: the
     tools and the contact points (element, ``xi``, penalties, reference positions;
-    :mod:`.contact`), ``contact = (ct_t, ct_rel, ct_act, pface)``
-    (per point and tool, committed; ``pface`` the face pressures at the nodes, MPa),
+    :mod:`.contact`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear)``
+    (per point and tool, committed; ``pface`` the face pressures at the nodes, MPa;
+    ``tshear`` the elements' mean shear stresses, MPa),
     ``ct_trial = (ct_t_t, ct_act_t, ct_n_t)`` (written; ``ct_n_t`` normal forces, N/mm).
     Contact acts at points on the sheet's faces (:func:`.contact.contact_forces`), so the
     normal and friction forces also load the nodes' rotations.
@@ -65,7 +72,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     X, phi0, thick, ylay, wlay, xg, wg, mat = mesh
     sig_t, epb_t, eps_t = trial
     ptype, pdata, tstart, towner, tface, tmu, el, xi, pen = tools[:9]
-    pface = contact[3]
+    pface, tshear = contact[3], contact[4]
     n_dof = u.shape[0]
     n_el = X.shape[0] - 1
     Kb[:, :] = 0.0
@@ -78,7 +85,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     Bw = np.zeros((3, 6))
     for e in range(n_el):
         beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,
-                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw, pface)
+                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw, pface, tshear)
         i0 = 3 * e
         for a in range(6):
             R[i0 + a] += fe[a]
@@ -208,7 +215,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
 
     Grouped arguments: ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``state =
     (u, pa, sig, epb, eps, rate)``, ``tools = (ptype, pdata, tstart, towner, tface, tmu, el,
-    xi, pen, Xp)`` (:func:`assemble`), ``contact = (ct_t, ct_rel, ct_act, pface)``,
+    xi, pen, Xp)`` (:func:`assemble`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear)``,
     ``loads = (press, fref, fix_idx, fix_ref)``, ``record = (rec_u, rec_f, rec_r, counters)``.
 
     Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam_fix(t) * fix_ref``
@@ -221,7 +228,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     X, phi0, thick = mesh[0], mesh[1], mesh[2]
     u, pa, sig, epb, eps, rate = state
     towner, tface, el, xi, Xp = tools[3], tools[4], tools[6], tools[7], tools[9]
-    ct_t, ct_rel, ct_act, pface = contact
+    ct_t, ct_rel, ct_act, pface, tshear = contact
     press, fref, fix_idx, fix_ref = loads
     rec_u, rec_f, rec_r, counters = record
     n = u.shape[0]
@@ -301,6 +308,8 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                         eps[e, g, k] = eps_t[e, g, k]
             if opts[SPREAD] > 0.0:  # face pressures for the next increment
                 face_pressure(X, Xp, ct_trial[2], tface, opts[SPREAD] * thick, pface)
+            if opts[SHEAR] > 0.0:  # the elements' shear stresses for the next increment
+                element_shear(X, sig, thick, mesh[3], mesh[4], mesh[5], tshear)
             for q in range(el.shape[0]):
                 for k in range(n_tools):
                     ct_act[q, k] = ct_act_t[q, k]
