@@ -55,6 +55,7 @@ from formtwin._bench import CACHE, bundled_metamodel, write_result
 from formtwin._threads import single_blas_thread
 from formtwin.estimates import Estimates
 from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.monitoring.bound import curve_jacobian, glr_delays, steady_filter, step_in_filter
 from formtwin.monitoring.calibrate import (
     ChartDesign,
     calibrate_series,
@@ -196,6 +197,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--track-only", action="store_true",
                    help="track (fill the cache) and stop")
+    p.add_argument("--bound-only", action="store_true",
+                   help="print the linear-Gaussian bound (no tracking) and stop")
+    p.add_argument("--bound-draws", type=int, default=4,
+                   help="machine-parameter draws of the linear-Gaussian bound")
     p.add_argument("--out", help="result folder (default benchmarks/results)")
     args = p.parse_args()
     model, _, info = bundled_metamodel()
@@ -219,6 +224,10 @@ def main() -> None:
            "tracker": tcfg.to_dict(), "code": estimates_code(),
            "noise": "none" if args.no_noise else "N(0, Sigma)",
            "seed": args.seed, "at": args.at, "after": args.after}
+    bound = linear_bound(model, mm, mu, design, args)
+    if args.bound_only:
+        print(json.dumps(bound, indent=1))
+        return
     runs = Runs(CACHE / "monitoring", key)
     noise = not args.no_noise
     n = args.at + args.after
@@ -277,6 +286,7 @@ def main() -> None:
         "false_alarms_target": 1,
         "step_2sigma": steps,
         "step_2sigma_in_the_estimates": response,
+        "linearised_bound": bound,
         "oracle_true_states": {
             "detection_delay_median_products": oracle["step_2sigma"]["median"],
             **{k: v for k, v in oracle.items() if k != "charts"}},
@@ -292,6 +302,52 @@ def main() -> None:
         "tracking_s": round(track_s, 1),
     }
     write_result("monitoring", figures, directory=args.out, model=info)
+
+
+def linear_bound(model: Any, mm: MeasurementModel, mu: np.ndarray, design: ChartDesign,
+                 args: argparse.Namespace, sizes: tuple[float, ...] = (2.0, 2.5, 3.0)
+                 ) -> dict[str, Any]:
+    """What the curves allow (:mod:`formtwin.monitoring.bound`): the steady Kalman filter of
+    the metamodel linearised at the line's mean (secant over +-0.5 sigma: the metamodel
+    evaluates in float32, too coarse for small differences) with the benchmark's noise
+    ``N(0, Sigma)``, for the machine parameters at mid-range and ``--bound-draws - 1``
+    uniform draws; per state variable the share of a step its estimate shows after 30
+    products, the expected GLR statistic after 30 products on the estimate's own residual
+    and on all the innovations, and the delays of the GLR matched to the exact signature at
+    the design's ``arl0_glr`` (500 simulated changes per variable and draw), for steps of
+    ``sizes`` sigma."""
+    spec = model.spec
+    st, lo, hi = spec.state, spec.inputs.lo, spec.inputs.hi
+    rng = np.random.default_rng(args.seed + 11)
+    filters = []
+    for draw in range(args.bound_draws):
+        x0 = 0.5 * (lo + hi) if draw == 0 else lo + (hi - lo) * rng.random(lo.size)
+        x0[: len(st)] = mu
+        jac = curve_jacobian(model, x0, 0.5 * st.sigma)
+        filters.append(steady_filter(jac, mm.covariance(), st.rho, st.sigma))
+    out: dict[str, Any] = {"arl0_glr": design.arl0_glr, "draws": args.bound_draws}
+    for size in sizes:
+        per: dict[str, Any] = {}
+        pooled = []
+        for j, name in enumerate(st.names):
+            resp = [step_in_filter(f, j, size * float(st.sigma[j]), design.glr_window)
+                    for f in filters]
+            d = np.concatenate([glr_delays(r.own, design.arl0_glr, design.glr_window,
+                                           runs=500, horizon=args.after, seed=k)
+                                for k, r in enumerate(resp)])
+            pooled.append(d)
+            per[name] = {**summary(list(d), args.after),
+                         "share_lag30": round(float(np.mean([r.share[29] for r in resp])), 3),
+                         "expected_glr_30": round(float(np.mean(
+                             [r.expected_glr(30) for r in resp])), 2),
+                         "expected_glr_30_all_innovations": round(float(np.mean(
+                             [r.expected_glr(30, full=True) for r in resp])), 2)}
+        out[f"step_{size}sigma"] = {**summary(list(np.concatenate(pooled)), args.after),
+                                    "per_variable": per}
+        print(f"linear-Gaussian bound, {size}-sigma step: median delay "
+              f"{out[f'step_{size}sigma']['median']}, within 30 "
+              f"{out[f'step_{size}sigma']['within_30_share']}")
+    return out
 
 
 def what_a_step_leaves(config: MonitorConfig, est: list[np.ndarray], true: list[np.ndarray],

@@ -25,11 +25,18 @@ Run: ``python benchmarks/bench_physics_fe.py [--meshes 4,6] [--corners] [--refer
 with ``--stage1-only`` the stage-1 figures come from stage-1-only runs and the final-angle
 figures (``--final-meshes 2,4``) from cheaper two-stage runs on the coarse mesh, whose
 mesh error is measured at the centre.
+
+Diagnostics: ``--table`` prints both models' figures point by point (Markdown);
+``--beam KEY=VALUE,...`` runs a variant of the beam model (fields of
+:class:`~formtwin.physics.bending.model.Discretisation`, e.g. ``n_elements=64`` or
+``pressure_spread=0``) against the same (cached) FE runs and writes
+``bench_physics_fe_variant.json`` instead, with the overrides recorded.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import fcntl
 import hashlib
 import json
@@ -45,10 +52,62 @@ import numpy as np  # noqa: E402
 
 from formtwin._bench import CACHE, write_result  # noqa: E402
 from formtwin.physics.bending import BendingModel  # noqa: E402
+from formtwin.physics.bending.model import Discretisation  # noqa: E402
 from formtwin.physics.calculix import CalculixModel, ccx_version  # noqa: E402
 
 MAIN = ("yield_stress", "thickness", "punch_end_distance", "friction_tool_flap")
 QUANTITIES = ("peak", "plateau", "peak_time_ms", "angle1", "angle2")
+
+
+def beam_overrides(text: str) -> dict[str, Any]:
+    """``"KEY=VALUE,..."`` -> Discretisation overrides (bool, int or float values).
+
+    >>> beam_overrides("n_elements=64, pressure_spread=0.5")
+    {'n_elements': 64, 'pressure_spread': 0.5}
+    """
+    fields = {f.name: f.type for f in dataclasses.fields(Discretisation)}
+    out: dict[str, Any] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or key not in fields:
+            raise SystemExit(f"--beam: {item!r} is not KEY=VALUE with KEY one of "
+                             f"{', '.join(fields)}")
+        v = value.strip()
+        if v.lower() in ("true", "false"):
+            out[key] = v.lower() == "true"
+        else:
+            try:
+                out[key] = int(v) if fields[key] in ("int", int) else float(v)
+            except ValueError:
+                raise SystemExit(f"--beam: {key} needs a number, got {v!r}") from None
+    return out
+
+
+def point_table(rows: dict[str, dict[str, Any]], final: dict[str, dict[str, Any]] | None
+                ) -> str:
+    """Markdown table of both models' figures at every point (FE: the fine stage-1 mesh,
+    the final angle from ``final`` when given)."""
+    head = ("| point | peak FE / beam (N) | err | plateau FE / beam (N) | err | "
+            "angle 1 FE / beam (deg) | diff |")
+    if final:
+        head += " final angle FE / beam (deg) | diff |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for name, r in rows.items():
+        b, f = r["beam"], r["fine"]
+        if not (b and f.get("ok")):
+            lines.append(f"| {name} | failed: beam {bool(b)}, FE {f.get('reason', '')} |")
+            continue
+        line = (f"| {name} | {f['peak']:.1f} / {b['peak']:.1f} | {b['peak'] / f['peak'] - 1:+.3f} "
+                f"| {f['plateau']:.2f} / {b['plateau']:.2f} | "
+                f"{b['plateau'] / f['plateau'] - 1:+.4f} | {f['angle1']:.2f} / {b['angle1']:.2f} "
+                f"| {b['angle1'] - f['angle1']:+.2f} |")
+        fr = (final or {}).get(name)
+        if fr and fr["beam"] and fr["fe"].get("ok"):
+            line += (f" {fr['fe']['angle2']:.2f} / {fr['beam']['angle2']:.2f} | "
+                     f"{fr['beam']['angle2'] - fr['fe']['angle2']:+.2f} |")
+        lines.append(line)
+    return "\n".join(lines)
 
 
 def figures_of(curve: np.ndarray, angles: np.ndarray, t: np.ndarray) -> dict[str, float]:
@@ -143,12 +202,17 @@ def main() -> None:
                         "final angle: mesh at every point, mesh at the centre for the error "
                         "estimate ('' for none; default: %(default)s)")
     parser.add_argument("--reference", help="also write the 9 cases' FE figures to this JSON")
+    parser.add_argument("--table", action="store_true", help="print both models' figures "
+                        "point by point (Markdown)")
+    parser.add_argument("--beam", default="", help="beam-model variant: Discretisation "
+                        "overrides KEY=VALUE,... (written to bench_physics_fe_variant.json)")
     parser.add_argument("--lock", default=os.environ.get("FORMTWIN_HEAVY_LOCK",
                                                          "/tmp/formtwin-heavy.lock"),
                         help="lock file each ccx run takes; '' when the whole script runs "
                         "under `flock` (default: %(default)s)")
     args = parser.parse_args()
-    beam = BendingModel()
+    overrides = beam_overrides(args.beam)
+    beam = BendingModel(**overrides)
     points = design(beam, args.corners)
     cache = FeCache(CACHE / "fe_runs.json")
     fine = {}
@@ -160,14 +224,18 @@ def main() -> None:
     if args.final_meshes:
         final = [int(v) for v in args.final_meshes.split(",")]
         figures.update(_final_angle(beam, points, final, cache, args.lock))
+    if args.table:
+        print(point_table(rows, figures.get("points_final")))
     figures["ccx_version"] = ccx_version()
     figures["fe_model"] = fine["stage1"].version
     figures["fe_mesh_fine"] = _mesh(fine["stage1"], beam)
     figures["fe_mesh_coarse"] = f"{meshes[0]} through the thickness"
     figures["beam_model"] = beam.version
+    if overrides:
+        figures["beam_overrides"] = overrides
     figures["fe_cpu_s_per_run_fine"] = _cpu(rows)
     figures["points"] = rows
-    write_result("physics_fe", figures)
+    write_result("physics_fe_variant" if overrides else "physics_fe", figures)
 
 
 def _write_reference(path: str, rows: dict[str, dict[str, Any]], fe: CalculixModel,

@@ -142,3 +142,38 @@ def test_combined_removes_a_constant_model_bias() -> None:
         assert np.std(err[-10:]) < 1e-6  # the feedforward takes out the product's own c_i
     with pytest.raises(ValueError, match="lam"):
         Combined(Feedforward(T, act), 1.5)
+
+
+def test_combined_weight_between_ewma_and_full_feedforward() -> None:
+    """Linear plant a = d_i + b u, the posterior's angle c_i + b u with c_i a noisy
+    estimate of d_i: with weight 0 (lam 1) the combined controller makes the run-to-run
+    EWMA's settings from the second product on; for any weight its predicted angle at the
+    reference setting is (b + k) + w (c_i - k)."""
+    from formtwin.control import Combined
+
+    rng = np.random.default_rng(5)
+    b = -0.05
+    act = Actuator(-100.0, 100.0)
+    d = 88.0 + np.cumsum(rng.normal(0, 0.2, 40))
+    c = d + rng.normal(0, 0.3, 40) + 0.4
+    r2r = EwmaRunToRun(T, b, 1.0, act)
+    for w in (0.0, 0.4, 1.0):
+        ctl = Combined(Feedforward(T, act), 1.0, weight=w, u_ref=0.0)
+        u_r2r, u_prev = 0.0, None
+        for i in range(40):
+            ci = c[i]
+            model = lambda u, ci=ci: np.array([[ci]]) + b * np.asarray(u)[None, :]  # noqa: E731
+            expected = ci + ctl.bias if ctl.level is None else \
+                ctl.bias + ctl.level + w * (ci - ctl.level)
+            s = ctl.choose(model, u_prev=u_prev)
+            assert s.angle_mean == pytest.approx(T, abs=1e-6)  # aimed there, within reach
+            assert ctl.offset(ci) + ci == pytest.approx(expected, abs=1e-9)
+            if w == 0.0 and i >= 1:
+                assert s.u == pytest.approx(u_r2r, abs=1e-6)
+            angle = d[i] + b * s.u
+            ctl.measured(angle, ci + b * s.u, reference=ci)
+            if w == 0.0:
+                u_r2r = r2r.update(angle, s.u)
+            u_prev = s.u
+    with pytest.raises(ValueError, match="weight"):
+        Combined(Feedforward(T, act), 0.5, weight=1.5)

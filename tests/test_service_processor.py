@@ -286,8 +286,10 @@ def test_student_t_option_keeps_the_cloud_on_an_outlier(tmp_path: Path,
         ess[nu] = float(out.message["ess"])  # type: ignore[arg-type]
         proc.close()
         proc.store.close()
-    # the Gaussian puts (nearly) all weight on one particle; the Student-t keeps a cloud
-    assert ess[5.0] > 0.2 * SETTINGS.tracker.n_particles and ess[5.0] > 3.0 * ess[math.inf], ess
+    # the Gaussian puts (nearly) all weight on one particle; the Student-t keeps a cloud. Compared
+    # in measurement space, the outlier's residual grows with each particle's force scaling, so
+    # the weights spread more than in model space (ESS 12 of 64 here, 33 in model space)
+    assert ess[math.inf] < 1.5 and ess[5.0] > 10.0 and ess[5.0] > 5.0 * ess[math.inf], ess
 
 
 def test_serves_a_metamodel_and_restarts_on_it(tmp_path: Path, payloads: list[bytes]) -> None:

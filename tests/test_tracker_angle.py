@@ -52,7 +52,8 @@ def test_bad_inputs_leave_the_tracker_untouched() -> None:
                       ({"angle": 70.0, "u": math.inf}, "u"),
                       ({"angle": 70.0, "u": 0.0, "sd": 0.0}, "sd"),
                       ({"angle": 70.0, "u": 0.0, "sd": -1.0}, "sd"),
-                      ({"angle": 70.0, "u": 0.0, "offset": math.nan}, "offset")):
+                      ({"angle": 70.0, "u": 0.0, "offset": math.nan}, "offset"),
+                      ({"angle": 70.0, "u": 0.0, "sd": 1.0, "stage": 2}, "stage")):
         with pytest.raises(ValueError, match=match):
             update_angle(tr, **kw)  # type: ignore[arg-type]
     assert tr.state_bytes() == before
@@ -61,3 +62,14 @@ def test_bad_inputs_leave_the_tracker_untouched() -> None:
     with pytest.raises(RuntimeError, match="no particles"):
         update_angle(fresh, 70.0, 0.0, sd=1.0)
     assert angle_sd(tr, noise_sd=0.3) >= 0.3
+
+
+def test_stage_one_angle_is_the_first_predicted_angle() -> None:
+    """stage 0 weighs the particles by their angle after the first bending stage."""
+    tr, _ = _tracker()
+    a1 = tr.ssm.predict_angles(tr.filter.x, 0.0)[:, 0]
+    logw0 = tr.filter.logw.copy()
+    angle, sd = float(a1.mean() - a1.std()), float(a1.std())
+    update_angle(tr, angle, 0.0, sd=sd, stage=0)
+    w = np.exp(logw0) * np.exp(-0.5 * ((angle - a1) / sd) ** 2)
+    np.testing.assert_allclose(np.exp(tr.filter.logw), w / w.sum(), rtol=1e-9, atol=1e-300)

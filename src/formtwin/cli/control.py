@@ -31,7 +31,12 @@ def register(sub: Any) -> None:
                    help="products between a product and the use of its measured angle by "
                    "the run-to-run controller (default: %(default)s)")
     p.add_argument("--trim-lam", type=float, help="EWMA weight of the feedforward's trim "
-                   "(default: tuned on the first dataset)")
+                   "(default: tuned)")
+    p.add_argument("--ff-weight", type=float, help="share of the posterior's "
+                   "product-to-product change the feedforward trusts, 0-1 (default: tuned)")
+    p.add_argument("--tune-datasets", type=int, default=1, help="datasets of their own "
+                   "(not scored) on which the controllers' weights are tuned; 0: the first "
+                   "scored one (default: %(default)s)")
     p.add_argument("--no-angle-filter", action="store_true",
                    help="skip the feedforward with the measured angles in the filter")
     p.add_argument("--angle-sd", type=float, help="sd of the measured angle's likelihood, "
@@ -57,13 +62,14 @@ def run(args: argparse.Namespace) -> int:
     settings = ControlStudySettings(
         products=args.products, datasets=args.datasets, burn_in=args.burn_in,
         tracker=tracker, target=args.target, max_step=args.max_step, r2r_delay=args.delay,
-        trim_lam=args.trim_lam, angle_in_filter=not args.no_angle_filter,
+        trim_lam=args.trim_lam, ff_weight=args.ff_weight, tune_datasets=args.tune_datasets,
+        angle_in_filter=not args.no_angle_filter,
         angle_sd=args.angle_sd, seed=args.seed, workers=args.workers)
     print(f"control study into {out}: {settings.datasets} datasets x {settings.products} "
           f"products, N = {tracker.n_particles}", flush=True)
     s = run_control_study(metamodel, physics, settings, out)
-    for c in ("fixed", "ewma", "feedforward", "feedforward_open", "feedforward_angle",
-              "oracle"):
+    for c in ("fixed", "ewma", "feedforward", "feedforward_full", "feedforward_open",
+              "feedforward_angle", "oracle"):
         if c not in s:
             continue
         v = s[c]
@@ -71,7 +77,11 @@ def run(args: argparse.Namespace) -> int:
               f"deg, within +-0.5 deg {v['within_band_share']:.1%}")
     print(f"  std ratio feedforward / fixed {s['angle2_std_ratio_ff_vs_fixed']}, "
           f"/ EWMA {s['angle2_std_ratio_ff_vs_ewma']}, / oracle "
-          f"{s['angle2_std_ratio_ff_vs_oracle']} (trim weight {s['ff_lam']})")
+          f"{s['angle2_std_ratio_ff_vs_oracle']} (trim weight {s['ff_lam']}, feedforward "
+          f"weight {s['ff_weight']}); within datasets (median) "
+          f"{s['within_dataset_std_ratio_ff_vs_fixed']['median']}, "
+          f"{s['within_dataset_std_ratio_ff_vs_ewma']['median']}, "
+          f"{s['within_dataset_std_ratio_ff_vs_oracle']['median']}")
     print(f"  what the estimates know of the final angle: correlation with the plant's "
           f"{s['estimate_level_corr']} (levels), {s['estimate_change_corr']} (changes)")
     print(f"  -> {out / 'control_study.json'}, {out / 'control_study.png'}")

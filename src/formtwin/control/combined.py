@@ -16,6 +16,19 @@ feedforward adds what the posterior knows of product ``i`` itself. ``lam = 0`` i
 feedforward; with a posterior that knows nothing of the product (``m_i`` constant) it is
 the plain EWMA controller of :mod:`~formtwin.control.runtorun`.
 
+The feedforward's ``weight`` ``w`` in [0, 1] says how much of the posterior's
+product-to-product change to trust. With ``c_i`` the posterior mean of the final angle at a
+reference setting ``u_ref`` and ``k`` its EWMA over the measured products (same ``lam``)::
+
+    k   <- lam c_j + (1 - lam) k
+    u_i  = argmin_u  J(u) against  T - b + (1 - w) (c_i - k)
+
+so the predicted angle at ``u_ref`` is ``(b + k) + w (c_i - k)``: the EWMA of the measured
+angles (moved to ``u_ref`` by the model's gain) plus ``w`` times the posterior's deviation
+from its own running level. ``w = 1`` is the combination above; ``w = 0`` the plain EWMA
+(with the model's gain); in between a shrunk feedforward, the regression weight of the
+plant's change on the estimate's when the estimates are noisy.
+
 >>> from formtwin.control.feedforward import Actuator, Feedforward
 >>> import numpy as np
 >>> c = Combined(Feedforward(90.0, Actuator(-100, 100)), lam=0.5)
@@ -24,12 +37,20 @@ the plain EWMA controller of :mod:`~formtwin.control.runtorun`.
 >>> s = c.choose(lambda u: 90.0 - 0.05 * np.asarray(u)[None, :])   # one particle
 >>> round(s.u, 6), round(s.angle_mean, 6)      # aims the model at 90.5: -10 um, 90 deg
 (-10.0, 90.0)
+>>> h = Combined(Feedforward(90.0, Actuator(-100, 100)), lam=1.0, weight=0.5)
+>>> h.measured(angle=89.0, predicted=89.0, reference=89.0)   # on target at u_ref = 0
+0.0
+>>> s = h.choose(lambda u: 90.0 - 0.05 * np.asarray(u)[None, :])   # the model: +1 deg
+>>> round(s.u, 6), round(s.angle_mean, 6)      # half of the change trusted: 89.5 deg at 0
+(-10.0, 90.0)
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+
+import numpy as np
 
 from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray, Suggestion
 
@@ -42,34 +63,66 @@ class Combined:
     ----------
     feedforward : the feedforward controller (its target is the wanted angle).
     lam : EWMA weight of the newest prediction error, in [0, 1] (0: no feedback).
+    weight : share of the posterior's product-to-product change trusted, in [0, 1]
+        (1: all of it; 0: none, the plain EWMA).
+    u_ref : the reference setting of ``c_i`` (only used when ``weight < 1``).
     bias : the current trim ``b``, degrees (the predictions' estimated bias).
+    level : ``k``, the EWMA of the posterior's final angle at ``u_ref`` over the measured
+        products, degrees (None before the first).
     """
 
     feedforward: Feedforward
     lam: float
+    weight: float = 1.0
+    u_ref: float = 0.0
     bias: float = 0.0
+    level: float | None = None
 
     def __post_init__(self) -> None:
         if not 0 <= self.lam <= 1:
             raise ValueError(f"combined control lam = {self.lam}, expected 0 <= lam <= 1")
+        if not 0 <= self.weight <= 1:
+            raise ValueError(f"combined control weight = {self.weight}, expected in [0, 1]")
+
+    def reference(self, final_angle: AngleFunction, weights: FloatArray | None = None) -> float:
+        """``c_i``: the posterior mean of the final angle at ``u_ref``, degrees."""
+        a = np.asarray(final_angle(np.array([self.u_ref])), dtype=np.float64)[:, 0]
+        w = np.ones(a.size) if weights is None else np.asarray(weights, dtype=np.float64)
+        ok = np.isfinite(a)
+        return float(w[ok] @ a[ok] / w[ok].sum()) if ok.any() and w[ok].sum() > 0 else math.nan
+
+    def offset(self, reference: float | None) -> float:
+        """The shift of the feedforward's aim: ``b - (1 - w) (c_i - k)``, degrees."""
+        if self.weight == 1 or self.level is None or reference is None or \
+                not math.isfinite(reference):
+            return self.bias
+        return self.bias - (1 - self.weight) * (reference - self.level)
 
     def choose(self, final_angle: AngleFunction, weights: FloatArray | None = None,
-               u_prev: float | None = None) -> Suggestion:
-        """The feedforward's choice against the target minus the trim; the suggestion's
-        predicted angle and interval include the trim (``m(u) + b``)."""
-        ff = replace(self.feedforward, target=self.feedforward.target - self.bias)
+               u_prev: float | None = None, reference: float | None = None) -> Suggestion:
+        """The feedforward's choice against the target minus the trim (and, for
+        ``weight < 1``, plus the untrusted share of the posterior's change: ``reference``
+        is ``c_i``, None: computed here); the suggestion's predicted angle and interval
+        include that shift."""
+        if self.weight < 1 and reference is None and self.level is not None:
+            reference = self.reference(final_angle, weights)
+        b = self.offset(reference)
+        ff = replace(self.feedforward, target=self.feedforward.target - b)
         s = ff.choose(final_angle, weights, u_prev)
-        b = self.bias
         return replace(s, angle_mean=s.angle_mean + b,
                        interval=(s.interval[0] + b, s.interval[1] + b))
 
-    def measured(self, angle: float, predicted: float) -> float:
+    def measured(self, angle: float, predicted: float, reference: float | None = None
+                 ) -> float:
         """Take an earlier product's measured final ``angle`` and the model's prediction
         ``predicted`` of it at the setting it was made with (without the trim: the
-        posterior mean ``m_j(u_j)``), degrees; return the new trim. Non-finite values are
-        skipped."""
+        posterior mean ``m_j(u_j)``), degrees, and (for ``weight < 1``) ``reference``, its
+        ``c_j``; return the new trim. Non-finite values are skipped."""
         if math.isfinite(angle) and math.isfinite(predicted):
             self.bias = self.lam * (angle - predicted) + (1 - self.lam) * self.bias
+            if reference is not None and math.isfinite(reference):
+                self.level = reference if self.level is None else \
+                    self.lam * reference + (1 - self.lam) * self.level
         return self.bias
 
 

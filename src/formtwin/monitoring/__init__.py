@@ -9,7 +9,9 @@ study, the service and the command line. See ``docs/monitoring.md``.
 * :mod:`~formtwin.monitoring.incontrol`: in-control AR models and health references;
 * :mod:`~formtwin.monitoring.monitor`: :class:`Monitor`, :class:`Alarm`;
 * :mod:`~formtwin.monitoring.calibrate`: a monitor from a simulated in-control run;
-* :mod:`~formtwin.monitoring.scenarios`: production runs with known changes.
+* :mod:`~formtwin.monitoring.scenarios`: production runs with known changes;
+* :mod:`~formtwin.monitoring.bound`: what the curves allow any chart to see of a step (the
+  linear-Gaussian approximation: Kalman filter, Willsky-Jones GLR).
 """
 
 from formtwin.monitoring.charts import Cusum, Ewma

@@ -10,13 +10,15 @@ with the deviation estimated. Per dataset (``products`` products):
 * ``fixed``: ``u`` at its nominal value (no control);
 * ``ewma``: run-to-run EWMA on the measured final angles of earlier products
   (:class:`~formtwin.control.EwmaRunToRun`; gain from the metamodel, ``lam`` the best of
-  :data:`R2R_LAMS` on the first dataset, measurements ``r2r_delay`` products late);
+  :data:`R2R_LAMS` on the tuning datasets, measurements ``r2r_delay`` products late);
 * ``feedforward``: feedforward plus feedback (:class:`~formtwin.control.Combined`): after
   each product's curve, :class:`~formtwin.control.Feedforward` over the tracker's
   particles (the metamodel's final angle at each candidate ``u``), aiming at the target
-  minus a trim: an EWMA of its prediction error on the measured angles of earlier products
-  (its weight the best of :data:`R2R_LAMS` on the first dataset, as the run-to-run
-  controller's); ``feedforward_open`` is the same without the trim;
+  minus a trim: an EWMA of its prediction error on the measured angles of earlier
+  products, trusting a share ``weight`` of the posterior's product-to-product change (the
+  EWMA's weight and the share the best of :data:`R2R_LAMS` x :data:`FF_WEIGHTS` on the
+  tuning datasets); ``feedforward_full`` the same with the whole change trusted (weight 1,
+  its EWMA weight tuned likewise); ``feedforward_open`` the feedforward without the trim;
 * ``feedforward_angle``: ``feedforward`` with each measured final angle also entering the
   filter as a second measurement of its product's state
   (:func:`formtwin.tracker.angle.update_angle`, likelihood sd the metamodel's held-out
@@ -28,7 +30,9 @@ The physics model's final angle of every product is computed at three settings (
 actuator's limits and the nominal) and interpolated quadratically in ``u``
 (:class:`PlantAngles`); ``interp_check`` products are also run at the chosen feedforward
 setting to measure the interpolation error. Each controller respects the actuator's limits
-and maximum step. Scores: over the products after ``burn_in``, pooled over datasets.
+and maximum step. The controllers' weights are tuned on ``tune_datasets`` datasets of their
+own (seeds apart from the scored ones) and scored on the ``datasets`` others. Scores: over
+the products after ``burn_in``, pooled over datasets and within each.
 """
 
 from __future__ import annotations
@@ -56,9 +60,12 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 #: the controllers compared
-CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "feedforward_angle")
-#: EWMA weights tried for the run-to-run controller (the best on the first dataset is used)
+CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "feedforward_full",
+               "feedforward_angle")
+#: EWMA weights tried for the run-to-run controller and the feedforward's trim
 R2R_LAMS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
+#: shares of the posterior's product-to-product change tried for the feedforward
+FF_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
 @dataclass(frozen=True)
@@ -78,8 +85,13 @@ class ControlStudySettings:
     band : half-width of the tolerance band scored, degrees.
     interp_check : products per dataset also run at their feedforward setting.
     trim_lam : EWMA weight of the feedforward's trim (its prediction error on earlier
-        products' measured angles, ``r2r_delay`` late); None: the best of
-        :data:`R2R_LAMS` on the first dataset (tuned as the run-to-run controller's).
+        products' measured angles, ``r2r_delay`` late); None: tuned (see ``tune_datasets``).
+    ff_weight : share of the posterior's product-to-product change the feedforward trusts;
+        None: tuned with ``trim_lam`` (the best pair of :data:`R2R_LAMS` x
+        :data:`FF_WEIGHTS`).
+    tune_datasets : datasets (indices ``datasets`` onwards: seeds apart from the scored
+        ones) on which the EWMA weights and ``ff_weight`` are tuned, not scored; 0: tuned on
+        the first scored dataset.
     angle_in_filter : also run the combined feedforward with the measured angles in the
         filter (``feedforward_angle``; needs ``r2r_delay`` 1).
     angle_sd : sd of that angle likelihood, degrees; None: the metamodel's held-out error
@@ -99,6 +111,8 @@ class ControlStudySettings:
     band: float = 0.5
     interp_check: int = 20
     trim_lam: float | None = None
+    ff_weight: float | None = None
+    tune_datasets: int = 1
     angle_in_filter: bool = True
     angle_sd: float | None = None
     seed: int = 0
@@ -178,47 +192,85 @@ def r2r_gain(metamodel: ProcessModel, rng: np.random.Generator, n: int = 200) ->
     return float(np.mean((a[:, 1] - a[:, 0]) / (c.hi[0] - c.lo[0])))
 
 
+def _setup(metamodel: ProcessModel, settings: ControlStudySettings, target: float
+           ) -> tuple[Actuator, Feedforward, float]:
+    """The actuator, the feedforward and the nominal setting of the study."""
+    c = metamodel.spec.controls
+    act = Actuator(float(c.lo[0]), float(c.hi[0]),
+                   settings.max_step * float(c.hi[0] - c.lo[0]))
+    return act, Feedforward(target, act), float(c.nominal[0])
+
+
+def _std(plant: PlantAngles, ok: NDArray[np.bool_], u: FloatArray, burn_in: int) -> float:
+    """Std of the plant's final angle at settings ``u`` (n,) over the scored products."""
+    return float(np.nanstd([plant(i, u[i]) for i in range(burn_in, u.size) if ok[i]]))
+
+
+def tune_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
+                 k: int, folder: Path, target: float, gain: float) -> dict[str, Any]:
+    """The weights' grids on dataset ``k`` (a tuning dataset): the std of the final angle
+    (after ``burn_in``) of the combined feedforward for every ``(lam, weight)`` of
+    ``ff_grid`` (``ff_std``) and of the run-to-run EWMA for every ``r2r_lams``
+    (``r2r_std``)."""
+    run, curves, ok, plant = plant_run(metamodel.spec, physics, settings, k, folder)
+    act, ff, nominal = _setup(metamodel, settings, target)
+    lams = R2R_LAMS if settings.trim_lam is None else (settings.trim_lam,)
+    weights = FF_WEIGHTS if settings.ff_weight is None else (settings.ff_weight,)
+    grid = [(lm, w) for lm in lams for w in sorted({*weights, 1.0})]
+    config = replace(settings.tracker, seed=settings.seed + k)
+    p = track_and_choose(metamodel, config, curves, ok, plant, ff, grid, nominal,
+                         settings.r2r_delay)
+    b = settings.burn_in
+    r2r_std = [_std(plant, ok, r2r(plant, ok, run.n, target, gain, lm, act, nominal,
+                                   settings.r2r_delay), b) for lm in R2R_LAMS]
+    return {"ff_grid": np.array(grid), "ff_std": np.array([_std(plant, ok, p.u[c], b)
+                                                          for c in range(len(grid))]),
+            "r2r_lams": np.array(R2R_LAMS), "r2r_std": np.array(r2r_std)}
+
+
+def choose_weights(tunes: list[dict[str, Any]]) -> dict[str, float]:
+    """The weights with the least mean std over the tuning datasets: ``r2r_lam`` (EWMA),
+    ``ff_lam`` and ``ff_weight`` (combined feedforward), ``full_lam`` (its trim's weight
+    with the whole change trusted)."""
+    ff = np.mean([t["ff_std"] for t in tunes], axis=0)
+    grid = tunes[0]["ff_grid"]
+    full = np.flatnonzero(grid[:, 1] == 1.0)
+    r2r_std = np.mean([t["r2r_std"] for t in tunes], axis=0)
+    best = int(np.argmin(ff))
+    return {"r2r_lam": float(tunes[0]["r2r_lams"][int(np.argmin(r2r_std))]),
+            "ff_lam": float(grid[best, 0]), "ff_weight": float(grid[best, 1]),
+            "full_lam": float(grid[full[int(np.argmin(ff[full]))], 0])}
+
+
 def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
-                k: int, folder: Path, target: float, gain: float, lam: float | None,
-                ff_lam: float | None = None) -> dict[str, Any]:
-    """All controllers on dataset ``k``: per controller the settings ``u`` (n,) and the
-    plant's final angles (n,); the feedforward's predicted means and intervals, the
-    posterior mean of the final angle at the nominal setting and of the run inputs, the
-    true inputs and the metamodel's final angle there at the nominal setting. ``lam``,
-    ``ff_lam``: the EWMA weights of the run-to-run controller and of the feedforward's trim
-    (None: tuned here, the best on this dataset's scored products)."""
+                k: int, folder: Path, target: float, gain: float, tuned: dict[str, float]
+                ) -> dict[str, Any]:
+    """All controllers on dataset ``k`` with the weights ``tuned``
+    (:func:`choose_weights`): per controller the settings ``u`` (n,) and the plant's final
+    angles (n,); the feedforward's predicted means and intervals, the posterior mean of the
+    final angle at the nominal setting and of the run inputs, the true inputs and the
+    metamodel's final angle there at the nominal setting."""
     spec = metamodel.spec
     run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
     n = run.n
-    c = spec.controls
-    act = Actuator(float(c.lo[0]), float(c.hi[0]),
-                   settings.max_step * float(c.hi[0] - c.lo[0]))
-    ff = Feedforward(target, act)
-    nominal = float(c.nominal[0])
+    act, ff, nominal = _setup(metamodel, settings, target)
     names = [c for c in CONTROLLERS if c != "feedforward_angle" or settings.angle_in_filter]
     u = {name: np.full(n, nominal) for name in names}
-    # feedforward from the tracker (series 6: deviation estimated, mu mid-range): open, and
-    # combined with the EWMA trim (its weight tuned on the first dataset from R2R_LAMS, as
-    # the run-to-run controller's), and the combined one with the angles in the filter
+    # feedforward from the tracker (series 6: deviation estimated, mu mid-range): open, the
+    # combined one with the tuned weights, and with the whole change trusted
     config = replace(settings.tracker, seed=settings.seed + k)
-    tune = ff_lam is None and settings.trim_lam is None
-    lam_ff = settings.trim_lam if settings.trim_lam is not None else ff_lam
-    lams = (0.0, *(R2R_LAMS if tune else (lam_ff,)))
-    p = track_and_choose(metamodel, config, curves, ok, plant, ff, lams, nominal,
+    best = (tuned["ff_lam"], tuned["ff_weight"])
+    p = track_and_choose(metamodel, config, curves, ok, plant, ff,
+                         [(0.0, 1.0), best, (tuned["full_lam"], 1.0)], nominal,
                          settings.r2r_delay)
-    b = settings.burn_in
-    sds = [float(np.nanstd([plant(i, p.u[c, i]) for i in range(b, n) if ok[i]]))
-           for c in range(1, len(lams))]
-    top = 1 + int(np.argmin(sds))
-    lam_ff = lams[top]
-    u["feedforward_open"], u["feedforward"] = p.u[0], p.u[top]
-    out: dict[str, Any] = {"ok": ok, "target": target, "pred": p.pred[top],
-                           "nominal_mean": p.nominal_mean, "ff_lam": lam_ff,
+    u["feedforward_open"], u["feedforward"], u["feedforward_full"] = p.u
+    out: dict[str, Any] = {"ok": ok, "target": target, "pred": p.pred[1],
+                           "nominal_mean": p.nominal_mean, **tuned,
                            "input_mean": p.input_mean, "inputs": run.inputs,
                            "truth_nominal": metamodel_final(metamodel, run.inputs,
                                                             np.array([nominal]))[:, 0]}
     if settings.angle_in_filter:
-        q = track_and_choose(metamodel, config, curves, ok, plant, ff, (lam_ff,), nominal,
+        q = track_and_choose(metamodel, config, curves, ok, plant, ff, [best], nominal,
                              settings.r2r_delay, angle_in_filter=True, sd=settings.angle_sd)
         u["feedforward_angle"] = q.u[0]
         out.update(pred_angle=q.pred[0], angle_sd=q.angle_sd)
@@ -232,16 +284,8 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
 
         s = ff.choose(truth, u_prev=prev)
         prev = u["oracle"][i] = s.u
-    lams = R2R_LAMS if lam is None else (lam,)
-    best: tuple[float, float, FloatArray] | None = None
-    for lm in lams:
-        uu = r2r(plant, ok, n, target, gain, lm, act, nominal, settings.r2r_delay)
-        a = np.array([plant(i, uu[i]) for i in range(n)])
-        sd = float(np.nanstd(a[settings.burn_in:] - target))
-        if best is None or sd < best[0]:
-            best = (sd, lm, uu)
-    assert best is not None
-    u["ewma"], out["r2r_lam"] = best[2], best[1]
+    u["ewma"] = r2r(plant, ok, n, target, gain, tuned["r2r_lam"], act, nominal,
+                    settings.r2r_delay)
     for name in names:
         out[f"u_{name}"] = u[name]
         out[f"angle_{name}"] = np.where(ok, [plant(i, u[name][i]) for i in range(n)], np.nan)
@@ -277,5 +321,6 @@ def scores(angles: FloatArray, target: float, band: float) -> dict[str, float]:
             "products": int(e.size)}
 
 
-__all__ = ["CONTROLLERS", "ControlStudySettings", "PlantAngles", "default_target",
-           "metamodel_final", "plant_run", "r2r", "r2r_gain", "run_dataset", "scores"]
+__all__ = ["CONTROLLERS", "FF_WEIGHTS", "R2R_LAMS", "ControlStudySettings", "PlantAngles",
+           "choose_weights", "default_target", "metamodel_final", "plant_run", "r2r",
+           "r2r_gain", "run_dataset", "scores", "tune_dataset"]

@@ -4,7 +4,8 @@ after each product's curve (:func:`track_and_choose`).
 
 Every controller is :class:`~formtwin.control.Combined`: the feedforward over the posterior
 aimed at the target minus an EWMA (weight ``lam``) of its own prediction error on the
-measured final angles of earlier products (``lam = 0``: the open feedforward). The tracker
+measured final angles of earlier products (``lam = 0``: the open feedforward), trusting a
+share ``weight`` of the posterior's product-to-product change (1: all of it). The tracker
 does not depend on the settings chosen, so several controllers can share one pass; with
 ``angle_in_filter`` the one controller's measured angles also enter the filter as a second
 measurement of the state (:func:`formtwin.tracker.angle.update_angle`), so that pass serves
@@ -53,20 +54,22 @@ class Pass:
 
 def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: FloatArray,
                      ok: NDArray[np.bool_], plant: Callable[[int, float], float],
-                     ff: Feedforward, lams: Sequence[float], nominal: float, delay: int = 1,
-                     angle_in_filter: bool = False, sd: float | None = None) -> Pass:
+                     ff: Feedforward, controllers: Sequence[tuple[float, float]],
+                     nominal: float, delay: int = 1, angle_in_filter: bool = False,
+                     sd: float | None = None) -> Pass:
     """Run a tracker (``config``) over the measured ``curves`` (n, n_t) of the products with
-    ``ok``; after each curve every controller ``Combined(ff, lam)`` (one per ``lams``) chooses
-    its product's setting (start ``nominal``); ``plant(i, u)`` is product ``i``'s measured
+    ``ok``; after each curve every controller ``Combined(ff, lam, weight)`` (one per
+    ``(lam, weight)`` of ``controllers``, reference setting ``nominal``) chooses its
+    product's setting (start ``nominal``); ``plant(i, u)`` is product ``i``'s measured
     final angle at ``u``, known ``delay`` products later. With ``angle_in_filter`` (one
     controller, ``delay`` 1: the angle arrives before the next curve) the measured angle also
     reweights the particles (likelihood sd ``sd``, None: the metamodel's held-out error;
     offset: the controller's trim before this angle)."""
-    if angle_in_filter and (len(lams) != 1 or delay != 1):
+    if angle_in_filter and (len(controllers) != 1 or delay != 1):
         raise ValueError("angles in the filter: one controller and delay 1 (got "
-                         f"{len(lams)} controllers, delay {delay})")
+                         f"{len(controllers)} controllers, delay {delay})")
     tracker = build_tracker(metamodel, config)
-    ctl = [Combined(ff, lam) for lam in lams]
+    ctl = [Combined(ff, lam, weight, nominal) for lam, weight in controllers]
     m, n = len(ctl), curves.shape[0]
     u = np.full((m, n), nominal)
     pred = np.full((m, n, 3), np.nan)
@@ -83,17 +86,17 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                 if angle_in_filter:  # the particles are still product j's posterior
                     update_angle(tracker, plant(j, u[0, j]), u[0, j], s_angle, ctl[0].bias)
                 for c, ctrl in enumerate(ctl):
-                    ctrl.measured(plant(j, u[c, j]), model_pred[c, j])
+                    ctrl.measured(plant(j, u[c, j]), model_pred[c, j], nominal_mean[j])
             if ok[i]:
                 input_mean[i] = tracker.step(curves[i]).mean[:n_in]
                 w = tracker.weights()
+                nominal_mean[i] = ctl[0].reference(tracker.final_angle, w)
                 for c, ctrl in enumerate(ctl):
-                    s = tracker.suggest(ctrl, prev[c])
+                    shift = ctrl.offset(nominal_mean[i])
+                    s = ctrl.choose(tracker.final_angle, w, prev[c], nominal_mean[i])
                     prev[c] = s.u
                     pred[c, i] = (s.angle_mean, *s.interval)
-                    model_pred[c, i] = s.angle_mean - ctrl.bias
-                a0 = tracker.final_angle(np.array([nominal]))[:, 0]
-                nominal_mean[i] = a0.mean() if w is None else (w / w.sum()) @ a0
+                    model_pred[c, i] = s.angle_mean - shift
             u[:, i] = prev
     return Pass(u, pred, nominal_mean, s_angle if angle_in_filter else float("nan"),
                 input_mean)

@@ -21,10 +21,12 @@ from formtwin.simulator import Simulator
 from formtwin.study.control import (
     CONTROLLERS,
     ControlStudySettings,
+    choose_weights,
     default_target,
     r2r_gain,
     run_dataset,
     scores,
+    tune_dataset,
 )
 
 log = logging.getLogger(__name__)
@@ -34,6 +36,7 @@ FloatArray = NDArray[np.float64]
 LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
           "feedforward": "feedforward (formtwin, with trim)", "oracle": "oracle (true state)",
           "feedforward_open": "feedforward without trim",
+          "feedforward_full": "feedforward with trim, whole change trusted",
           "feedforward_angle": "feedforward with trim, angles in the filter"}
 #: the cases of the figure (those the study ran)
 SHOWN = ("fixed", "ewma", "feedforward", "feedforward_angle", "oracle")
@@ -74,42 +77,46 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     target = default_target(metamodel) if settings.target is None else settings.target
     gain = r2r_gain(metamodel, np.random.default_rng(settings.seed))
     key = _key(settings, target, str(getattr(physics, "version", "")), metamodel)
-    results: list[dict[str, Any]] = []
-    lam: float | None = None
-    ff_lam: float | None = None
-    for k in range(settings.datasets):
-        path = out / f"dataset_{k}.npz"
-        res = {}
-        if path.exists():
-            with np.load(path, allow_pickle=False) as f:
-                if str(f["key"]) == key:
-                    res = {n: f[n] for n in f.files}
-                    for name in ("r2r_lam", "ff_lam"):
-                        res[name] = float(res[name])
-        if not res:
-            log.info("control study: dataset %d of %d", k + 1, settings.datasets)
-            res = run_dataset(metamodel, physics, settings, k, out, target, gain, lam, ff_lam)
-            arrays = {n: np.asarray(v) for n, v in res.items()}
-            np.savez(path, key=np.array(key), **arrays)  # type: ignore[arg-type]
-        lam = res["r2r_lam"] if lam is None else lam
-        ff_lam = res["ff_lam"] if ff_lam is None else ff_lam
-        results.append(res)
+    tune_ks = (range(settings.datasets, settings.datasets + settings.tune_datasets)
+               if settings.tune_datasets > 0 else range(1))
+    tunes = [_cached(out / f"tune_{k}.npz", key, lambda k=k: tune_dataset(
+        metamodel, physics, settings, k, out, target, gain), f"tuning dataset {k}")
+        for k in tune_ks]
+    tuned = choose_weights(tunes)
+    results = [_cached(out / f"dataset_{k}.npz", key, lambda k=k: run_dataset(
+        metamodel, physics, settings, k, out, target, gain, tuned),
+        f"dataset {k + 1} of {settings.datasets}") for k in range(settings.datasets)]
     b = settings.burn_in
     names = [c for c in CONTROLLERS if f"angle_{c}" in results[0]]
     pooled = {c: np.concatenate([r[f"angle_{c}"][b:] for r in results]) for c in names}
     summary: dict[str, Any] = {c: scores(pooled[c], target, settings.band) for c in names}
     sd = {c: summary[c]["std_deg"] for c in names}
-    for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle")):
+    for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
+                    ("feedforward_full", "fffull")):
         for other in ("fixed", "oracle", "ewma"):
             if ff in sd:
                 summary[f"angle2_std_ratio_{tag}_vs_{other}"] = (
                     round(sd[ff] / sd[other], 4) if sd[other] > 0 else None)
+    per = {c: [float(np.nanstd(r[f"angle_{c}"][b:])) for r in results] for c in names}
     summary.update({
-        "target_deg": target, "r2r_gain_deg_per_unit": round(gain, 6),
-        "r2r_lam": lam, "ff_lam": ff_lam, "burn_in": b,
-        "per_dataset_std_deg": {c: [round(float(np.nanstd(r[f"angle_{c}"][b:])), 4)
-                                    for r in results] for c in names},
+        "target_deg": target, "r2r_gain_deg_per_unit": round(gain, 6), **tuned,
+        "tuned_on_datasets": list(tune_ks), "burn_in": b,
+        "per_dataset_std_deg": {c: [round(v, 4) for v in per[c]] for c in names},
+        "tuning_std_deg": {"ff_grid": tunes[0]["ff_grid"].tolist(),
+                           "ff": np.round(np.mean([t["ff_std"] for t in tunes], 0), 4).tolist(),
+                           "r2r_lams": tunes[0]["r2r_lams"].tolist(),
+                           "r2r": np.round(np.mean([t["r2r_std"] for t in tunes], 0),
+                                           4).tolist()},
     })
+    for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
+                    ("feedforward_full", "fffull")):
+        for other in ("fixed", "oracle", "ewma"):
+            if ff in per:
+                r = np.array(per[ff]) / np.array(per[other])
+                summary[f"within_dataset_std_ratio_{tag}_vs_{other}"] = {
+                    "per_dataset": np.round(r, 3).tolist(),
+                    "median": round(float(np.median(r)), 3),
+                    "of_mean_std": round(float(np.mean(per[ff]) / np.mean(per[other])), 4)}
     for ff, key in (("feedforward", "pred"), ("feedforward_angle", "pred_angle")):
         if ff in names:
             summary.update(prediction_scores(np.concatenate([r[key][b:] for r in results]),
@@ -125,6 +132,20 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     plot_control(results[0], target, settings.band, out / "control_study.png")
     (out / "control_study.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _cached(path: Path, key: str, compute: Any, what: str) -> dict[str, Any]:
+    """A dataset's result from ``path`` when stored there with ``key``, else ``compute()``d
+    and stored."""
+    if path.exists():
+        with np.load(path, allow_pickle=False) as f:
+            if str(f["key"]) == key:
+                return {n: (f[n].item() if f[n].ndim == 0 and n != "key" else f[n])
+                        for n in f.files if n != "key"}
+    log.info("control study: %s", what)
+    res: dict[str, Any] = compute()
+    np.savez(path, key=np.array(key), **{n: np.asarray(v) for n, v in res.items()})  # type: ignore[arg-type]
+    return res
 
 
 def prediction_scores(pred: FloatArray, angle: FloatArray, name: str) -> dict[str, float]:

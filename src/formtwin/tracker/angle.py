@@ -40,21 +40,24 @@ from formtwin.tracker.core import Tracker
 FloatArray = NDArray[np.float64]
 
 
-def angle_sd(tracker: Tracker, noise_sd: float = 0.0) -> float:
+def angle_sd(tracker: Tracker, noise_sd: float = 0.0, stage: int = 1) -> float:
     """The default ``sd`` of :func:`update_angle`, degrees: the metamodel's held-out error of
-    the final angle and the angle sensor's noise ``noise_sd`` added in quadrature."""
-    var = float(np.asarray(tracker.ssm.angle_error_var)[1])
+    the angle after ``stage`` (0: the first bending stage, 1: the final angle) and the angle
+    sensor's noise ``noise_sd`` added in quadrature."""
+    var = float(np.asarray(tracker.ssm.angle_error_var)[stage])
     return math.sqrt(max(var, 0.0) + noise_sd ** 2)
 
 
 def update_angle(tracker: Tracker, angle: float, u: float, sd: float | None = None,
-                 offset: float = 0.0) -> float:
+                 offset: float = 0.0, stage: int = 1) -> float:
     """Reweight the tracker's particles by the measured final ``angle`` (degrees) of the
     product last stepped, made at setting ``u`` (the spec's one control, internal units);
     return the log evidence increment ``log p(angle | Z)``.
 
     ``sd`` (degrees, > 0): the spread of the measured angle around the metamodel's at a
-    given state (None: :func:`angle_sd`); ``offset``: the metamodel's known bias, degrees.
+    given state (None: :func:`angle_sd`); ``offset``: the metamodel's known bias, degrees;
+    ``stage`` 0: ``angle`` is the angle after the first bending stage instead (``u`` does
+    not act on it).
     Raises ``ValueError`` for a non-finite angle, setting or offset, or a bad ``sd``, and
     ``RuntimeError`` before the first step; the tracker is then untouched. If no particle
     gives a finite likelihood, the weights are left as they were and ``-inf`` is returned.
@@ -64,11 +67,16 @@ def update_angle(tracker: Tracker, angle: float, u: float, sd: float | None = No
     for name, v in (("angle", angle), ("u", u), ("offset", offset)):
         if not math.isfinite(float(v)):
             raise ValueError(f"update_angle: {name} = {v}, expected a finite number")
-    s = angle_sd(tracker) if sd is None else float(sd)
+    if stage not in (0, 1):
+        raise ValueError(f"update_angle: stage = {stage}, expected 0 or 1")
+    s = angle_sd(tracker, stage=stage) if sd is None else float(sd)
     if not (math.isfinite(s) and s > 0):
         raise ValueError(f"update_angle: sd = {sd}, expected a positive number of degrees "
                          "(the metamodel has no held-out angle error: give sd)")
-    a = tracker.final_angle(np.array([float(u)]))[:, 0] + float(offset)
+    if stage == 1:
+        a = tracker.final_angle(np.array([float(u)]))[:, 0] + float(offset)
+    else:
+        a = tracker.ssm.predict_angles(tracker.filter.x, float(u))[:, 0] + float(offset)
     ll = norm.logpdf(float(angle), loc=a, scale=s)
     logw = np.asarray(tracker.filter.logw, dtype=np.float64) + np.where(np.isfinite(ll), ll,
                                                                          -np.inf)

@@ -60,7 +60,9 @@ class TrackerConfig:
         curves for ``K_MC`` when :func:`~formtwin.tracker.build_tracker` makes them).
     filter : particle-filter name (:data:`formtwin.filters.FILTERS`).
     ess_threshold : resample when ESS < ess_threshold N (1.0: every step, Algorithm 1).
-    compare : ``"model"`` (paper eq. 12) or ``"measurement"``, see :data:`COMPARE`.
+    compare : ``"measurement"`` (default: the measured curve ``z`` against the deviated model
+        curve ``g(z~, theta_d)``, a proper density of ``z``) or ``"model"`` (paper eq. 12:
+        ``g^-1(z, theta_d)`` against ``z~``), see :data:`COMPARE` and docs/likelihood.md.
     angle_particles : predict the angles from this many particles drawn from the weighted
         cloud by systematic resampling (cuts the cost of the angle models, adds Monte-Carlo
         error of order ``std / sqrt(angle_particles)``; with an ESS of 20-100 of 500, 100
@@ -120,7 +122,7 @@ class TrackerConfig:
     filter: str = field(default="sir", metadata=_help("particle filter (formtwin.filters)"))
     ess_threshold: float = field(default=1.0, metadata=_help(
         "resample when ESS < this fraction of N (1: every step)"))
-    compare: str = field(default="model", metadata=_help(
+    compare: str = field(default="measurement", metadata=_help(
         "compare curves in model space (eq. 12) or measurement space"))
     angle_particles: int | None = field(default=None, metadata=_help(
         "predict angles from this many resampled particles (>= N: all)"))
