@@ -237,9 +237,14 @@ def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore
     fv = 0.0
     flat = 0.0
     half = 0.5 * thick
+    n_nodes = X.shape[0]
+    dnode = np.empty(n_nodes)
     for k in range(towner.shape[0]):
         ty = p if towner[k] == 1 else 0.0
         s = tface[k]
+        for i in range(n_nodes):  # the nodes' distances to the tool, to skip far elements
+            dnode[i] = closest_point(X[i, 0] + u[3 * i], X[i, 1] + u[3 * i + 1] - ty,
+                                     tstart[k], tstart[k + 1], ptype, pdata)[0]
         for q in range(el.shape[0]):
             ct_act_t[q, k] = 0
             ct_t_t[q, k] = 0.0
@@ -247,6 +252,12 @@ def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore
             e = el[q]
             i0 = 3 * e
             L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+            # a point lies within 1.5 L0 + t/2 of its element's nodes (Hermite weights
+            # |H2|, |H4| <= 4/27; stretch allowed for), and a contact needs |gap| <= t: the
+            # tool's distance being 1-Lipschitz, an element whose nodes are both farther
+            # than 2 L0 + 1.5 t from it has no contact point on it
+            if min(dnode[e], dnode[e + 1]) > 2.0 * L0 + 1.5 * thick:
+                continue
             px, py = hermite_face(
                 X[e, 0] + u[i0], X[e, 1] + u[i0 + 1], phi0[e] + u[i0 + 2],
                 X[e + 1, 0] + u[i0 + 3], X[e + 1, 1] + u[i0 + 4], phi0[e + 1] + u[i0 + 5],
