@@ -94,14 +94,16 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[n
     r = 1.0
     if epb_n > 0.0:
         r, h = hardening(epb_n, hard)
+    fac = 1.0
+    if tau != 0.0:  # von Mises with the shear stress: (s_xx - s_yy)^2/4 + tau^2 = k^2
+        fac = math.sqrt(max(1.0 - 3.0 * (tau / (sy * r)) ** 2, SHEAR_FLOOR ** 2))
+    if a <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
+        return sig_tr + syy, epb_n, E
     rf = 1.0
     if rate_n > 0.0:
         rf = 1.0 + (rate_n / e0) ** q
-    fac = 1.0
-    if tau != 0.0:  # von Mises with the shear stress: (s_xx - s_yy)^2/4 + tau^2 = k^2
+    if tau != 0.0:
         fac = math.sqrt(max(1.0 - 3.0 * (tau / (rf * sy * r)) ** 2, SHEAR_FLOOR ** 2))
-    if a <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
-        return sig_tr + syy, epb_n, E
     s0 = SQ * rf * sy * fac
     if a - s0 * r <= 0.0:
         return sig_tr + syy, epb_n, E
