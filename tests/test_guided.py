@@ -7,11 +7,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from filter_refs import (
+    analytic_tracker,
+    assert_continues_bit_for_bit,
+    interior_curves,
+    kalman_filter,
+)
 from scipy import stats
 
-from formtwin.defaults import analytic_model
 from formtwin.filters import SIR, GuidedSIR
-from formtwin.tracker import TrackerConfig, build_tracker
+from formtwin.tracker import TrackerConfig
 
 
 class LinearGaussian:
@@ -60,13 +65,10 @@ def test_guided_filter_matches_the_kalman_filter_with_an_imperfect_proposal() ->
     f = GuidedSIR(lg, 20_000, np.random.default_rng(5))
     f.initialise()
     boot = SIR(lg, 20_000, np.random.default_rng(5))
-    m, P, ev_kf, ev_pf = np.zeros(d), np.eye(d), 0.0, 0.0
-    for y in ys:
-        m, P = A @ m, A @ P @ A.T + Q
-        S = H @ P @ H.T + R
-        ev_kf += stats.multivariate_normal(H @ m, S).logpdf(y)
-        K = P @ H.T @ np.linalg.inv(S)
-        m, P = m + K @ (y - H @ m), (np.eye(d) - K @ H) @ P
+    ev_kf = ev_pf = 0.0
+    kf = kalman_filter(A, Q, H, R, np.zeros(d), np.eye(d), ys)
+    for y, (m, P, ev) in zip(ys, kf, strict=True):
+        ev_kf += ev
         s = f.step(y)
         ev_pf += s.loglik
         sd = np.sqrt(np.diag(P))
@@ -79,10 +81,7 @@ def test_guided_filter_matches_the_kalman_filter_with_an_imperfect_proposal() ->
 
 
 def _tracker(**kw: object) -> tuple[object, object]:
-    model = analytic_model()
-    cfg = TrackerConfig(n_particles=300, estimate_deviation=False, n_mc=1000, seed=3,
-                        filter="guided", **kw)  # type: ignore[arg-type]
-    return model, build_tracker(model, cfg)
+    return analytic_tracker(filter="guided", **kw)
 
 
 def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess() -> None:
@@ -117,16 +116,10 @@ def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess() -> N
 
 def test_guided_tracker_continues_bit_for_bit_and_refuses_learned_statistics() -> None:
     model, tr = _tracker()
-    spec = model.spec  # type: ignore[attr-defined]
-    rng = np.random.default_rng(1)
-    X = spec.inputs.lo + (spec.inputs.hi - spec.inputs.lo) * (0.4 + 0.2 * rng.random((6, 10)))
-    curves = model.predict_curves(X)  # type: ignore[attr-defined]
+    curves = interior_curves(model)
     for c in curves[:3]:
         tr.step(c)  # type: ignore[attr-defined]
-    back = type(tr).from_state_bytes(tr.state_bytes(), model, tr.measurement)  # type: ignore
-    a = [tr.step(c).mean for c in curves[3:]]  # type: ignore[attr-defined]
-    b = [back.step(c).mean for c in curves[3:]]
-    np.testing.assert_array_equal(a, b)
+    assert_continues_bit_for_bit(model, tr, curves[3:])
     for bad in ({"learn_mu": True}, {"likelihood": "discrepancy"}):
         with pytest.raises(ValueError, match="guided"):
             TrackerConfig(filter="guided", **bad)  # type: ignore[arg-type]
