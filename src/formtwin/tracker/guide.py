@@ -45,7 +45,6 @@ class GuidedProposal(GridPosteriors):
     _rho: FloatArray
     _sizes: tuple[int, int, int]
     config: Any
-    model: Any
     sample_transition: Any
     residuals: Any
     #: step of the finite differences of the linearisation, in units of sigma
@@ -57,16 +56,10 @@ class GuidedProposal(GridPosteriors):
     def _lik_cov(self) -> FloatArray:
         """The likelihood's covariance (n_t, n_t) for the proposal: ``Sigma``, plus the
         posterior mean of ``kappa`` times ``K_res`` for the adaptive likelihood."""
-        if "guide_sigma" not in self.__dict__:
-            from formtwin.tracker.ssm import residual_covariance
-
-            object.__setattr__(self, "guide_sigma", (self.measurement.covariance(),
-                                                     residual_covariance(self.model)))
-        sigma, k_res = self.__dict__["guide_sigma"]
         d = self.discrepancy
-        if d is None or k_res is None:
-            return np.asarray(sigma)
-        return np.asarray(sigma + float(np.exp(self.share_logpost) @ d.shares) * k_res)
+        if d is None:
+            return np.asarray(self.measurement.covariance())
+        return np.asarray(d.predictive_cov(None, np.exp(self.share_logpost)))
 
     def sample_guided(self, x: FloatArray, y: FloatArray, rng: np.random.Generator
                       ) -> tuple[FloatArray, FloatArray]:
