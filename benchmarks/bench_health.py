@@ -79,10 +79,11 @@ def run_service_health(model: Any, config: TrackerConfig, curves: np.ndarray,
 
 
 def physics_curves(spec: Any, run: Any, name: str) -> np.ndarray:
-    """The bending model's curves of a production run (cached), through ``g``."""
+    """The bending model's curves of a production run (cached per model version), through
+    ``g``."""
     CACHE.mkdir(parents=True, exist_ok=True)
-    data = run_design(physics_model("bending", spec), run.run_inputs, CACHE / name,
-                      progress=True)
+    sim = physics_model("bending", spec)
+    data = run_design(sim, run.run_inputs, CACHE / f"{name}_{sim.version}.h5", progress=True)
     curves = np.where(data.ok[:, None], data.curves, np.nan)
     return DeviationModel.from_spec(spec).apply(
         np.nan_to_num(curves), np.tile(run.theta_d, (len(curves), 1))) + \
@@ -144,7 +145,7 @@ def main() -> None:
                           mu=tuple(run1.mu)), mm.predict_curves(run1.inputs), rule, tmp)
     rng = np.random.default_rng(np.random.SeedSequence([16, 6]))
     run6 = draw_production_run(spec, n, rng)
-    fe6 = physics_curves(spec, run6, f"health_series6_{n}.h5")
+    fe6 = physics_curves(spec, run6, f"health_series6_{n}")
     est6, ep6, veto6 = run_service_health(mm, base, fe6, rule, tmp)
     figures["false_mismatch_per_10k"] = max(len(ep1) / len(est1), len(ep6) / len(est6)) * 1e4
     figures["false_mismatch_series1"] = len(ep1)

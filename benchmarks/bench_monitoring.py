@@ -290,7 +290,7 @@ def main() -> None:
         "oracle_true_states": {
             "detection_delay_median_products": oracle["step_2sigma"]["median"],
             **{k: v for k, v in oracle.items() if k != "charts"}},
-        "settings": {"particles": args.particles, "deviation": args.deviation,
+        "settings": {"seed": args.seed, "particles": args.particles, "deviation": args.deviation,
                      "likelihood": tcfg.likelihood,
                      "noise": key["noise"],
                      "calib_runs": args.calib_runs, "calib_products": args.calib_products,

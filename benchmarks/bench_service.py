@@ -14,7 +14,8 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   broker: validation, tracker, model health, control charts, store, page feed; measured
   once the charts run) and ``tracker_step_ms`` (the tracker alone);
 * ``alarm_products``: products of the full-speed and paced phases whose estimate raised an
-  alarm (the stream is in control: few expected);
+  alarm (the stream is in control: few expected); ``alarms_by_chart`` counts them per
+  ``variable:chart``;
 * CPU time, which other jobs on the machine disturb far less than wall time:
   ``serve_cpu_ms_per_product`` (the whole serve process: MQTT, validation, tracker, store,
   page; during the full-speed phase), ``tracker_step_cpu_ms`` (thread time of a step), and
@@ -198,6 +199,9 @@ def main() -> int:
     with sqlite3.connect(tmp / "b.sqlite") as db:
         alarm_products = int(db.execute("SELECT COUNT(DISTINCT seq) FROM alarms WHERE seq > ?",
                                         (n_warm,)).fetchone()[0])
+        alarms_by_chart = {f"{v}:{c}": int(k) for v, c, k in db.execute(
+            "SELECT variable, chart, COUNT(*) FROM alarms WHERE seq > ? GROUP BY variable, chart",
+            (n_warm,))}
     # peers in the same run: the processor without a broker, the tracker alone
     from threadpoolctl import threadpool_limits
 
@@ -242,6 +246,7 @@ def main() -> int:
         "latency_p99_ms": round(p99, 2),
         "full_speed_latency_p99_ms": round(float(np.percentile(lat_full, 99)), 1),
         "alarm_products": alarm_products,
+        "alarms_by_chart": alarms_by_chart,
         "processor_products_per_s": round(peer_rate, 1),
         "tracker_step_ms": round(step_ms, 2),
         "serve_cpu_ms_per_product": round(serve_cpu_ms, 2),

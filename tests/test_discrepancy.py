@@ -9,6 +9,12 @@ import math
 
 import numpy as np
 import pytest
+from filter_refs import (
+    analytic_tracker,
+    assert_continues_bit_for_bit,
+    interior_curves,
+    kalman_filter,
+)
 from scipy import stats
 
 from formtwin.defaults import analytic_model
@@ -162,15 +168,11 @@ def test_particle_filter_with_discrepancy_matches_the_augmented_kalman_filter() 
     Aa = np.block([[A, np.zeros((d, n_t))], [np.zeros((n_t, d)), np.eye(n_t)]])
     Qa = np.block([[Q, np.zeros((d, n_t))], [np.zeros((n_t, d)), np.zeros((n_t, n_t))]])
     Ha = np.hstack([H, np.eye(n_t)])
-    m = np.zeros(d + n_t)
-    P = np.block([[P0, np.zeros((d, n_t))], [np.zeros((n_t, d)), K]])
+    ma = np.zeros(d + n_t)
+    Pa = np.block([[P0, np.zeros((d, n_t))], [np.zeros((n_t, d)), K]])
     ev_kf = ev_pf = 0.0
-    for y in ys:
-        m, P = Aa @ m, Aa @ P @ Aa.T + Qa
-        Sy = Ha @ P @ Ha.T + S
-        ev_kf += stats.multivariate_normal(Ha @ m, Sy).logpdf(y)
-        G = P @ Ha.T @ np.linalg.inv(Sy)
-        m, P = m + G @ (y - Ha @ m), (np.eye(d + n_t) - G @ Ha) @ P
+    for y, (m, P, ev) in zip(ys, kalman_filter(Aa, Qa, Ha, S, ma, Pa, ys), strict=True):
+        ev_kf += ev
         s = f.step(y)
         ev_pf += s.loglik
         sd = np.sqrt(np.diag(P)[:d])
@@ -180,26 +182,17 @@ def test_particle_filter_with_discrepancy_matches_the_augmented_kalman_filter() 
 
 
 def _analytic_tracker(**kw: object) -> tuple[object, object]:
-    model = analytic_model()
-    cfg = TrackerConfig(n_particles=300, estimate_deviation=False, n_mc=1000, seed=3,
-                        likelihood="discrepancy", **kw)  # type: ignore[arg-type]
-    return model, build_tracker(model, cfg)
+    return analytic_tracker(likelihood="discrepancy", **kw)
 
 
 def test_tracker_with_discrepancy_continues_bit_for_bit_and_counts_products() -> None:
     model, tr = _analytic_tracker()
-    spec = model.spec  # type: ignore[attr-defined]
-    rng = np.random.default_rng(1)
-    X = spec.inputs.lo + (spec.inputs.hi - spec.inputs.lo) * (0.4 + 0.2 * rng.random((6, 10)))
-    curves = model.predict_curves(X)  # type: ignore[attr-defined]
+    curves = interior_curves(model)
     for c in curves[:3]:
         tr.step(c)  # type: ignore[attr-defined]
     stats_cols = tr.particles[:, tr.ssm._n_bounded:]  # type: ignore[attr-defined]
     np.testing.assert_array_equal(stats_cols[:, -1], 3.0)  # n = products seen, every path
-    back = type(tr).from_state_bytes(tr.state_bytes(), model, tr.measurement)  # type: ignore
-    a = [tr.step(c).mean for c in curves[3:]]  # type: ignore[attr-defined]
-    b = [back.step(c).mean for c in curves[3:]]
-    np.testing.assert_array_equal(a, b)
+    assert_continues_bit_for_bit(model, tr, curves[3:])
 
 
 def test_config_of_the_discrepancy_likelihood_is_checked_and_saved() -> None:

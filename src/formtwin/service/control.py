@@ -48,7 +48,9 @@ class ControlSettings:
     target_deg : wanted final angle, degrees.
     max_step : largest change of ``u`` per product as a share of its range (0 < s <= 1).
     lam : EWMA weight of the trim (the newest measured prediction error), in [0, 1]; the
-        default is the weight the closed-loop study tuned (``docs/control.md``).
+        default 1.0 is the weight the session-5 closed-loop study tuned for the full
+        feedforward. The study now also tunes the feedforward's weight (0.7 / 0.75 on its
+        tuning dataset, ``docs/control.md``); the service does not take that weight yet.
     """
 
     target_deg: float

@@ -91,13 +91,19 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     pooled = {c: np.concatenate([r[f"angle_{c}"][b:] for r in results]) for c in names}
     summary: dict[str, Any] = {c: scores(pooled[c], target, settings.band) for c in names}
     sd = {c: summary[c]["std_deg"] for c in names}
+    per = {c: [float(np.nanstd(r[f"angle_{c}"][b:])) for r in results] for c in names}
     for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
                     ("feedforward_full", "fffull")):
         for other in ("fixed", "oracle", "ewma"):
-            if ff in sd:
-                summary[f"angle2_std_ratio_{tag}_vs_{other}"] = (
-                    round(sd[ff] / sd[other], 4) if sd[other] > 0 else None)
-    per = {c: [float(np.nanstd(r[f"angle_{c}"][b:])) for r in results] for c in names}
+            if ff not in sd:
+                continue
+            summary[f"angle2_std_ratio_{tag}_vs_{other}"] = (
+                round(sd[ff] / sd[other], 4) if sd[other] > 0 else None)
+            r = np.array(per[ff]) / np.array(per[other])
+            summary[f"within_dataset_std_ratio_{tag}_vs_{other}"] = {
+                "per_dataset": np.round(r, 3).tolist(),
+                "median": round(float(np.median(r)), 3),
+                "of_mean_std": round(float(np.mean(per[ff]) / np.mean(per[other])), 4)}
     summary.update({
         "target_deg": target, "r2r_gain_deg_per_unit": round(gain, 6), **tuned,
         "tuned_on_datasets": list(tune_ks), "burn_in": b,
@@ -108,15 +114,6 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
                            "r2r": np.round(np.mean([t["r2r_std"] for t in tunes], 0),
                                            4).tolist()},
     })
-    for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
-                    ("feedforward_full", "fffull")):
-        for other in ("fixed", "oracle", "ewma"):
-            if ff in per:
-                r = np.array(per[ff]) / np.array(per[other])
-                summary[f"within_dataset_std_ratio_{tag}_vs_{other}"] = {
-                    "per_dataset": np.round(r, 3).tolist(),
-                    "median": round(float(np.median(r)), 3),
-                    "of_mean_std": round(float(np.mean(per[ff]) / np.mean(per[other])), 4)}
     for ff, key in (("feedforward", "pred"), ("feedforward_angle", "pred_angle")):
         if ff in names:
             summary.update(prediction_scores(np.concatenate([r[key][b:] for r in results]),

@@ -180,6 +180,9 @@ class TrackerConfig:
         if self.likelihood == "discrepancy" and self.filter == "move":
             raise ValueError("the move filter needs a likelihood without learned statistics: "
                              "not discrepancy")
+        if self.filter == "guided" and (self.learn_mu or self.likelihood == "discrepancy"):
+            raise ValueError("the guided filter needs a fixed mu and a likelihood without "
+                             "learned statistics: not learn_mu, not discrepancy")
         if self.likelihood == "discrepancy" and not math.isinf(self.nu):
             raise ValueError("the discrepancy likelihood is Gaussian (nu = inf)")
         if self.error_share is not None and not 0.0 <= self.error_share <= 1.0:

@@ -183,7 +183,8 @@ class Tracker:
             s = f.step(y)
             if scale is not None:
                 self.ssm.update_scale(logw_prev)
-            self.ssm.update_share(logw_prev)
+            ratio = getattr(f, "log_ratio", None)  # guided filter: p(x | parent) / q(x)
+            self.ssm.update_share(logw_prev if ratio is None else logw_prev + ratio)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
             return self._estimate(s, np.exp(saved[1]), c, uu)
         except BaseException:

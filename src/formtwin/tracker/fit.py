@@ -8,8 +8,10 @@ stream (a model that never fits would teach a learned baseline that misfit is no
 
 The statistic is the Mahalanobis distance of the curve from its predictive distribution
 ``p(z_i | Z_{i-1})``. For predicted particle ``k`` (predictive weight ``v_k``) the
-measurement model says ``r_k = obs_k - model_k ~ N(0, Sigma)`` (eq. 12; ``obs_k`` is
-``g^-1(z, theta_d_k)``, ``model_k = z~(x_k, theta_k)``), with ``Sigma`` the likelihood's own
+measurement model says ``r_k = obs_k - model_k ~ N(0, Sigma)`` (with the default
+``compare="measurement"`` ``obs_k = z`` and ``model_k = g(z~(x_k, theta_k), theta_d_k)``;
+in the paper's eq. 12 ``obs_k = g^-1(z, theta_d_k)`` and ``model_k = z~(x_k, theta_k)``),
+with ``Sigma`` the likelihood's own
 covariance (:meth:`~formtwin.measurement.MeasurementModel.covariance`, whatever the
 likelihood is configured with). Over the cloud the residual has mean ``r_bar = sum v_k r_k``
 and covariance ``Sigma + C`` with ``C`` the weighted covariance of the ``r_k`` (the cloud's

@@ -57,6 +57,7 @@ from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker.config import SCALES, SHARES, TrackerConfig
 from formtwin.tracker.discrepancy import Discrepancy
+from formtwin.tracker.guide import GuidedProposal
 from formtwin.tracker.moves import MoveHooks
 
 FloatArray = NDArray[np.float64]
@@ -68,7 +69,7 @@ CHUNK = 512
 
 
 @dataclass(frozen=True)
-class BendingSSM(MoveHooks):
+class BendingSSM(MoveHooks, GuidedProposal):
     """The augmented state-space model ``[x, theta, theta_d]`` for the generic filters.
 
     Parameters

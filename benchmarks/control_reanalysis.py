@@ -1,0 +1,88 @@
+"""Reanalysis of a finished control study (``bench_control.py``'s cached datasets): how much
+the posterior's predicted angles and, as a what-if, the angle after the first stage could
+add to the run-to-run EWMA, without re-running any controller.
+
+For each dataset, with the plant's final angle ``a_i`` at the nominal setting (no control)
+and a second signal ``c_i`` known before product ``i``'s second stage (the posterior mean of
+the final angle after its curve, or the measured stage-1 angle), the one-step prediction::
+
+    a_hat_i = L + w (c_i - K)      L, K: EWMAs (weight lam) of a and c over earlier products
+
+is scored by its error std over products 100-999 against ``w = 0`` (the EWMA alone):
+
+* ``weight_grid``: ``w`` and ``lam`` the best in hindsight on each dataset (in-sample: an
+  upper bound of what a fixed weight gives);
+* ``adaptive``: ``w`` the running least-squares slope of ``a_i - L`` on ``c_i - K`` over the
+  earlier products (clipped to [0, 1]; out of sample by construction), ``lam`` 0.7.
+
+This is the nominal-setting proxy of the closed loop (the plant's angle is nearly linear in
+``u``), not a closed-loop result. Run after ``bench_control.py``::
+
+    python benchmarks/control_reanalysis.py
+"""
+
+from __future__ import annotations
+
+import json
+from itertools import product
+
+import numpy as np
+
+from formtwin._bench import CACHE
+from formtwin.dataset import DoeDataset
+
+LAMS = (0.5, 0.7, 1.0)
+WEIGHTS = (0.0, 0.02, 0.05, 0.1, 0.25, 0.5, 0.75, 1.0)
+
+
+def predict(a: np.ndarray, c: np.ndarray, lam: float, w: float | None,
+            burn_in: int = 100) -> np.ndarray:
+    """Prediction errors of ``a`` (n,) from its EWMA and ``c`` (n,) after ``burn_in``;
+    ``w`` None: the running least-squares slope."""
+    level = ref = None
+    sxy = sxx = 0.0
+    err = []
+    for i in np.flatnonzero(np.isfinite(a) & np.isfinite(c)):
+        if level is None or ref is None:
+            level, ref = a[i], c[i]
+            continue
+        x, y = c[i] - ref, a[i] - level
+        wi = w if w is not None else (float(np.clip(sxy / sxx, 0, 1)) if sxx > 0 else 0.0)
+        if i >= burn_in:
+            err.append(y - wi * x)
+        sxy, sxx = sxy + x * y, sxx + x * x
+        level, ref = lam * a[i] + (1 - lam) * level, lam * c[i] + (1 - lam) * ref
+    return np.asarray(err)
+
+
+def analyse(a: np.ndarray, c: np.ndarray) -> dict[str, object]:
+    """Std ratios to the EWMA alone: in-sample best fixed weight, adaptive weight."""
+    sd = {(lm, w): float(np.std(predict(a, c, lm, w))) for lm, w in product(LAMS, WEIGHTS)}
+    ewma = min(sd[(lm, 0.0)] for lm in LAMS)
+    best = min(sd, key=lambda k: sd[k])
+    return {"ewma_std_deg": round(ewma, 4),
+            "weight_grid": {"lam": best[0], "w": best[1], "ratio": round(sd[best] / ewma, 3)},
+            "adaptive_ratio": round(float(np.std(predict(a, c, 0.7, None))) / ewma, 3)}
+
+
+def main() -> None:
+    """Print the reanalysis of every cached dataset as JSON."""
+    folder = CACHE / "control"
+    out: dict[str, object] = {}
+    for k in range(6):
+        path = folder / f"dataset_{k}.npz"
+        plant = DoeDataset.load(folder / f"plant_{k}.h5")
+        n = plant.n // 3
+        ok = plant.ok.reshape(3, n).all(axis=0)
+        final = np.where(ok, plant.angles[:, 1].reshape(3, n)[1], np.nan)
+        stage1 = np.where(ok, plant.angles[:, 0].reshape(3, n)[1], np.nan)
+        res: dict[str, object] = {"stage1_angle": analyse(final, stage1)}
+        if path.exists():
+            with np.load(path) as f:
+                res["posterior"] = analyse(f["angle_fixed"], f["nominal_mean"])
+        out[f"dataset_{k}"] = res
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

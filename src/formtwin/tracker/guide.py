@@ -1,0 +1,95 @@
+"""The guided proposal of the augmented model (``filter="guided"``,
+:class:`~formtwin.filters.GuidedSIR`): the state ``x`` drawn near its posterior given the
+parent and the curve, from a Gaussian built by linearising the model once per product. A
+mixin of :class:`~formtwin.tracker.ssm.BendingSSM`.
+
+For particle ``k`` the transition (eq. 4-5) gives ``x ~ N(a_k, Q)``, ``a_k = (1 - rho) mu +
+rho x_(k, i-1)``, ``Q = diag((1 - rho^2) sigma^2)``; the constant parameters are jittered as
+in SIR. The curve is linearised in ``x`` about the cloud's mean ``c`` (finite differences,
+``n_x + 1`` model evaluations): ``h(x) ~ h(a_k) + H (x - a_k)``, and with the likelihood's
+covariance ``R`` (``Sigma + E[kappa] K_res`` for the adaptive likelihood) the proposal is
+the Kalman step
+
+    q(x | x_(k, i-1), z_i) = N(a_k + S H^T R^-1 (z_i - h(a_k)),  S),
+    S = (Q^-1 + H^T R^-1 H)^-1,
+
+which costs one more model evaluation per particle (at ``a_k``). The draw is reflected into
+the design box like the transition; the ratio ``log N(x; a_k, Q) - log q(x)`` is that of the
+Gaussians (the reflection's images are left out: the box is many ``sqrt(S)`` wide). The
+linearisation only makes ``q`` better or worse; the weights keep the filter's target exact.
+Not with a learned mu (the transition is then the predictive of the path's statistics) nor
+with the shared discrepancy (its residuals depend on each particle's statistics).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.evolution import reflect
+from formtwin.tracker.hyper import GridPosteriors
+
+FloatArray = NDArray[np.float64]
+
+
+class GuidedProposal(GridPosteriors):
+    """``sample_guided(x, y, rng) -> (x_new, log_ratio)`` of the augmented model."""
+
+    _lo: FloatArray
+    _hi: FloatArray
+    _mu: FloatArray
+    _sigma: FloatArray
+    _rho: FloatArray
+    _sizes: tuple[int, int, int]
+    config: Any
+    sample_transition: Any
+    residuals: Any
+    #: step of the finite differences of the linearisation, in units of sigma
+    fd_step: float = 0.1
+    #: factor on the proposal's covariance ``S``: above 1 its tails are heavier than the
+    #: posterior's, which bounds the importance ratios where the linearisation is off
+    widen: float = 2.0
+
+    def _lik_cov(self) -> FloatArray:
+        """The likelihood's covariance (n_t, n_t) for the proposal: ``Sigma``, plus the
+        posterior mean of ``kappa`` times ``K_res`` for the adaptive likelihood."""
+        d = self.discrepancy
+        if d is None:
+            return np.asarray(self.measurement.covariance())
+        return np.asarray(d.predictive_cov(None, np.exp(self.share_logpost)))
+
+    def sample_guided(self, x: FloatArray, y: FloatArray, rng: np.random.Generator
+                      ) -> tuple[FloatArray, FloatArray]:
+        """Particles (N, d) of the next product drawn from the guided proposal given this
+        one's ``x`` (N, d) and its curve ``y`` (n_t,) N, and their log importance ratios
+        (N,) ``log p(x_new | x) - log q(x_new | x, y)`` (see the module doc)."""
+        if self.config.learn_mu or (self.discrepancy is not None and self.discrepancy.shared):
+            raise ValueError("the guided proposal needs a fixed mu and no shared discrepancy")
+        nx = self._sizes[0]
+        out = self.sample_transition(x, rng)  # constant parameters jittered as in SIR
+        a = (1.0 - self._rho) * self._mu + self._rho * x[:, :nx]
+        q = (1.0 - self._rho**2) * self._sigma**2
+        pilot = out.copy()
+        pilot[:, :nx] = a
+        r = self.residuals(pilot, y)  # z - h(a_k), (N, n_t)
+        step = self.fd_step * self._sigma
+        base = np.repeat(pilot.mean(axis=0)[None, :], nx + 1, axis=0)
+        base[1:, :nx] += np.diag(step)
+        r_fd = self.residuals(base, y)
+        H = (r_fd[0] - r_fd[1:]).T / step  # (n_t, nx): dh/dx (r = z - h)
+        RiH = np.linalg.solve(self._lik_cov(), H)
+        S = np.linalg.inv(np.diag(1.0 / q) + H.T @ RiH)
+        S = 0.5 * (S + S.T)
+        L = np.linalg.cholesky(S * self.widen)
+        good = np.all(np.isfinite(r), axis=1)
+        mean = a + np.where(good[:, None], np.nan_to_num(r) @ (S @ RiH.T).T, 0.0)  # gain
+        eps = rng.standard_normal((x.shape[0], nx))
+        new = mean + eps @ L.T
+        log_p = -0.5 * np.sum((new - a) ** 2 / q + np.log(2.0 * math.pi * q), axis=1)
+        log_q = (-0.5 * np.sum(eps**2, axis=1) - float(np.sum(np.log(np.diag(L))))
+                 - 0.5 * nx * math.log(2.0 * math.pi))
+        out[:, :nx] = reflect(new, self._lo[:nx], self._hi[:nx])
+        return out, log_p - log_q

@@ -1,0 +1,125 @@
+"""The guided filter (``filter="guided"``): with a proposal that is not the posterior its
+weights still give the exact Kalman filter of a linear-Gaussian model; the bending model's
+proposal has importance ratios with mean 1 and the transition's mean; a tracker with it
+continues bit for bit and refuses what it cannot do."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from filter_refs import (
+    analytic_tracker,
+    assert_continues_bit_for_bit,
+    interior_curves,
+    kalman_filter,
+)
+from scipy import stats
+
+from formtwin.filters import SIR, GuidedSIR
+from formtwin.tracker import TrackerConfig
+
+
+class LinearGaussian:
+    """x_i = A x_(i-1) + N(0, Q), y = H x + N(0, R); a deliberately imperfect guided
+    proposal: the Kalman step with 0.8 of its gain and 1.5 times its covariance."""
+
+    def __init__(self, H: np.ndarray, R: np.ndarray, A: np.ndarray, Q: np.ndarray) -> None:
+        self.H, self.R, self.A, self.Q = H, R, A, Q
+        d = len(Q)
+        self.S = np.linalg.inv(np.linalg.inv(Q) + H.T @ np.linalg.solve(R, H))
+        self.K = self.S @ H.T @ np.linalg.inv(R)
+        self.q_cov = 1.5 * self.S
+        self.d = d
+
+    def sample_initial(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return rng.standard_normal((n, self.d))
+
+    def sample_transition(self, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return x @ self.A.T + rng.multivariate_normal(np.zeros(self.d), self.Q, len(x))
+
+    def loglik(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return stats.multivariate_normal(np.zeros(len(y)), self.R).logpdf(y - x @ self.H.T)
+
+    def sample_guided(self, x: np.ndarray, y: np.ndarray, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        a = x @ self.A.T
+        mean = a + 0.8 * (y - a @ self.H.T) @ self.K.T
+        new = mean + rng.multivariate_normal(np.zeros(self.d), self.q_cov, len(x))
+        lp = stats.multivariate_normal(np.zeros(self.d), self.Q).logpdf(new - a)
+        lq = stats.multivariate_normal(np.zeros(self.d), self.q_cov).logpdf(new - mean)
+        return new, lp - lq
+
+
+def test_guided_filter_matches_the_kalman_filter_with_an_imperfect_proposal() -> None:
+    rng = np.random.default_rng(12)
+    n_t, d = 8, 2
+    H = rng.standard_normal((n_t, d)) * 3.0  # the curve pins x far tighter than Q spreads it
+    R = np.eye(n_t)
+    A, Q = np.diag([0.8, 0.9]), np.diag([0.5, 0.4])
+    lg = LinearGaussian(H, R, A, Q)
+    x = rng.standard_normal(d)
+    ys = []
+    for _ in range(5):
+        x = A @ x + rng.multivariate_normal(np.zeros(d), Q)
+        ys.append(H @ x + rng.standard_normal(n_t))
+    f = GuidedSIR(lg, 20_000, np.random.default_rng(5))
+    f.initialise()
+    boot = SIR(lg, 20_000, np.random.default_rng(5))
+    ev_kf = ev_pf = 0.0
+    kf = kalman_filter(A, Q, H, R, np.zeros(d), np.eye(d), ys)
+    for y, (m, P, ev) in zip(ys, kf, strict=True):
+        ev_kf += ev
+        s = f.step(y)
+        ev_pf += s.loglik
+        sd = np.sqrt(np.diag(P))
+        np.testing.assert_allclose(s.mean(), m, atol=0.05 * sd.max())
+        np.testing.assert_allclose(s.std(), sd, rtol=0.05)
+        assert s.ess > 3 * boot.step(y).ess  # the point of the proposal
+    assert ev_pf == pytest.approx(ev_kf, abs=0.1)
+    with pytest.raises(ValueError, match="sample_guided"):
+        GuidedSIR(object(), 10, np.random.default_rng(0))  # type: ignore[arg-type]
+
+
+def _tracker(**kw: object) -> tuple[object, object]:
+    return analytic_tracker(filter="guided", **kw)
+
+
+def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess() -> None:
+    """One parent in the box, a curve from a state off the transition's mean: the draws
+    weighted by likelihood x ratio have the posterior mean of the transition's draws
+    weighted by the likelihood (within both Monte-Carlo errors), at a far larger ESS."""
+    model, tr = _tracker()
+    ssm = tr.ssm  # type: ignore[attr-defined]
+    nx, n_in = ssm.n_x, ssm.n_in
+    rng = np.random.default_rng(2)
+    parent = 0.5 * (ssm._lo + ssm._hi)
+    parent[:nx] = ssm._mu
+    truth = parent.copy()
+    truth[:nx] += 0.5 * ssm._sigma
+    y = model.predict_curves(truth[None, :n_in])[0]  # type: ignore[attr-defined]
+
+    def weighted(x: np.ndarray, logw: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        w = np.exp(logw - logw.max())
+        w /= w.sum()
+        m = w @ x[:, :nx]
+        return m, np.sqrt(w @ (x[:, :nx] - m) ** 2), float(1.0 / np.sum(w * w))
+
+    xb = ssm.sample_transition(np.repeat(parent[None, :], 200_000, axis=0), rng)
+    mb, sb, essb = weighted(xb, ssm.loglik_fixed(xb, y))
+    xg, ratio = ssm.sample_guided(np.repeat(parent[None, :], 20_000, axis=0), y, rng)
+    mg, sg, essg = weighted(xg, ssm.loglik_fixed(xg, y) + ratio)
+    assert essg / 20_000 > 1.3 * essb / 200_000  # share of the draws that count
+    tol = 5 * np.maximum(sb, sg) * np.sqrt(1 / essb + 1 / essg)
+    np.testing.assert_array_less(np.abs(mg - mb), tol)
+    np.testing.assert_allclose(sg, sb, rtol=0.3)
+
+
+def test_guided_tracker_continues_bit_for_bit_and_refuses_learned_statistics() -> None:
+    model, tr = _tracker()
+    curves = interior_curves(model)
+    for c in curves[:3]:
+        tr.step(c)  # type: ignore[attr-defined]
+    assert_continues_bit_for_bit(model, tr, curves[3:])
+    for bad in ({"learn_mu": True}, {"likelihood": "discrepancy"}):
+        with pytest.raises(ValueError, match="guided"):
+            TrackerConfig(filter="guided", **bad)  # type: ignore[arg-type]
