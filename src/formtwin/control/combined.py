@@ -54,6 +54,12 @@ import numpy as np
 
 from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray, Suggestion
 
+#: ``lam`` and ``weight`` the closed-loop study chose on its tuning dataset (the last
+#: ``benchmarks/results/bench_control.json``'s ``ff_lam`` and ``ff_weight``, docs/control.md):
+#: the service's defaults
+TUNED_LAM = 0.7
+TUNED_WEIGHT = 0.75
+
 
 @dataclass
 class Combined:
@@ -126,4 +132,4 @@ class Combined:
         return self.bias
 
 
-__all__ = ["Combined"]
+__all__ = ["TUNED_LAM", "TUNED_WEIGHT", "Combined"]
