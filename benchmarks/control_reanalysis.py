@@ -30,6 +30,9 @@ import numpy as np
 
 from formtwin._bench import CACHE
 from formtwin.dataset import DoeDataset
+from formtwin.defaults import physics_model
+from formtwin.spec import load_spec
+from formtwin.study.control import plant_path
 
 LAMS = (0.5, 0.7, 1.0)
 WEIGHTS = (0.0, 0.02, 0.05, 0.1, 0.25, 0.5, 0.75, 1.0)
@@ -68,10 +71,11 @@ def analyse(a: np.ndarray, c: np.ndarray) -> dict[str, object]:
 def main() -> None:
     """Print the reanalysis of every cached dataset as JSON."""
     folder = CACHE / "control"
-    out: dict[str, object] = {}
+    version = physics_model("bending", load_spec()).version
+    out: dict[str, object] = {"physics_version": version}
     for k in range(6):
         path = folder / f"dataset_{k}.npz"
-        plant = DoeDataset.load(folder / f"plant_{k}.h5")
+        plant = DoeDataset.load(plant_path(folder, k, version))
         n = plant.n // 3
         ok = plant.ok.reshape(3, n).all(axis=0)
         final = np.where(ok, plant.angles[:, 1].reshape(3, n)[1], np.nan)

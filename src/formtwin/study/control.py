@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.control import Actuator, EwmaRunToRun, Feedforward
-from formtwin.dataset import DoeDataset
+from formtwin.dataset import DatasetError, DoeDataset, open_for_run
 from formtwin.deviation import DeviationModel
 from formtwin.doe import run_design
 from formtwin.measurement import ProcessModel
@@ -141,6 +141,12 @@ class PlantAngles:
                      + a2 * (u - u0) * (u - u1) / ((u2 - u0) * (u2 - u1)))
 
 
+def plant_path(folder: Path, k: int, version: str) -> Path:
+    """The physics runs of dataset ``k``'s plant, one file per physics model version (a
+    new version runs its own plant; the old one stays for reanalysis)."""
+    return folder / f"plant_{k}_{version}.h5"
+
+
 def plant_run(spec: Any, physics: Simulator, settings: ControlStudySettings, k: int,
               folder: Path
               ) -> tuple[ProductionRun, FloatArray, NDArray[np.bool_], PlantAngles]:
@@ -152,7 +158,7 @@ def plant_run(spec: Any, physics: Simulator, settings: ControlStudySettings, k: 
     u3 = np.array([c.lo[0], c.nominal[0], c.hi[0]])
     n = run.n
     X = np.vstack([spec.run_columns(run.inputs, float(u)) for u in u3])
-    data: DoeDataset = run_design(physics, X, folder / f"plant_{k}.h5",
+    data: DoeDataset = run_design(physics, X, plant_path(folder, k, physics.version),
                                   executor="processes", workers=settings.workers,
                                   seed=settings.seed)
     ok: NDArray[np.bool_] = np.asarray(data.ok.reshape(3, n).all(axis=0), dtype=bool)
@@ -293,8 +299,14 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
         idx = np.flatnonzero(ok)[:: max(1, ok.sum() // settings.interp_check)]
         idx = idx[: settings.interp_check]
         X = spec.run_columns(run.inputs[idx], u["feedforward"][idx])
-        chk = run_design(physics, X, folder / f"check_{k}.h5", executor="processes",
-                         workers=settings.workers, seed=settings.seed)
+        path = folder / f"check_{k}.h5"
+        try:  # 20 runs: a file of other settings or another model version is replaced
+            if path.exists():
+                open_for_run(path, spec, X, physics.version).close()
+        except DatasetError:
+            path.unlink()
+        chk = run_design(physics, X, path, executor="processes", workers=settings.workers,
+                         seed=settings.seed)
         out["interp_error"] = chk.angles[:, 1] - out["angle_feedforward"][idx]
     return out
 
@@ -322,5 +334,5 @@ def scores(angles: FloatArray, target: float, band: float) -> dict[str, float]:
 
 
 __all__ = ["CONTROLLERS", "FF_WEIGHTS", "R2R_LAMS", "ControlStudySettings", "PlantAngles",
-           "choose_weights", "default_target", "metamodel_final", "plant_run", "r2r",
-           "r2r_gain", "run_dataset", "scores", "tune_dataset"]
+           "choose_weights", "default_target", "metamodel_final", "plant_path", "plant_run",
+           "r2r", "r2r_gain", "run_dataset", "scores", "tune_dataset"]

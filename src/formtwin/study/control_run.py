@@ -23,6 +23,7 @@ from formtwin.study.control import (
     ControlStudySettings,
     choose_weights,
     default_target,
+    plant_run,
     r2r_gain,
     run_dataset,
     scores,
@@ -65,6 +66,20 @@ def _key(settings: ControlStudySettings, target: float, version: str,
         if f.relative_to(pkg).parts[0] not in NOT_IN_RESULTS:
             h.update(f.read_bytes())
     return h.hexdigest()[:16]
+
+
+def build_plants(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
+                 out: str | Path) -> int:
+    """Run (or complete) the physics of every dataset's plant (:func:`~formtwin.study.control.plant_path` in
+    ``out``, the scored datasets and the tuning ones) without any controller, so that the study
+    itself can run later from the cache; return the number of datasets."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    n = settings.datasets + max(settings.tune_datasets, 0)
+    for k in range(n):
+        log.info("control study: plant of dataset %d of %d", k + 1, n)
+        plant_run(metamodel.spec, physics, settings, k, out)
+    return n
 
 
 def run_control_study(metamodel: ProcessModel, physics: Simulator,
