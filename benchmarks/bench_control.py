@@ -6,7 +6,8 @@ version; ``--plant-only`` runs only the plants' physics into the cache, so that 
 controllers' part, ~7 min, can run later; ``make control-study`` runs the same study through
 the command line into the same folder, whose per-dataset results this script reuses).
 Plant: the physics model (bending) under series-6 conditions; model: the metamodel of the
-bundled physics DOE (what a fresh clone gets, fitted into the study folder). See :mod:`formtwin.study.control` and ``docs/control.md``.
+bundled physics DOE (what a fresh clone gets, fitted into the study folder). See
+:mod:`formtwin.study.control` and ``docs/control.md``.
 
 Figures (``benchmarks/results/bench_control.json``): per controller (fixed, ewma,
 feedforward, feedforward_open, oracle) the mean error, std, RMSE and share within

@@ -70,9 +70,10 @@ def _key(settings: ControlStudySettings, target: float, version: str,
 
 def build_plants(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
                  out: str | Path) -> int:
-    """Run (or complete) the physics of every dataset's plant (:func:`~formtwin.study.control.plant_path` in
-    ``out``, the scored datasets and the tuning ones) without any controller, so that the study
-    itself can run later from the cache; return the number of datasets."""
+    """Run (or complete) the physics of every dataset's plant
+    (:func:`~formtwin.study.control.plant_path` in ``out``, the scored datasets and the tuning
+    ones) without any controller, so that the study itself can run later from the cache;
+    return the number of datasets."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     n = settings.datasets + max(settings.tune_datasets, 0)
