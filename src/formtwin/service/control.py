@@ -3,11 +3,12 @@ setting for its product.
 
 After the tracker has assimilated a product's stage-1 curve, :class:`ServiceController`
 asks :class:`formtwin.control.Combined` (feedforward plus feedback, the closed-loop study's
-controller with its tuned ``lam`` and ``weight``, :data:`formtwin.control.TUNED_LAM` and
-:data:`~formtwin.control.TUNED_WEIGHT`) for the setting ``u`` of the spec's one control
-that minimises the posterior expected squared error of the final angle over the particles
-against the target minus a trim and minus the untrusted share ``1 - weight`` of the
-posterior's product-to-product change, within the actuator's limits (the spec's bounds of
+controller with its tuned ``lam``, ``weight`` and ``rho``, :data:`formtwin.control.TUNED_LAM`,
+:data:`~formtwin.control.TUNED_WEIGHT`, :data:`~formtwin.control.TUNED_RHO`) for the setting
+``u`` of the spec's one control that minimises the posterior expected squared error of the
+final angle over the particles against the target minus a trim, minus the untrusted share
+``1 - weight`` of the posterior's product-to-product change and minus what persists (``rho``)
+of the last product's deviation, within the actuator's limits (the spec's bounds of
 the control) and a maximum step from the previous suggestion. The trim is an EWMA (weight
 ``lam``) of the model's prediction error on measured final angles: a stroke message's
 optional ``angles_deg`` (the product's measured angles, final angle second; validated like
@@ -19,16 +20,17 @@ or no measured angles: the open feedforward). The estimate message gets::
     "control": {"target_deg": 90.0, "u": [0.012], "u_unit": "mm",
                 "final_angle_deg": 89.98, "final_angle_std_deg": 0.11,
                 "interval_deg": [89.8, 90.2], "coverage": 0.9, "limited": false,
-                "trim_deg": -0.05, "level_deg": 90.02, "lam": 0.7, "weight": 0.75}
+                "trim_deg": -0.05, "level_deg": 90.02, "last_error_deg": 0.01,
+                "last_reference_deg": 90.03, "lam": 0.7, "weight": 0.75, "rho": 0.0}
 
 ``final_angle_deg`` and the interval are the predicted final angle at ``u``, with the shift
-used for the suggestion (trim and untrusted change); ``trim_deg`` and ``level_deg`` are the
-controller's state after this product's measured angle (used for the next product; the
-level is null before the first measured angle). The suggestion is made before the product's
-own measured angle is used. The previous suggestion (for the maximum step), the trim and the
-level are those stored with the last accepted product, so a restarted service continues
-from them bit for bit. The closed-loop study (``docs/control.md``) measured this controller
-against the open feedforward, the run-to-run EWMA and an oracle.
+used for the suggestion; ``trim_deg``, ``level_deg``, ``last_error_deg`` and
+``last_reference_deg`` are the controller's state after this product's measured angle (used
+for the next product; null before the first measured angle). The suggestion is made before
+the product's own measured angle is used. The previous suggestion (for the maximum step) and
+the controller's state are those stored with the last accepted product, so a restarted
+service continues from them bit for bit. The closed-loop study (``docs/control.md``)
+measured this controller against the open feedforward, the run-to-run EWMA and an oracle.
 """
 
 from __future__ import annotations
@@ -38,7 +40,14 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from formtwin.control import TUNED_LAM, TUNED_WEIGHT, Actuator, Combined, Feedforward
+from formtwin.control import (
+    TUNED_LAM,
+    TUNED_RHO,
+    TUNED_WEIGHT,
+    Actuator,
+    Combined,
+    Feedforward,
+)
 from formtwin.service.store import Store
 
 log = logging.getLogger(__name__)
@@ -56,12 +65,15 @@ class ControlSettings:
         in [0, 1]; default: the closed-loop study's tuning.
     weight : share of the posterior's product-to-product change trusted, in [0, 1] (1: all
         of it); default: the closed-loop study's tuning.
+    rho : persistence of the last product's deviation from the level, in [0, 1); default:
+        the closed-loop study's tuning.
     """
 
     target_deg: float
     max_step: float = 0.25
     lam: float = TUNED_LAM
     weight: float = TUNED_WEIGHT
+    rho: float = TUNED_RHO
 
     def __post_init__(self) -> None:
         if not 0 < self.max_step <= 1:
@@ -70,6 +82,8 @@ class ControlSettings:
             raise ValueError(f"control lam = {self.lam}, expected in [0, 1]")
         if not 0 <= self.weight <= 1:
             raise ValueError(f"control weight = {self.weight}, expected in [0, 1]")
+        if not 0 <= self.rho < 1:
+            raise ValueError(f"control rho = {self.rho}, expected in [0, 1)")
 
 
 class ServiceController:
@@ -95,22 +109,24 @@ class ServiceController:
         self.unit = str(c.variables[0].internal_unit)
         self.controller = Combined(Feedforward(settings.target_deg,
                                                Actuator(lo, hi, settings.max_step * (hi - lo))),
-                                   settings.lam, settings.weight, float(c.nominal[0]))
+                                   settings.lam, settings.weight, float(c.nominal[0]),
+                                   rho=settings.rho)
         self.u_prev: float | None = None
         for row in store.products(since_seq=max(store.next_seq() - 50, 0), status="accepted"):
             ctl = (row.estimate or {}).get("control")
             if ctl and ctl.get("u"):
                 self.u_prev = float(ctl["u"][0])
                 self.controller.bias = float(ctl.get("trim_deg") or 0.0)
-                level = ctl.get("level_deg")
-                self.controller.level = None if level is None else float(level)
-        self._saved: tuple[float | None, float, float | None] | None = None
+                for name, key in _STATE:
+                    v = ctl.get(key)
+                    setattr(self.controller, name, None if v is None else float(v))
+        self._saved: tuple[Any, ...] | None = None
 
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:
         """The ``"control"`` entry for the product just stepped (:meth:`rollback` undoes
         the change of the controller's state)."""
         ctl = self.controller
-        self._saved = (self.u_prev, ctl.bias, ctl.level)
+        self._saved = (self.u_prev, ctl.bias, *(getattr(ctl, n) for n, _ in _STATE))
         w = self.tracker.weights()
         # c_i: the posterior mean at the nominal setting (only a weight below 1 uses it)
         ref = ctl.reference(self.tracker.final_angle, w) if ctl.weight < 1 else None
@@ -125,19 +141,26 @@ class ServiceController:
                 "final_angle_deg": d["angle_mean"], "final_angle_std_deg": d["angle_std"],
                 "interval_deg": d["interval"], "coverage": ctl.feedforward.coverage,
                 "limited": d["limited"], "trim_deg": _num(ctl.bias),
-                "level_deg": None if ctl.level is None else _num(ctl.level),
-                "lam": ctl.lam, "weight": ctl.weight}
+                **{key: _num(getattr(ctl, name)) for name, key in _STATE},
+                "lam": ctl.lam, "weight": ctl.weight, "rho": ctl.rho}
 
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
         if self._saved is not None:
-            self.u_prev, self.controller.bias, self.controller.level = self._saved
+            self.u_prev, self.controller.bias, *state = self._saved
+            for (name, _), v in zip(_STATE, state, strict=True):
+                setattr(self.controller, name, v)
             self._saved = None
 
 
-def _num(v: float) -> float | None:
-    """``v``, or None when not finite (JSON)."""
-    return v if math.isfinite(v) else None
+#: the controller's state besides the trim: (attribute of Combined, key in the message)
+_STATE = (("level", "level_deg"), ("last_error", "last_error_deg"),
+          ("last_reference", "last_reference_deg"))
+
+
+def _num(v: float | None) -> float | None:
+    """``v``, or None when missing or not finite (JSON)."""
+    return v if v is not None and math.isfinite(v) else None
 
 
 __all__ = ["ControlSettings", "ServiceController"]

@@ -38,7 +38,8 @@ LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
           "feedforward": "feedforward (formtwin, with trim)", "oracle": "oracle (true state)",
           "feedforward_open": "feedforward without trim",
           "feedforward_full": "feedforward with trim, whole change trusted",
-          "feedforward_angle": "feedforward with trim, angles in the filter"}
+          "feedforward_angle": "feedforward with trim, angles in the filter",
+          "trim_only": "the same trim, estimates' change unused (weight 0)"}
 #: the cases of the figure (those the study ran)
 SHOWN = ("fixed", "ewma", "feedforward", "feedforward_angle", "oracle")
 
@@ -109,7 +110,7 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     sd = {c: summary[c]["std_deg"] for c in names}
     per = {c: [float(np.nanstd(r[f"angle_{c}"][b:])) for r in results] for c in names}
     for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
-                    ("feedforward_full", "fffull")):
+                    ("feedforward_full", "fffull"), ("trim_only", "trim")):
         for other in ("fixed", "oracle", "ewma"):
             if ff not in sd:
                 continue
