@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin._threads import single_blas_thread
+from formtwin._threads import retain_heap, single_blas_thread
 from formtwin.control import Combined, Feedforward, Suggestion
 from formtwin.estimates import Estimate, Estimates
 from formtwin.filters import SIR, Step, make_filter
@@ -121,6 +121,7 @@ class Tracker:
     def __init__(self, model: ProcessModel, measurement: MeasurementModel,
                  config: TrackerConfig | None = None, fit_rule: FitRule | None = None
                  ) -> None:
+        retain_heap()  # the step's ~MB temporaries: no page faults per product
         self.config = TrackerConfig() if config is None else config
         self.fit_rule = FitRule() if fit_rule is None else fit_rule
         self.model = model
