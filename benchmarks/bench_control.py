@@ -35,6 +35,9 @@ def main() -> None:
     p.add_argument("--products", type=int, default=1000)
     p.add_argument("--datasets", type=int, default=5)
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--no-angle-filter", action="store_true",
+                   help="skip the feedforward with the measured angles in the filter (one "
+                   "tracker pass per dataset less)")
     p.add_argument("--plant-only", action="store_true",
                    help="only run (or complete) the plants' physics into the cache, no "
                    "controllers and no result (the long part: ~30 min)")
@@ -43,7 +46,8 @@ def main() -> None:
     metamodel, mm_path = default_metamodel(out / "model", "bending")
     physics = physics_model("bending", metamodel.spec)
     settings = ControlStudySettings(products=args.products, datasets=args.datasets,
-                                    workers=args.workers)
+                                    workers=args.workers,
+                                    angle_in_filter=not args.no_angle_filter)
     t0 = time.perf_counter()
     if args.plant_only:
         n = build_plants(metamodel, physics, settings, out)

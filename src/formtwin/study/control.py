@@ -17,10 +17,10 @@ with the deviation estimated. Per dataset (``products`` products):
   minus a trim: an EWMA of its prediction error on the measured angles of earlier
   products, trusting a share ``weight`` of the posterior's product-to-product change, with
   the persistence ``rho`` of the last product's deviation (the EWMA's weight, the share and
-  ``rho`` the best of :data:`R2R_LAMS` x :data:`FF_WEIGHTS` x :data:`FF_RHOS` on the
-  tuning datasets); ``feedforward_full`` the same with the whole change trusted and no
-  persistence (weight 1, rho 0, its EWMA weight tuned likewise: the earlier sessions'
-  controller); ``trim_only`` the tuned one with weight 0 (the estimates' change unused:
+  ``rho`` the best of :data:`FF_RHOS` x :data:`FF_WEIGHTS` on the tuning datasets, each
+  ``rho`` with its ``lam`` values); ``feedforward_full`` the same with the whole change
+  trusted and no persistence (weight 1, rho 0, its EWMA weight tuned likewise: the earlier
+  sessions' controller); ``trim_only`` the tuned one with weight 0 (the estimates' change unused:
   what the trim's time-series model alone gives); ``feedforward_open`` the feedforward
   without the trim;
 * ``feedforward_angle``: ``feedforward`` with each measured final angle also entering the
@@ -70,8 +70,11 @@ CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "fe
 R2R_LAMS = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 #: shares of the posterior's product-to-product change tried for the feedforward
 FF_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
-#: persistence of the last product's deviation from the level tried for the feedforward's trim
-FF_RHOS = (0.0, 0.7)
+#: persistence of the last product's deviation from the level tried for the feedforward's
+#: trim, each with the EWMA weights tried with it: without persistence a fast level (today's
+#: EWMA), with it (the states' AR(1) coefficient of eq. 4, 0.7-0.8) a slow one (the grid
+#: stays near the earlier 30 controllers: each costs a feedforward choice per product)
+FF_RHOS = {0.0: (0.1, 0.3, 0.5, 0.7, 1.0), 0.7: (0.02, 0.05)}
 
 
 @dataclass(frozen=True)
@@ -93,8 +96,8 @@ class ControlStudySettings:
     trim_lam : EWMA weight of the feedforward's trim (its prediction error on earlier
         products' measured angles, ``r2r_delay`` late); None: tuned (see ``tune_datasets``).
     ff_weight : share of the posterior's product-to-product change the feedforward trusts;
-        None: tuned with ``trim_lam`` and ``ff_rho`` (the best of :data:`R2R_LAMS` x
-        :data:`FF_WEIGHTS` x :data:`FF_RHOS`).
+        None: tuned with ``trim_lam`` and ``ff_rho`` (the best of :data:`FF_RHOS` x
+        :data:`FF_WEIGHTS`).
     ff_rho : persistence of the last product's deviation in the trim
         (:class:`~formtwin.control.Combined`'s ``rho``); None: tuned with ``ff_weight``.
     tune_datasets : datasets (indices ``datasets`` onwards: seeds apart from the scored
@@ -229,11 +232,15 @@ def tune_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlS
     (``r2r_std``)."""
     run, curves, ok, plant = plant_run(metamodel.spec, physics, settings, k, folder)
     act, ff, nominal = _setup(metamodel, settings, target)
-    lams = R2R_LAMS if settings.trim_lam is None else (settings.trim_lam,)
     weights = FF_WEIGHTS if settings.ff_weight is None else (settings.ff_weight,)
-    rhos = FF_RHOS if settings.ff_rho is None else (settings.ff_rho,)
-    grid = sorted({(lm, w, r) for lm in lams for w in weights for r in rhos}
-                  | {(lm, 1.0, 0.0) for lm in lams})
+    rho_lams = dict(FF_RHOS) if settings.ff_rho is None else \
+        {settings.ff_rho: FF_RHOS.get(settings.ff_rho, R2R_LAMS)}
+    if settings.trim_lam is not None:
+        rho_lams = {r: (settings.trim_lam,) for r in rho_lams}
+    grid_set = {(lm, w, r) for r, lams in rho_lams.items() for lm in lams for w in weights}
+    # the earlier sessions' controller (weight 1, rho 0) is scored too, its lam tuned as well
+    full_lams = FF_RHOS[0.0] if settings.trim_lam is None else (settings.trim_lam,)
+    grid = sorted(grid_set | {(lm, 1.0, 0.0) for lm in full_lams})
     config = replace(settings.tracker, seed=settings.seed + k)
     p = track_and_choose(metamodel, config, curves, ok, plant, ff, grid, nominal,
                          settings.r2r_delay)
