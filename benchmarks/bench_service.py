@@ -14,8 +14,13 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   broker: validation, tracker, model health, control charts, store, page feed; measured
   once the charts run) and ``tracker_step_ms`` (the tracker alone);
 * ``alarm_products``: products of the full-speed and paced phases whose estimate raised an
-  alarm (the stream is in control: few expected); ``alarms_by_chart`` counts them per
-  ``variable:chart``;
+  alarm; ``alarms_by_chart`` counts them per ``variable:chart``. The stream is in control
+  (no change) and the service is told its line's state means (``serve --mu``, the
+  stream's ``mu``), which the state charts watch: few alarms expected. (The stream draws
+  its means in the spec's ``[mu_min, mu_max]``, up to 2-4 sigma from the mid-range the
+  tracker assumes by default, ``line_mean_offset_sigma``; with ``--unknown-means`` the
+  service is not told, and the state charts see the line's own offset from the mid-range
+  as the lasting shift they are built to detect: docs/monitoring.md);
 * CPU time, which other jobs on the machine disturb far less than wall time:
   ``serve_cpu_ms_per_product`` (the whole serve process: MQTT, validation, tracker, store,
   page; during the full-speed phase), ``tracker_step_cpu_ms`` (thread time of a step), and
@@ -56,6 +61,7 @@ from typing import Any
 import numpy as np
 
 from formtwin._bench import bundled_metamodel, write_result
+from formtwin.defaults import analytic_model
 from formtwin.service.alarms import MonitorSource, ServiceMonitor, monitor_config
 from formtwin.service.messages import dumps
 from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
@@ -138,8 +144,10 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=1000, help="strokes of the full-speed phase")
     ap.add_argument("--n-latency", type=int, default=500, help="strokes of the paced phase")
     ap.add_argument("--particles", type=int, default=500)
+    ap.add_argument("--unknown-means", action="store_true",
+                    help="do not tell the service the stream's state means (--mu)")
     args = ap.parse_args()
-    stream_model: Any = None  # the analytic stand-in
+    stream_model: Any = analytic_model()
     if args.model == "physics":
         stream_model, mm_path, model_info = bundled_metamodel()
         metamodel: str | None = str(mm_path)
@@ -162,9 +170,18 @@ def main() -> int:
                                 "persistence false\nmax_queued_messages 100000\n")
     n_warm = 30
     # the strokes come from the served model (deviated by g, plus sensor noise)
-    strokes = read_stream(make_stream(tmp / "s.npz", n_warm + args.n + args.n_latency, seed=9,
-                                      noise_N=NOISE_N, model=stream_model))
+    stream = make_stream(tmp / "s.npz", n_warm + args.n + args.n_latency, seed=9,
+                         noise_N=NOISE_N, model=stream_model)
+    strokes = read_stream(stream)
+    with np.load(stream, allow_pickle=False) as z:
+        line_mu = tuple(float(v) for v in z["mu"])
+    state = stream_model.spec.state
+    offsets = {n: round((m - c) / s, 2) for n, m, c, s in zip(
+        state.names, line_mu, state.mu_mid, state.sigma, strict=True)}
+    mu = None if args.unknown_means else line_mu
     model = ["--metamodel", metamodel] if metamodel else ["--analytic"]
+    if mu is not None:
+        model += ["--mu", ",".join(repr(v) for v in mu)]
     procs: list[subprocess.Popen[bytes]] = []
     try:
         procs.append(subprocess.Popen([mosq, "-c", str(tmp / "m.conf")],
@@ -208,7 +225,7 @@ def main() -> int:
     threadpool_limits(limits=1, user_api="blas")
     settings = ServiceSettings(model=metamodel or "analytic",
                                tracker=TrackerConfig(n_particles=args.particles,
-                                                     sensor_noise=NOISE_N))
+                                                     sensor_noise=NOISE_N, mu=mu))
     proc = open_processor(tmp / "peer.sqlite", settings)
     proc.monitor = ServiceMonitor(proc.store, monitor_config(  # as serve sets them up
         proc.store, proc.tracker, MonitorSource(seed=settings.tracker.seed)))
@@ -247,6 +264,8 @@ def main() -> int:
         "full_speed_latency_p99_ms": round(float(np.percentile(lat_full, 99)), 1),
         "alarm_products": alarm_products,
         "alarms_by_chart": alarms_by_chart,
+        "line_means_told": mu is not None,
+        "line_mean_offset_sigma": offsets,
         "processor_products_per_s": round(peer_rate, 1),
         "tracker_step_ms": round(step_ms, 2),
         "serve_cpu_ms_per_product": round(serve_cpu_ms, 2),

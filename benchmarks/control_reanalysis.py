@@ -15,6 +15,16 @@ is scored by its error std over products 100-999 against ``w = 0`` (the EWMA alo
 * ``adaptive``: ``w`` the running least-squares slope of ``a_i - L`` on ``c_i - K`` over the
   earlier products (clipped to [0, 1]; out of sample by construction), ``lam`` 0.7.
 
+``ar`` (the posterior only): the prediction of :class:`formtwin.control.Combined` with
+``rho``, the persistence of the last product's deviation from the level::
+
+    a_hat_i = L + rho (a_j - L) + w ((c_i - K) - rho (c_j - K))      (j = i - 1)
+
+with ``(rho, lam, w)`` chosen on the tuning dataset (``tune_<k>.npz``: its plant's angle at
+the nominal setting and its estimates) and scored on each scored dataset (``tuned``), the same
+with ``w = 0`` (``tuned_no_estimates``: what the time-series model alone gives), and the best
+in hindsight per dataset (``best_in_sample``).
+
 This is the nominal-setting proxy of the closed loop (the plant's angle is nearly linear in
 ``u``), not a closed-loop result. Run after ``bench_control.py``::
 
@@ -30,9 +40,15 @@ import numpy as np
 
 from formtwin._bench import CACHE
 from formtwin.dataset import DoeDataset
+from formtwin.defaults import physics_model
+from formtwin.spec import load_spec
+from formtwin.study.control import plant_path
 
 LAMS = (0.5, 0.7, 1.0)
 WEIGHTS = (0.0, 0.02, 0.05, 0.1, 0.25, 0.5, 0.75, 1.0)
+#: the ``ar`` grid: (rho, lam, w)
+AR_GRID = tuple(product((0.0, 0.5, 0.6, 0.7, 0.8), (0.01, 0.02, 0.05, 0.1, 0.3, 0.7, 1.0),
+                        (0.0, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0)))
 
 
 def predict(a: np.ndarray, c: np.ndarray, lam: float, w: float | None,
@@ -55,6 +71,48 @@ def predict(a: np.ndarray, c: np.ndarray, lam: float, w: float | None,
     return np.asarray(err)
 
 
+def ar_errors(a: np.ndarray, c: np.ndarray, rho: float, lam: float, w: float,
+              burn_in: int = 100) -> np.ndarray:
+    """Prediction errors of ``a`` (n,) by ``L + rho (a_j - L) + w ((c_i - K) - rho (c_j - K))``
+    after ``burn_in`` (L, K: EWMAs of weight ``lam`` started at the first product)."""
+    level = ref = last_a = last_c = None
+    err = []
+    for i in np.flatnonzero(np.isfinite(a) & np.isfinite(c)):
+        if level is None or ref is None or last_a is None or last_c is None:
+            level, ref, last_a, last_c = a[i], c[i], a[i], c[i]
+            continue
+        pred = level + rho * (last_a - level) + w * ((c[i] - ref) - rho * (last_c - ref))
+        if i >= burn_in:
+            err.append(a[i] - pred)
+        level, ref = lam * a[i] + (1 - lam) * level, lam * c[i] + (1 - lam) * ref
+        last_a, last_c = a[i], c[i]
+    return np.asarray(err)
+
+
+def ar_analysis(data: dict[str, tuple[np.ndarray, np.ndarray]], tune: str | None
+                ) -> dict[str, object]:
+    """``ar`` std ratios to the best plain EWMA of each dataset of ``data`` (name -> (a, c)),
+    the grid's choice on dataset ``tune`` (None: not available) applied to the others."""
+    sd = {k: np.array([np.std(ar_errors(a, c, *g)) for g in AR_GRID]) for k, (a, c) in
+          data.items()}
+    ewma = {k: min(float(np.std(ar_errors(a, c, 0.0, lm, 0.0))) for lm in LAMS)
+            for k, (a, c) in data.items()}
+    out: dict[str, object] = {}
+    no_c = np.array([g[2] == 0.0 for g in AR_GRID])
+    if tune is not None:
+        best = int(np.argmin(sd[tune]))
+        best0 = int(np.flatnonzero(no_c)[np.argmin(sd[tune][no_c])])
+        out["tuned_on"] = {"dataset": tune, "rho_lam_w": AR_GRID[best],
+                           "no_estimates_rho_lam": AR_GRID[best0][:2]}
+        out["tuned"] = {k: round(float(v[best]) / ewma[k], 3) for k, v in sd.items()}
+        out["tuned_no_estimates"] = {k: round(float(v[best0]) / ewma[k], 3)
+                                     for k, v in sd.items()}
+    out["best_in_sample"] = {k: {"rho_lam_w": AR_GRID[int(np.argmin(v))],
+                                 "ratio": round(float(v.min()) / ewma[k], 3)}
+                             for k, v in sd.items()}
+    return out
+
+
 def analyse(a: np.ndarray, c: np.ndarray) -> dict[str, object]:
     """Std ratios to the EWMA alone: in-sample best fixed weight, adaptive weight."""
     sd = {(lm, w): float(np.std(predict(a, c, lm, w))) for lm, w in product(LAMS, WEIGHTS)}
@@ -68,19 +126,27 @@ def analyse(a: np.ndarray, c: np.ndarray) -> dict[str, object]:
 def main() -> None:
     """Print the reanalysis of every cached dataset as JSON."""
     folder = CACHE / "control"
-    out: dict[str, object] = {}
+    version = physics_model("bending", load_spec()).version
+    out: dict[str, object] = {"physics_version": version}
+    posterior: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    tune = None
     for k in range(6):
-        path = folder / f"dataset_{k}.npz"
-        plant = DoeDataset.load(folder / f"plant_{k}.h5")
+        plant = DoeDataset.load(plant_path(folder, k, version))
         n = plant.n // 3
         ok = plant.ok.reshape(3, n).all(axis=0)
         final = np.where(ok, plant.angles[:, 1].reshape(3, n)[1], np.nan)
         stage1 = np.where(ok, plant.angles[:, 0].reshape(3, n)[1], np.nan)
         res: dict[str, object] = {"stage1_angle": analyse(final, stage1)}
-        if path.exists():
-            with np.load(path) as f:
-                res["posterior"] = analyse(f["angle_fixed"], f["nominal_mean"])
+        for name in (f"dataset_{k}.npz", f"tune_{k}.npz"):
+            if (folder / name).exists():
+                with np.load(folder / name) as f:
+                    if "nominal_mean" in f.files:
+                        a = f["angle_fixed"] if "angle_fixed" in f.files else f["angle_nominal"]
+                        posterior[f"dataset_{k}"] = (a, f["nominal_mean"])
+                        res["posterior"] = analyse(a, f["nominal_mean"])
+                        tune = f"dataset_{k}" if name.startswith("tune") else tune
         out[f"dataset_{k}"] = res
+    out["ar"] = ar_analysis(posterior, tune)
     print(json.dumps(out, indent=1))
 
 

@@ -177,3 +177,46 @@ def test_combined_weight_between_ewma_and_full_feedforward() -> None:
             u_prev = s.u
     with pytest.raises(ValueError, match="weight"):
         Combined(Feedforward(T, act), 0.5, weight=1.5)
+
+
+def test_combined_rho_predicts_an_ar1_around_the_level() -> None:
+    """With rho the predicted angle at the reference setting is
+    L + rho (A_j - L) + w ((c_i - k) - rho (c_j - k)), L = b + k the level of the measured
+    angles moved there (A_j = e_j + c_j); for a plant whose deviation from a constant level
+    is an AR(1) with that rho and a posterior that knows nothing (w = 0), the error of each
+    product is its AR(1) innovation once the level has settled (lam small)."""
+    from formtwin.control import Combined
+
+    rng = np.random.default_rng(6)
+    b, rho, level = -0.05, 0.7, 88.0
+    act = Actuator(-100.0, 100.0)
+    x, d = 0.0, np.empty(400)
+    for i in range(d.size):
+        x = rho * x + rng.normal(0, 0.1)
+        d[i] = level + x
+    c = 87.5 + 0.3 * rng.normal(0, 1, d.size)  # an uninformative posterior, 0.5 deg low
+    for w in (0.0, 0.6):
+        ctl = Combined(Feedforward(T, act), 0.01, weight=w, rho=rho)
+        u_prev, innov = None, []
+        for i in range(d.size):
+            ci = c[i]
+            model = lambda u, ci=ci: np.array([[ci]]) + b * np.asarray(u)[None, :]  # noqa: E731
+            if ctl.last_error is not None:  # the prediction at u_ref = 0, by hand
+                lv = ctl.bias + ctl.level
+                a_j = ctl.last_error + ctl.last_reference
+                k = ctl.level
+                expected = lv + rho * (a_j - lv) + w * ((ci - k) - rho * (ctl.last_reference - k))
+                assert ctl.offset(ci) + ci == pytest.approx(expected, abs=1e-9)
+            s = ctl.choose(model, u_prev=u_prev)
+            angle = d[i] + b * s.u
+            if i == 0:
+                assert ctl.measured(angle, ci + b * s.u, reference=ci) == \
+                    pytest.approx(angle - ci - b * s.u, abs=1e-12)  # the trim starts there
+            else:
+                ctl.measured(angle, ci + b * s.u, reference=ci)
+                innov.append(angle - T - (d[i] - rho * d[i - 1] - (1 - rho) * level))
+            u_prev = s.u
+        if w == 0.0:  # only the level's estimation error is left
+            assert np.std(innov[200:]) < 0.01
+    with pytest.raises(ValueError, match="rho"):
+        Combined(Feedforward(T, act), 0.5, rho=1.0)

@@ -13,7 +13,13 @@ import numpy as np
 import pytest
 
 from formtwin.defaults import analytic_model, physics_model
-from formtwin.study.control import FF_WEIGHTS, R2R_LAMS, ControlStudySettings, PlantAngles
+from formtwin.study.control import (
+    FF_RHOS,
+    FF_WEIGHTS,
+    R2R_LAMS,
+    ControlStudySettings,
+    PlantAngles,
+)
 from formtwin.study.control_run import angle_drivers, estimate_worth, run_control_study
 from formtwin.tracker import TrackerConfig
 
@@ -39,11 +45,14 @@ def test_control_study_on_the_analytic_stand_in(tmp_path: Path) -> None:
     assert s["feedforward_angle"]["std_deg"] < s["fixed"]["std_deg"]
     # the trims bring the mean error near 0 where the open feedforward is biased (mu unknown)
     assert abs(s["feedforward"]["mean_error_deg"]) < 0.2 < s["feedforward_open"]["mean_error_deg"]
-    assert s["ff_lam"] in R2R_LAMS and s["r2r_lam"] in R2R_LAMS and s["full_lam"] in R2R_LAMS
+    assert s["r2r_lam"] in R2R_LAMS and s["full_lam"] in FF_RHOS[0.0]
     assert s["ff_weight"] in FF_WEIGHTS and s["tuned_on_datasets"] == [1]
-    # the tuned pair is the best of the grid on the tuning dataset
+    assert s["ff_lam"] in FF_RHOS[s["ff_rho"]]
+    # the tuned triple is the best of the grid on the tuning dataset
     grid, sds = np.array(s["tuning_std_deg"]["ff_grid"]), s["tuning_std_deg"]["ff"]
-    assert list(grid[int(np.argmin(sds))]) == [s["ff_lam"], s["ff_weight"]]
+    assert list(grid[int(np.argmin(sds))]) == [s["ff_lam"], s["ff_weight"], s["ff_rho"]]
+    # weight 0: the trim alone, the same (lam, rho)
+    assert s["trim_only"]["products"] == s["feedforward"]["products"]
     r = s["within_dataset_std_ratio_ff_vs_fixed"]
     assert r["per_dataset"][0] == pytest.approx(
         s["per_dataset_std_deg"]["feedforward"][0] / s["per_dataset_std_deg"]["fixed"][0],

@@ -107,3 +107,17 @@ def test_plot_deviation_writes_a_figure(tmp_path) -> None:  # type: ignore[no-un
     out = tmp_path / "deviation.png"
     assert main(["plot", "deviation", "--out", str(out)]) == 0
     assert out.stat().st_size > 20_000
+
+
+def test_row_interpolation_matches_numpy_interp_per_row() -> None:
+    """g on many curves at once equals np.interp of each curve at its own model times
+    (edge value outside the window), and one curve broadcast to all rows equals it too."""
+    rng = np.random.default_rng(3)
+    theta_d = rng.uniform(-0.2, 0.2, (40, 8))
+    curves = bump(T) * rng.uniform(0.5, 1.5, (40, 1)) + rng.normal(0.0, 5.0, (40, T.size))
+    tau = G.model_time(theta_d)
+    a = G.force_scaling(theta_d)
+    ref = np.array([(1 + a[k]) * np.interp(tau[k], T, curves[k]) for k in range(40)])
+    np.testing.assert_allclose(G.apply(curves, theta_d), ref, rtol=1e-12, atol=1e-9)
+    one = np.array([(1 + a[k]) * np.interp(tau[k], T, curves[0]) for k in range(40)])
+    np.testing.assert_allclose(G.apply(curves[:1], theta_d), one, rtol=1e-12, atol=1e-9)

@@ -22,6 +22,7 @@ from formtwin.service.messages import dumps
 from formtwin.service.processor import Processor
 from formtwin.service.runtime import ServiceSettings, open_processor
 from formtwin.service.streams import make_stream, read_stream
+from formtwin.spec import load_spec
 from formtwin.tracker import TrackerConfig
 
 SETTINGS = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3))
@@ -178,6 +179,21 @@ def test_calibrated_charts_are_fixed_with_the_store(tmp_path: Path,
             monitor_config(fresh.store, fresh.tracker, other)
         finally:
             fresh.store.close()
+
+
+def test_charts_watch_the_line_means_the_service_is_told(tmp_path: Path) -> None:
+    """``serve --mu``: the state charts' in-control means are the line's (a stream's means
+    lie anywhere in [mu_min, mu_max]; charts about the mid-range would take the line's
+    own offset for a shift)."""
+    spec = load_spec()  # the analytic stand-in's
+    mu = spec.state.mu_min + 0.8 * (spec.state.mu_max - spec.state.mu_min)
+    told = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3,
+                                                 mu=tuple(float(v) for v in mu)))
+    proc = open_processor(tmp_path / "a.sqlite", told)
+    cfg = monitor_config(proc.store, proc.tracker, MonitorSource(
+        runs=1, products=200, design=ChartDesign(warmup=5, phase1=10, glr=False)))
+    np.testing.assert_allclose([cfg.quantities[n].mean for n in spec.state.names], mu)
+    close(proc)
 
 
 def test_alarm_routes_need_the_page_token(tmp_path: Path, payloads: list[bytes]) -> None:

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from formtwin.cli import main
+from formtwin.production import draw_production_run
 from formtwin.service.streams import make_stream, read_stream
+from formtwin.spec import load_spec
 
 
 def test_npz_stream_roundtrip(tmp_path: Path) -> None:
@@ -21,6 +23,11 @@ def test_npz_stream_roundtrip(tmp_path: Path) -> None:
     assert strokes[0].angles_deg is not None
     with np.load(path, allow_pickle=False) as z:
         assert z["truth"].shape == (5, 18)
+        mu = z["mu"]  # the line's state means: the first draw of the stream's seed
+    spec = load_spec()
+    line = draw_production_run(spec, 5, np.random.default_rng(np.random.SeedSequence([2, 7])))
+    assert np.array_equal(mu, line.mu)
+    assert np.all((spec.state.mu_min <= mu) & (mu <= spec.state.mu_max))
     # the same seed makes the same stream
     again = read_stream(make_stream(tmp_path / "t.npz", 5, seed=2))
     assert all(a.digest == b.digest for a, b in zip(strokes, again, strict=True))

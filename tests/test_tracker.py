@@ -290,3 +290,37 @@ def test_angles_from_a_subsample_of_particles(
     assert np.all(err < 5 * full.angles_std[-10:] + 0.05)
     with pytest.raises(ValueError, match="angle_particles"):
         TrackerConfig(angle_particles=0)
+
+
+def test_angles_skip_only_negligible_weight(
+        model: AnalyticModel, mm: MeasurementModel, series1: dict[str, np.ndarray],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The lightest particles (weights summing to <= ANGLE_MASS) are not evaluated by the
+    angle model: the angles move by at most ~ANGLE_MASS times their spread, the states and
+    the RNG stream not at all (the analytic model has no float32 rounding)."""
+    from formtwin.tracker import core
+
+    curves = series1["curves"][:30]
+    cfg = TrackerConfig(n_particles=400, mu=tuple(series1["mu"]), estimate_deviation=False)
+    rows: list[int] = []
+    predict = type(model).predict_angles
+
+    def counting(self, X, u=None):  # type: ignore[no-untyped-def]
+        rows.append(X.shape[0])
+        return predict(self, X, u)
+
+    monkeypatch.setattr(type(model), "predict_angles", counting)
+    pruned = Tracker(model, mm, cfg).run(curves)
+    assert sum(rows) < 400 * len(curves)  # some particles were skipped
+    monkeypatch.setattr(core, "ANGLE_MASS", 0.0)
+    rows.clear()
+    full = Tracker(model, mm, cfg).run(curves)
+    assert sum(rows) == 400 * len(curves)
+    np.testing.assert_array_equal(pruned.mean, full.mean)
+    np.testing.assert_array_equal(pruned.std, full.std)
+    spread = np.ptp(full.angles_mean) + full.angles_std.max()
+    np.testing.assert_allclose(pruned.angles_mean, full.angles_mean, rtol=0, atol=1e-8 * spread)
+    np.testing.assert_allclose(pruned.angles_std, full.angles_std, rtol=0, atol=1e-6 * spread)
+    w = np.array([0.6, 1e-12, 3e-10, 0.4 - 3.01e-10])
+    assert core.heaviest(w, 1e-9).tolist() == [0, 3]
+    assert core.heaviest(w, 0.0).tolist() == [0, 1, 2, 3]

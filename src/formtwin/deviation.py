@@ -158,9 +158,16 @@ class DeviationModel:
             out1: FloatArray = w
             return out1
         curves = np.broadcast_to(curves, tq.shape)
-        lo = np.take_along_axis(curves, i, axis=1)
-        hi = np.take_along_axis(curves, i + 1, axis=1)
-        out: FloatArray = lo + w * (hi - lo)
+        # row r's sample j is entry r n + j of the flat array: one take per end of the
+        # interval (as take_along_axis, ~2x faster), then lo + w (hi - lo) as before
+        i += np.arange(0, curves.size, n)[:, None]
+        flat = np.ascontiguousarray(curves).reshape(-1)
+        lo = flat.take(i)
+        i += 1
+        out: FloatArray = flat.take(i)
+        out -= lo
+        out *= w
+        out += lo
         return out
 
     def apply(self, z_model: FloatArray, theta_d: FloatArray) -> FloatArray:

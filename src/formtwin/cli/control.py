@@ -34,6 +34,8 @@ def register(sub: Any) -> None:
                    "(default: tuned)")
     p.add_argument("--ff-weight", type=float, help="share of the posterior's "
                    "product-to-product change the feedforward trusts, 0-1 (default: tuned)")
+    p.add_argument("--ff-rho", type=float, help="persistence of the last product's deviation "
+                   "in the feedforward's trim, 0-1 (default: tuned)")
     p.add_argument("--tune-datasets", type=int, default=1, help="datasets of their own "
                    "(not scored) on which the controllers' weights are tuned; 0: the first "
                    "scored one (default: %(default)s)")
@@ -62,14 +64,15 @@ def run(args: argparse.Namespace) -> int:
     settings = ControlStudySettings(
         products=args.products, datasets=args.datasets, burn_in=args.burn_in,
         tracker=tracker, target=args.target, max_step=args.max_step, r2r_delay=args.delay,
-        trim_lam=args.trim_lam, ff_weight=args.ff_weight, tune_datasets=args.tune_datasets,
+        trim_lam=args.trim_lam, ff_weight=args.ff_weight, ff_rho=args.ff_rho,
+        tune_datasets=args.tune_datasets,
         angle_in_filter=not args.no_angle_filter,
         angle_sd=args.angle_sd, seed=args.seed, workers=args.workers)
     print(f"control study into {out}: {settings.datasets} datasets x {settings.products} "
           f"products, N = {tracker.n_particles}", flush=True)
     s = run_control_study(metamodel, physics, settings, out)
     for c in ("fixed", "ewma", "feedforward", "feedforward_full", "feedforward_open",
-              "feedforward_angle", "oracle"):
+              "trim_only", "feedforward_angle", "oracle"):
         if c not in s:
             continue
         v = s[c]
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"  std ratio feedforward / fixed {s['angle2_std_ratio_ff_vs_fixed']}, "
           f"/ EWMA {s['angle2_std_ratio_ff_vs_ewma']}, / oracle "
           f"{s['angle2_std_ratio_ff_vs_oracle']} (trim weight {s['ff_lam']}, feedforward "
-          f"weight {s['ff_weight']}); within datasets (median) "
+          f"weight {s['ff_weight']}, rho {s['ff_rho']}); within datasets (median) "
           f"{s['within_dataset_std_ratio_ff_vs_fixed']['median']}, "
           f"{s['within_dataset_std_ratio_ff_vs_ewma']['median']}, "
           f"{s['within_dataset_std_ratio_ff_vs_oracle']['median']}")

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from formtwin.cli.options import add_tracker_options, tracker_config
+from formtwin.control import TUNED_LAM, TUNED_RHO, TUNED_WEIGHT
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
 
@@ -71,7 +72,9 @@ def _controller(args: argparse.Namespace, proc: Any) -> None:
     from formtwin.service.control import ControlSettings, ServiceController
 
     proc.controller = ServiceController(
-        proc.tracker, ControlSettings(args.target_angle, args.control_max_step), proc.store)
+        proc.tracker, ControlSettings(args.target_angle, args.control_max_step,
+                                      args.control_lam, args.control_weight,
+                                      args.control_rho), proc.store)
 
 
 def _monitor(args: argparse.Namespace, proc: Any) -> Any:
@@ -213,6 +216,15 @@ def register(sub: Any) -> None:
     g.add_argument("--control-max-step", type=float, default=0.25, metavar="SHARE",
                    help="largest change of u per product, share of its range "
                    "(default: %(default)s)")
+    g.add_argument("--control-lam", type=float, default=TUNED_LAM, metavar="LAM",
+                   help="EWMA weight of the trim on the measured final angles, 0-1 "
+                   "(default: the control study's tuning, %(default)s)")
+    g.add_argument("--control-weight", type=float, default=TUNED_WEIGHT, metavar="W",
+                   help="share of the estimates' product-to-product change trusted, 0-1 "
+                   "(default: the control study's tuning, %(default)s)")
+    g.add_argument("--control-rho", type=float, default=TUNED_RHO, metavar="RHO",
+                   help="persistence of the last product's deviation from the level, 0-1 "
+                   "(default: the control study's tuning, %(default)s)")
     p.add_argument("--status-every", type=float, default=60.0, metavar="S",
                    help="print a status line every S seconds (0: never)")
     p.add_argument("--connect-timeout", type=float, default=10.0,

@@ -13,8 +13,9 @@ Generic numerics: the process enters only as a function ``final_angle(u) -> (N, 
 the filters, below the tracker. See ``docs/control.md``.
 """
 
-from formtwin.control.combined import Combined
+from formtwin.control.combined import TUNED_LAM, TUNED_RHO, TUNED_WEIGHT, Combined
 from formtwin.control.feedforward import Actuator, Feedforward, Suggestion, weighted_quantile
 from formtwin.control.runtorun import EwmaRunToRun
 
-__all__ = ["Actuator", "Combined", "EwmaRunToRun", "Feedforward", "Suggestion", "weighted_quantile"]
+__all__ = ["TUNED_LAM", "TUNED_RHO", "TUNED_WEIGHT", "Actuator", "Combined", "EwmaRunToRun",
+           "Feedforward", "Suggestion", "weighted_quantile"]

@@ -8,13 +8,13 @@ is :class:`~formtwin.control.Feedforward` over the posterior; the feedback estim
 bias of its predictions (the metamodel's error, a posterior off under unknown statistics)::
 
     e_j  = a_j - m_j(u_j)              measured minus predicted angle of an earlier product
-    b   <- lam e_j + (1 - lam) b
+    b   <- lam e_j + (1 - lam) b       (b = e_j at the first measured product)
     u_i  = argmin_u  J(u) against the target T - b
 
 so that ``m_i(u_i) + b = T``: the EWMA removes what persists in the prediction errors and the
 feedforward adds what the posterior knows of product ``i`` itself. ``lam = 0`` is the open
-feedforward; with a posterior that knows nothing of the product (``m_i`` constant) it is
-the plain EWMA controller of :mod:`~formtwin.control.runtorun`.
+feedforward (``b`` stays 0); with a posterior that knows nothing of the product (``m_i``
+constant) it is the plain EWMA controller of :mod:`~formtwin.control.runtorun`.
 
 The feedforward's ``weight`` ``w`` in [0, 1] says how much of the posterior's
 product-to-product change to trust. With ``c_i`` the posterior mean of the final angle at a
@@ -29,10 +29,22 @@ from its own running level. ``w = 1`` is the combination above; ``w = 0`` the pl
 (with the model's gain); in between a shrunk feedforward, the regression weight of the
 plant's change on the estimate's when the estimates are noisy.
 
+``rho`` in [0, 1) adds what the last measured product says of the next one when the
+process's deviations from its level persist from product to product (the states' AR(1),
+eq. 4): with ``A_j = e_j + c_j`` the last product's angle moved to ``u_ref`` and ``L = b + k``
+its level, the predicted angle at ``u_ref`` is::
+
+    L + rho (A_j - L) + w ((c_i - k) - rho (c_j - k))
+
+(an AR(1) around a slowly moving level, ``lam`` small; the posterior's change counted beyond
+what its own persistence predicts). ``rho = 0`` is the controller above.
+
 >>> from formtwin.control.feedforward import Actuator, Feedforward
 >>> import numpy as np
 >>> c = Combined(Feedforward(90.0, Actuator(-100, 100)), lam=0.5)
 >>> c.measured(angle=89.0, predicted=90.0)    # the model predicted 1 deg too high
+-1.0
+>>> c.measured(angle=90.0, predicted=90.0)    # right this time: the EWMA halves the trim
 -0.5
 >>> s = c.choose(lambda u: 90.0 - 0.05 * np.asarray(u)[None, :])   # one particle
 >>> round(s.u, 6), round(s.angle_mean, 6)      # aims the model at 90.5: -10 um, 90 deg
@@ -54,6 +66,13 @@ import numpy as np
 
 from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray, Suggestion
 
+#: ``lam``, ``weight`` and ``rho`` the closed-loop study chose on its tuning dataset (the
+#: last ``benchmarks/results/bench_control.json``'s ``ff_lam``, ``ff_weight`` and ``ff_rho``,
+#: docs/control.md): the service's defaults
+TUNED_LAM = 0.7
+TUNED_WEIGHT = 0.75
+TUNED_RHO = 0.0
+
 
 @dataclass
 class Combined:
@@ -69,6 +88,10 @@ class Combined:
     bias : the current trim ``b``, degrees (the predictions' estimated bias).
     level : ``k``, the EWMA of the posterior's final angle at ``u_ref`` over the measured
         products, degrees (None before the first).
+    rho : persistence of the deviation from the level from one product to the next, in
+        [0, 1) (0: none).
+    last_error : ``e_j`` of the last measured product, degrees (None before the first).
+    last_reference : its ``c_j``, degrees (None before the first given).
     """
 
     feedforward: Feedforward
@@ -77,12 +100,17 @@ class Combined:
     u_ref: float = 0.0
     bias: float = 0.0
     level: float | None = None
+    rho: float = 0.0
+    last_error: float | None = None
+    last_reference: float | None = None
 
     def __post_init__(self) -> None:
         if not 0 <= self.lam <= 1:
             raise ValueError(f"combined control lam = {self.lam}, expected 0 <= lam <= 1")
         if not 0 <= self.weight <= 1:
             raise ValueError(f"combined control weight = {self.weight}, expected in [0, 1]")
+        if not 0 <= self.rho < 1:
+            raise ValueError(f"combined control rho = {self.rho}, expected 0 <= rho < 1")
 
     def reference(self, final_angle: AngleFunction, weights: FloatArray | None = None) -> float:
         """``c_i``: the posterior mean of the final angle at ``u_ref``, degrees."""
@@ -92,11 +120,18 @@ class Combined:
         return float(w[ok] @ a[ok] / w[ok].sum()) if ok.any() and w[ok].sum() > 0 else math.nan
 
     def offset(self, reference: float | None) -> float:
-        """The shift of the feedforward's aim: ``b - (1 - w) (c_i - k)``, degrees."""
+        """The shift of the feedforward's aim, degrees: ``b - (1 - w) (c_i - k)`` plus, for
+        ``rho > 0``, ``rho ((e_j - b) + (1 - w) (c_j - k))``."""
+        out = self.bias
+        if self.rho > 0 and self.last_error is not None:
+            out += self.rho * (self.last_error - self.bias)
         if self.weight == 1 or self.level is None or reference is None or \
                 not math.isfinite(reference):
-            return self.bias
-        return self.bias - (1 - self.weight) * (reference - self.level)
+            return out
+        out -= (1 - self.weight) * (reference - self.level)
+        if self.rho > 0 and self.last_reference is not None:
+            out += self.rho * (1 - self.weight) * (self.last_reference - self.level)
+        return out
 
     def choose(self, final_angle: AngleFunction, weights: FloatArray | None = None,
                u_prev: float | None = None, reference: float | None = None) -> Suggestion:
@@ -116,14 +151,18 @@ class Combined:
                  ) -> float:
         """Take an earlier product's measured final ``angle`` and the model's prediction
         ``predicted`` of it at the setting it was made with (without the trim: the
-        posterior mean ``m_j(u_j)``), degrees, and (for ``weight < 1``) ``reference``, its
-        ``c_j``; return the new trim. Non-finite values are skipped."""
+        posterior mean ``m_j(u_j)``), degrees, and (for ``weight < 1`` or ``rho > 0``)
+        ``reference``, its ``c_j``; return the new trim. Non-finite values are skipped."""
         if math.isfinite(angle) and math.isfinite(predicted):
-            self.bias = self.lam * (angle - predicted) + (1 - self.lam) * self.bias
+            e = angle - predicted
+            first = self.last_error is None and self.lam > 0
+            self.bias = e if first else self.lam * e + (1 - self.lam) * self.bias
+            self.last_error = e
             if reference is not None and math.isfinite(reference):
                 self.level = reference if self.level is None else \
                     self.lam * reference + (1 - self.lam) * self.level
+                self.last_reference = reference
         return self.bias
 
 
-__all__ = ["Combined"]
+__all__ = ["TUNED_LAM", "TUNED_RHO", "TUNED_WEIGHT", "Combined"]

@@ -22,8 +22,10 @@ order (the charts are deterministic).
 The chart configuration is fixed with the store (``meta`` key ``monitor_config``, JSON):
 either calibrated at the store's first start on simulated in-control runs of the service's
 own model, measurement model and tracker settings
-(:func:`~formtwin.monitoring.calibrate.in_control_runs`: the spec's statistics mu,
-sigma, rho, and measurement noise as the likelihood assumes it;
+(:func:`~formtwin.monitoring.calibrate.in_control_runs`: the tracker's statistics mu,
+sigma, rho, and measurement noise as the likelihood assumes it; the state charts watch
+for departures from the tracker's mu, the line's means ``--mu`` or by default the spec's
+mid-range, so a line running elsewhere alarms: give it its means;
 :func:`~formtwin.monitoring.calibrate.calibrate`), or a user's file
 (:meth:`~formtwin.monitoring.MonitorConfig.to_json` format: in-control means, residual
 sigmas, chart limits).
@@ -105,6 +107,10 @@ def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> Mon
                                source.products, source.runs, source.seed, noise=True)
         c = tracker.config
         mu = tracker.spec.state.mu_mid if c.mu is None else np.asarray(c.mu)
+        if c.mu is None:
+            log.info("the line's state means are not given (--mu): the state charts watch "
+                     "for departures from the spec's mid-range, where a line whose means "
+                     "lie elsewhere in [mu_min, mu_max] raises alarms")
         # the true states too: the GLR charts follow how the estimates respond to a step
         config = calibrate([est for _, est in runs], tracker.spec.state.names, mu,
                            source.design, truths=[x for x, _ in runs])

@@ -2,28 +2,35 @@
 setting for its product.
 
 After the tracker has assimilated a product's stage-1 curve, :class:`ServiceController`
-asks it for the setting ``u`` of the spec's one control that minimises the posterior
-expected squared error of the final angle against the target minus a trim
-(:meth:`formtwin.tracker.Tracker.suggest` with :class:`formtwin.control.Combined`:
-feedforward plus feedback), within the actuator's limits (the spec's bounds of the control)
-and a maximum step from the previous suggestion. The trim is an EWMA (weight ``lam``) of the
-model's prediction error on measured final angles: a stroke message's optional
-``angles_deg`` (the product's measured angles, final angle second; validated like the curve)
-against the tracker's predicted final angle at the stroke's ``u``. A stroke without them
-leaves the trim as it is (``lam = 0`` or no measured angles: the open feedforward). The
-estimate message gets::
+asks :class:`formtwin.control.Combined` (feedforward plus feedback, the closed-loop study's
+controller with its tuned ``lam``, ``weight`` and ``rho``, :data:`formtwin.control.TUNED_LAM`,
+:data:`~formtwin.control.TUNED_WEIGHT`, :data:`~formtwin.control.TUNED_RHO`) for the setting
+``u`` of the spec's one control that minimises the posterior expected squared error of the
+final angle over the particles against the target minus a trim, minus the untrusted share
+``1 - weight`` of the posterior's product-to-product change and minus what persists (``rho``)
+of the last product's deviation, within the actuator's limits (the spec's bounds of
+the control) and a maximum step from the previous suggestion. The trim is an EWMA (weight
+``lam``) of the model's prediction error on measured final angles: a stroke message's
+optional ``angles_deg`` (the product's measured angles, final angle second; validated like
+the curve) against the tracker's predicted final angle at the stroke's ``u``; the level is
+the EWMA (same ``lam``) of the posterior mean of the final angle at the nominal setting over
+the measured products. A stroke without measured angles leaves both as they are (``lam = 0``
+or no measured angles: the open feedforward). The estimate message gets::
 
     "control": {"target_deg": 90.0, "u": [0.012], "u_unit": "mm",
                 "final_angle_deg": 89.98, "final_angle_std_deg": 0.11,
                 "interval_deg": [89.8, 90.2], "coverage": 0.9, "limited": false,
-                "trim_deg": -0.05}
+                "trim_deg": -0.05, "level_deg": 90.02, "last_error_deg": 0.01,
+                "last_reference_deg": 90.03, "lam": 0.7, "weight": 0.75, "rho": 0.0}
 
-``final_angle_deg`` and the interval include the trim used for the suggestion; ``trim_deg``
-is the trim after this product's measured angle (used for the next product). The suggestion
-is made before the product's own measured angle is used. The previous suggestion (for the
-maximum step) and the trim are those stored with the last accepted product, so a restarted
-service continues from them. The closed-loop study (``docs/control.md``) measured this
-controller against the open feedforward, the run-to-run EWMA and an oracle.
+``final_angle_deg`` and the interval are the predicted final angle at ``u``, with the shift
+used for the suggestion; ``trim_deg``, ``level_deg``, ``last_error_deg`` and
+``last_reference_deg`` are the controller's state after this product's measured angle (used
+for the next product; null before the first measured angle). The suggestion is made before
+the product's own measured angle is used. The previous suggestion (for the maximum step) and
+the controller's state are those stored with the last accepted product, so a restarted
+service continues from them bit for bit. The closed-loop study (``docs/control.md``)
+measured this controller against the open feedforward, the run-to-run EWMA and an oracle.
 """
 
 from __future__ import annotations
@@ -33,7 +40,14 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from formtwin.control import Actuator, Combined, Feedforward
+from formtwin.control import (
+    TUNED_LAM,
+    TUNED_RHO,
+    TUNED_WEIGHT,
+    Actuator,
+    Combined,
+    Feedforward,
+)
 from formtwin.service.store import Store
 
 log = logging.getLogger(__name__)
@@ -47,21 +61,29 @@ class ControlSettings:
     ----------
     target_deg : wanted final angle, degrees.
     max_step : largest change of ``u`` per product as a share of its range (0 < s <= 1).
-    lam : EWMA weight of the trim (the newest measured prediction error), in [0, 1]; the
-        default 1.0 is the weight the session-5 closed-loop study tuned for the full
-        feedforward. The study now also tunes the feedforward's weight (0.7 / 0.75 on its
-        tuning dataset, ``docs/control.md``); the service does not take that weight yet.
+    lam : EWMA weight of the trim (the newest measured prediction error) and of the level,
+        in [0, 1]; default: the closed-loop study's tuning.
+    weight : share of the posterior's product-to-product change trusted, in [0, 1] (1: all
+        of it); default: the closed-loop study's tuning.
+    rho : persistence of the last product's deviation from the level, in [0, 1); default:
+        the closed-loop study's tuning.
     """
 
     target_deg: float
     max_step: float = 0.25
-    lam: float = 1.0
+    lam: float = TUNED_LAM
+    weight: float = TUNED_WEIGHT
+    rho: float = TUNED_RHO
 
     def __post_init__(self) -> None:
         if not 0 < self.max_step <= 1:
             raise ValueError(f"control max_step = {self.max_step}, expected in (0, 1]")
         if not 0 <= self.lam <= 1:
             raise ValueError(f"control lam = {self.lam}, expected in [0, 1]")
+        if not 0 <= self.weight <= 1:
+            raise ValueError(f"control weight = {self.weight}, expected in [0, 1]")
+        if not 0 <= self.rho < 1:
+            raise ValueError(f"control rho = {self.rho}, expected in [0, 1)")
 
 
 class ServiceController:
@@ -69,9 +91,10 @@ class ServiceController:
 
     Parameters
     ----------
-    tracker : the service's tracker (needs ``suggest`` and ``spec`` with one control).
-    settings : target, maximum step and the trim's weight.
-    store : the store, to continue from the last stored suggestion and trim.
+    tracker : the service's tracker (needs ``final_angle``, ``weights`` and ``spec`` with
+        one control).
+    settings : target, maximum step, the trim's and the level's weight, the feedforward's.
+    store : the store, to continue from the last stored suggestion, trim and level.
     """
 
     def __init__(self, tracker: Any, settings: ControlSettings, store: Store) -> None:
@@ -86,37 +109,58 @@ class ServiceController:
         self.unit = str(c.variables[0].internal_unit)
         self.controller = Combined(Feedforward(settings.target_deg,
                                                Actuator(lo, hi, settings.max_step * (hi - lo))),
-                                   settings.lam)
+                                   settings.lam, settings.weight, float(c.nominal[0]),
+                                   rho=settings.rho)
         self.u_prev: float | None = None
         for row in store.products(since_seq=max(store.next_seq() - 50, 0), status="accepted"):
             ctl = (row.estimate or {}).get("control")
             if ctl and ctl.get("u"):
                 self.u_prev = float(ctl["u"][0])
                 self.controller.bias = float(ctl.get("trim_deg") or 0.0)
-        self._saved: tuple[float | None, float] | None = None
+                for name, key in _STATE:
+                    v = ctl.get(key)
+                    setattr(self.controller, name, None if v is None else float(v))
+        self._saved: tuple[Any, ...] | None = None
 
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:
         """The ``"control"`` entry for the product just stepped (:meth:`rollback` undoes
-        the change of the previous suggestion)."""
-        self._saved = (self.u_prev, self.controller.bias)
-        s = self.tracker.suggest(self.controller, self.u_prev)
+        the change of the controller's state)."""
+        ctl = self.controller
+        self._saved = (self.u_prev, ctl.bias, *(getattr(ctl, n) for n, _ in _STATE))
+        w = self.tracker.weights()
+        # c_i: the posterior mean at the nominal setting (only a weight below 1 uses it)
+        ref = ctl.reference(self.tracker.final_angle, w) if ctl.weight < 1 else None
+        s = ctl.choose(self.tracker.final_angle, w, self.u_prev, ref)
         self.u_prev = s.u
         d = s.to_dict()
         measured = message.get("measured_angles_deg")
         predicted = (message.get("angles_mean") or [None, None])[1]
         if measured is not None and predicted is not None:  # the model's error at the u used
-            self.controller.measured(float(measured[1]), float(predicted))
-        trim = self.controller.bias
+            ctl.measured(float(measured[1]), float(predicted), ref)
         return {"target_deg": self.settings.target_deg, "u": [d["u"]], "u_unit": self.unit,
                 "final_angle_deg": d["angle_mean"], "final_angle_std_deg": d["angle_std"],
-                "interval_deg": d["interval"], "coverage": self.controller.feedforward.coverage,
-                "limited": d["limited"], "trim_deg": trim if math.isfinite(trim) else None}
+                "interval_deg": d["interval"], "coverage": ctl.feedforward.coverage,
+                "limited": d["limited"], "trim_deg": _num(ctl.bias),
+                **{key: _num(getattr(ctl, name)) for name, key in _STATE},
+                "lam": ctl.lam, "weight": ctl.weight, "rho": ctl.rho}
 
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
         if self._saved is not None:
-            self.u_prev, self.controller.bias = self._saved
+            self.u_prev, self.controller.bias, *state = self._saved
+            for (name, _), v in zip(_STATE, state, strict=True):
+                setattr(self.controller, name, v)
             self._saved = None
+
+
+#: the controller's state besides the trim: (attribute of Combined, key in the message)
+_STATE = (("level", "level_deg"), ("last_error", "last_error_deg"),
+          ("last_reference", "last_reference_deg"))
+
+
+def _num(v: float | None) -> float | None:
+    """``v``, or None when missing or not finite (JSON)."""
+    return v if v is not None and math.isfinite(v) else None
 
 
 __all__ = ["ControlSettings", "ServiceController"]

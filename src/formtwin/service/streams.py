@@ -12,8 +12,9 @@ A stream is a sequence of :class:`~formtwin.service.messages.Stroke`. It is read
   ``angle1, angle2``.
 
 :func:`make_stream` writes a synthetic stream from a process model (default the analytic
-stand-in; state evolving by eq. 4-5, constant machine parameters and deviation, Gaussian
-sensor noise) for the demo, the tests and the benchmark.
+stand-in; the line's state means ``mu`` drawn in the spec's ``[mu_min, mu_max]``, state
+evolving by eq. 4-5, constant machine parameters and deviation, Gaussian sensor noise) for
+the demo, the tests and the benchmark; the file keeps the truth (``truth``, ``mu``).
 """
 
 from __future__ import annotations
@@ -83,7 +84,7 @@ def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
     np.savez(out, curves=curves, angles=angles, part_ids=np.array(
         [f"P{seed:03d}-{c:07d}" for c in cycles]), cycles=cycles,
         timestamps=np.array(stamps), truth=np.hstack([X, np.tile(theta_d, (n, 1))]),
-        names=np.array(spec.augmented.names))
+        names=np.array(spec.augmented.names), mu=run.mu)
     return out if out.suffix == ".npz" else out.with_name(out.name + ".npz")
 
 

@@ -15,10 +15,14 @@ with the deviation estimated. Per dataset (``products`` products):
   each product's curve, :class:`~formtwin.control.Feedforward` over the tracker's
   particles (the metamodel's final angle at each candidate ``u``), aiming at the target
   minus a trim: an EWMA of its prediction error on the measured angles of earlier
-  products, trusting a share ``weight`` of the posterior's product-to-product change (the
-  EWMA's weight and the share the best of :data:`R2R_LAMS` x :data:`FF_WEIGHTS` on the
-  tuning datasets); ``feedforward_full`` the same with the whole change trusted (weight 1,
-  its EWMA weight tuned likewise); ``feedforward_open`` the feedforward without the trim;
+  products, trusting a share ``weight`` of the posterior's product-to-product change, with
+  the persistence ``rho`` of the last product's deviation (the EWMA's weight, the share and
+  ``rho`` the best of :data:`FF_RHOS` x :data:`FF_WEIGHTS` on the tuning datasets, each
+  ``rho`` with its ``lam`` values); ``feedforward_full`` the same with the whole change
+  trusted and no persistence (weight 1, rho 0, its EWMA weight tuned likewise: the earlier
+  sessions' controller); ``trim_only`` the tuned one with weight 0 (the estimates' change unused:
+  what the trim's time-series model alone gives); ``feedforward_open`` the feedforward
+  without the trim;
 * ``feedforward_angle``: ``feedforward`` with each measured final angle also entering the
   filter as a second measurement of its product's state
   (:func:`formtwin.tracker.angle.update_angle`, likelihood sd the metamodel's held-out
@@ -46,7 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.control import Actuator, EwmaRunToRun, Feedforward
-from formtwin.dataset import DoeDataset
+from formtwin.dataset import DatasetError, DoeDataset, open_for_run
 from formtwin.deviation import DeviationModel
 from formtwin.doe import run_design
 from formtwin.measurement import ProcessModel
@@ -61,11 +65,16 @@ FloatArray = NDArray[np.float64]
 
 #: the controllers compared
 CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "feedforward_full",
-               "feedforward_angle")
+               "trim_only", "feedforward_angle")
 #: EWMA weights tried for the run-to-run controller and the feedforward's trim
-R2R_LAMS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
+R2R_LAMS = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 #: shares of the posterior's product-to-product change tried for the feedforward
 FF_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: persistence of the last product's deviation from the level tried for the feedforward's
+#: trim, each with the EWMA weights tried with it: without persistence a fast level (today's
+#: EWMA), with it (the states' AR(1) coefficient of eq. 4, 0.7-0.8) a slow one (the grid
+#: stays near the earlier 30 controllers: each costs a feedforward choice per product)
+FF_RHOS = {0.0: (0.1, 0.3, 0.5, 0.7, 1.0), 0.7: (0.02, 0.05)}
 
 
 @dataclass(frozen=True)
@@ -87,8 +96,10 @@ class ControlStudySettings:
     trim_lam : EWMA weight of the feedforward's trim (its prediction error on earlier
         products' measured angles, ``r2r_delay`` late); None: tuned (see ``tune_datasets``).
     ff_weight : share of the posterior's product-to-product change the feedforward trusts;
-        None: tuned with ``trim_lam`` (the best pair of :data:`R2R_LAMS` x
+        None: tuned with ``trim_lam`` and ``ff_rho`` (the best of :data:`FF_RHOS` x
         :data:`FF_WEIGHTS`).
+    ff_rho : persistence of the last product's deviation in the trim
+        (:class:`~formtwin.control.Combined`'s ``rho``); None: tuned with ``ff_weight``.
     tune_datasets : datasets (indices ``datasets`` onwards: seeds apart from the scored
         ones) on which the EWMA weights and ``ff_weight`` are tuned, not scored; 0: tuned on
         the first scored dataset.
@@ -112,6 +123,7 @@ class ControlStudySettings:
     interp_check: int = 20
     trim_lam: float | None = None
     ff_weight: float | None = None
+    ff_rho: float | None = None
     tune_datasets: int = 1
     angle_in_filter: bool = True
     angle_sd: float | None = None
@@ -141,6 +153,12 @@ class PlantAngles:
                      + a2 * (u - u0) * (u - u1) / ((u2 - u0) * (u2 - u1)))
 
 
+def plant_path(folder: Path, k: int, version: str) -> Path:
+    """The physics runs of dataset ``k``'s plant, one file per physics model version (a
+    new version runs its own plant; the old one stays for reanalysis)."""
+    return folder / f"plant_{k}_{version}.h5"
+
+
 def plant_run(spec: Any, physics: Simulator, settings: ControlStudySettings, k: int,
               folder: Path
               ) -> tuple[ProductionRun, FloatArray, NDArray[np.bool_], PlantAngles]:
@@ -152,7 +170,7 @@ def plant_run(spec: Any, physics: Simulator, settings: ControlStudySettings, k: 
     u3 = np.array([c.lo[0], c.nominal[0], c.hi[0]])
     n = run.n
     X = np.vstack([spec.run_columns(run.inputs, float(u)) for u in u3])
-    data: DoeDataset = run_design(physics, X, folder / f"plant_{k}.h5",
+    data: DoeDataset = run_design(physics, X, plant_path(folder, k, physics.version),
                                   executor="processes", workers=settings.workers,
                                   seed=settings.seed)
     ok: NDArray[np.bool_] = np.asarray(data.ok.reshape(3, n).all(axis=0), dtype=bool)
@@ -214,9 +232,15 @@ def tune_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlS
     (``r2r_std``)."""
     run, curves, ok, plant = plant_run(metamodel.spec, physics, settings, k, folder)
     act, ff, nominal = _setup(metamodel, settings, target)
-    lams = R2R_LAMS if settings.trim_lam is None else (settings.trim_lam,)
     weights = FF_WEIGHTS if settings.ff_weight is None else (settings.ff_weight,)
-    grid = [(lm, w) for lm in lams for w in sorted({*weights, 1.0})]
+    rho_lams = dict(FF_RHOS) if settings.ff_rho is None else \
+        {settings.ff_rho: FF_RHOS.get(settings.ff_rho, R2R_LAMS)}
+    if settings.trim_lam is not None:
+        rho_lams = {r: (settings.trim_lam,) for r in rho_lams}
+    grid_set = {(lm, w, r) for r, lams in rho_lams.items() for lm in lams for w in weights}
+    # the earlier sessions' controller (weight 1, rho 0) is scored too, its lam tuned as well
+    full_lams = FF_RHOS[0.0] if settings.trim_lam is None else (settings.trim_lam,)
+    grid = sorted(grid_set | {(lm, 1.0, 0.0) for lm in full_lams})
     config = replace(settings.tracker, seed=settings.seed + k)
     p = track_and_choose(metamodel, config, curves, ok, plant, ff, grid, nominal,
                          settings.r2r_delay)
@@ -225,20 +249,23 @@ def tune_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlS
                                    settings.r2r_delay), b) for lm in R2R_LAMS]
     return {"ff_grid": np.array(grid), "ff_std": np.array([_std(plant, ok, p.u[c], b)
                                                           for c in range(len(grid))]),
-            "r2r_lams": np.array(R2R_LAMS), "r2r_std": np.array(r2r_std)}
+            "r2r_lams": np.array(R2R_LAMS), "r2r_std": np.array(r2r_std),
+            "angle_nominal": np.where(ok, [plant(i, nominal) for i in range(run.n)], np.nan),
+            "nominal_mean": p.nominal_mean}
 
 
 def choose_weights(tunes: list[dict[str, Any]]) -> dict[str, float]:
     """The weights with the least mean std over the tuning datasets: ``r2r_lam`` (EWMA),
-    ``ff_lam`` and ``ff_weight`` (combined feedforward), ``full_lam`` (its trim's weight
-    with the whole change trusted)."""
+    ``ff_lam``, ``ff_weight`` and ``ff_rho`` (combined feedforward), ``full_lam`` (its
+    trim's weight with the whole change trusted and rho 0)."""
     ff = np.mean([t["ff_std"] for t in tunes], axis=0)
     grid = tunes[0]["ff_grid"]
-    full = np.flatnonzero(grid[:, 1] == 1.0)
+    full = np.flatnonzero((grid[:, 1] == 1.0) & (grid[:, 2] == 0.0))
     r2r_std = np.mean([t["r2r_std"] for t in tunes], axis=0)
     best = int(np.argmin(ff))
     return {"r2r_lam": float(tunes[0]["r2r_lams"][int(np.argmin(r2r_std))]),
             "ff_lam": float(grid[best, 0]), "ff_weight": float(grid[best, 1]),
+            "ff_rho": float(grid[best, 2]),
             "full_lam": float(grid[full[int(np.argmin(ff[full]))], 0])}
 
 
@@ -259,11 +286,12 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
     # feedforward from the tracker (series 6: deviation estimated, mu mid-range): open, the
     # combined one with the tuned weights, and with the whole change trusted
     config = replace(settings.tracker, seed=settings.seed + k)
-    best = (tuned["ff_lam"], tuned["ff_weight"])
+    best = (tuned["ff_lam"], tuned["ff_weight"], tuned["ff_rho"])
     p = track_and_choose(metamodel, config, curves, ok, plant, ff,
-                         [(0.0, 1.0), best, (tuned["full_lam"], 1.0)], nominal,
+                         [(0.0, 1.0, 0.0), best, (tuned["full_lam"], 1.0, 0.0),
+                          (tuned["ff_lam"], 0.0, tuned["ff_rho"])], nominal,
                          settings.r2r_delay)
-    u["feedforward_open"], u["feedforward"], u["feedforward_full"] = p.u
+    u["feedforward_open"], u["feedforward"], u["feedforward_full"], u["trim_only"] = p.u
     out: dict[str, Any] = {"ok": ok, "target": target, "pred": p.pred[1],
                            "nominal_mean": p.nominal_mean, **tuned,
                            "input_mean": p.input_mean, "inputs": run.inputs,
@@ -293,8 +321,14 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
         idx = np.flatnonzero(ok)[:: max(1, ok.sum() // settings.interp_check)]
         idx = idx[: settings.interp_check]
         X = spec.run_columns(run.inputs[idx], u["feedforward"][idx])
-        chk = run_design(physics, X, folder / f"check_{k}.h5", executor="processes",
-                         workers=settings.workers, seed=settings.seed)
+        path = folder / f"check_{k}.h5"
+        try:  # 20 runs: a file of other settings or another model version is replaced
+            if path.exists():
+                open_for_run(path, spec, X, physics.version).close()
+        except DatasetError:
+            path.unlink()
+        chk = run_design(physics, X, path, executor="processes", workers=settings.workers,
+                         seed=settings.seed)
         out["interp_error"] = chk.angles[:, 1] - out["angle_feedforward"][idx]
     return out
 
@@ -321,6 +355,6 @@ def scores(angles: FloatArray, target: float, band: float) -> dict[str, float]:
             "products": int(e.size)}
 
 
-__all__ = ["CONTROLLERS", "FF_WEIGHTS", "R2R_LAMS", "ControlStudySettings", "PlantAngles",
-           "choose_weights", "default_target", "metamodel_final", "plant_run", "r2r",
-           "r2r_gain", "run_dataset", "scores", "tune_dataset"]
+__all__ = ["CONTROLLERS", "FF_RHOS", "FF_WEIGHTS", "R2R_LAMS", "ControlStudySettings",
+           "PlantAngles", "choose_weights", "default_target", "metamodel_final", "plant_path",
+           "plant_run", "r2r", "r2r_gain", "run_dataset", "scores", "tune_dataset"]

@@ -5,7 +5,8 @@ after each product's curve (:func:`track_and_choose`).
 Every controller is :class:`~formtwin.control.Combined`: the feedforward over the posterior
 aimed at the target minus an EWMA (weight ``lam``) of its own prediction error on the
 measured final angles of earlier products (``lam = 0``: the open feedforward), trusting a
-share ``weight`` of the posterior's product-to-product change (1: all of it). The tracker
+share ``weight`` of the posterior's product-to-product change (1: all of it), with the
+persistence ``rho`` of the last product's deviation. The tracker
 does not depend on the settings chosen, so several controllers can share one pass; with
 ``angle_in_filter`` the one controller's measured angles also enter the filter as a second
 measurement of the state (:func:`formtwin.tracker.angle.update_angle`), so that pass serves
@@ -54,12 +55,12 @@ class Pass:
 
 def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: FloatArray,
                      ok: NDArray[np.bool_], plant: Callable[[int, float], float],
-                     ff: Feedforward, controllers: Sequence[tuple[float, float]],
+                     ff: Feedforward, controllers: Sequence[tuple[float, float, float]],
                      nominal: float, delay: int = 1, angle_in_filter: bool = False,
                      sd: float | None = None) -> Pass:
     """Run a tracker (``config``) over the measured ``curves`` (n, n_t) of the products with
-    ``ok``; after each curve every controller ``Combined(ff, lam, weight)`` (one per
-    ``(lam, weight)`` of ``controllers``, reference setting ``nominal``) chooses its
+    ``ok``; after each curve every controller ``Combined(ff, lam, weight, rho=rho)`` (one
+    per ``(lam, weight, rho)`` of ``controllers``, reference setting ``nominal``) chooses its
     product's setting (start ``nominal``); ``plant(i, u)`` is product ``i``'s measured
     final angle at ``u``, known ``delay`` products later. With ``angle_in_filter`` (one
     controller, ``delay`` 1: the angle arrives before the next curve) the measured angle also
@@ -69,7 +70,7 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
         raise ValueError("angles in the filter: one controller and delay 1 (got "
                          f"{len(controllers)} controllers, delay {delay})")
     tracker = build_tracker(metamodel, config)
-    ctl = [Combined(ff, lam, weight, nominal) for lam, weight in controllers]
+    ctl = [Combined(ff, lam, weight, nominal, rho=rho) for lam, weight, rho in controllers]
     m, n = len(ctl), curves.shape[0]
     u = np.full((m, n), nominal)
     pred = np.full((m, n, 3), np.nan)

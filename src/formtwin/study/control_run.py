@@ -23,6 +23,7 @@ from formtwin.study.control import (
     ControlStudySettings,
     choose_weights,
     default_target,
+    plant_run,
     r2r_gain,
     run_dataset,
     scores,
@@ -37,7 +38,8 @@ LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
           "feedforward": "feedforward (formtwin, with trim)", "oracle": "oracle (true state)",
           "feedforward_open": "feedforward without trim",
           "feedforward_full": "feedforward with trim, whole change trusted",
-          "feedforward_angle": "feedforward with trim, angles in the filter"}
+          "feedforward_angle": "feedforward with trim, angles in the filter",
+          "trim_only": "the same trim, estimates' change unused (weight 0)"}
 #: the cases of the figure (those the study ran)
 SHOWN = ("fixed", "ewma", "feedforward", "feedforward_angle", "oracle")
 
@@ -67,6 +69,21 @@ def _key(settings: ControlStudySettings, target: float, version: str,
     return h.hexdigest()[:16]
 
 
+def build_plants(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
+                 out: str | Path) -> int:
+    """Run (or complete) the physics of every dataset's plant
+    (:func:`~formtwin.study.control.plant_path` in ``out``, the scored datasets and the tuning
+    ones) without any controller, so that the study itself can run later from the cache;
+    return the number of datasets."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    n = settings.datasets + max(settings.tune_datasets, 0)
+    for k in range(n):
+        log.info("control study: plant of dataset %d of %d", k + 1, n)
+        plant_run(metamodel.spec, physics, settings, k, out)
+    return n
+
+
 def run_control_study(metamodel: ProcessModel, physics: Simulator,
                       settings: ControlStudySettings, out: str | Path) -> dict[str, Any]:
     """Run (or reuse) every dataset, write the figure and ``control_study.json``; return
@@ -93,7 +110,7 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     sd = {c: summary[c]["std_deg"] for c in names}
     per = {c: [float(np.nanstd(r[f"angle_{c}"][b:])) for r in results] for c in names}
     for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
-                    ("feedforward_full", "fffull")):
+                    ("feedforward_full", "fffull"), ("trim_only", "trim")):
         for other in ("fixed", "oracle", "ewma"):
             if ff not in sd:
                 continue

@@ -35,6 +35,10 @@ from formtwin.spec import ProcessSpec
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 SOURCES = ("MM", "gMM", "FE", "gFE")
+#: physics runs per task of the pool: ~1-2 s of work, so a realisation's last task keeps
+#: one core busy while the other idles for about that long (the DOE runner's default,
+#: n / 16 = 63 runs on 2 cores, left one core idle ~5 s per realisation on average)
+PHYSICS_CHUNK = 8
 log = logging.getLogger(__name__)
 
 
@@ -118,7 +122,8 @@ def make_realisation(
     run = draw_production_run(spec, n, rng)
     inputs = run.inputs
     fe_path = folder / f"fe_{index}.nc"
-    run_design(physics, run.run_inputs, fe_path, executor=executor, seed=seed)
+    run_design(physics, run.run_inputs, fe_path, executor=executor, seed=seed,
+               chunk_size=PHYSICS_CHUNK)
     fe = DoeDataset.load(fe_path)
     g = DeviationModel.from_spec(spec)
     mm_curves = metamodel.predict_curves(inputs)
