@@ -134,11 +134,14 @@ def _fix(R, Kb, col, row, free):  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyped-def]
-           tools, contact, ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters):
+           tools, contact, ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters,
+           reac):
     """Newton iterations with a backtracking line search at time ``t``.
 
     Starts from the predictor in ``u, pa[0]``; ``free[i] = 0`` marks a prescribed dof
     (its value is already set in ``u``). The groups are those of :func:`assemble`.
+    ``reac (n,)`` receives the residual of the last assembly with the prescribed dofs
+    kept (their reactions); ``out`` is that assembly's.
     Returns the number of iterations, or -1 if not converged within ``opts[MAX_IT]``.
     """
     n = u.shape[0]
@@ -148,6 +151,7 @@ def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untype
     u0 = np.zeros(n)
     assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial, press,
              fext, Kb, R, col, row, out)
+    reac[:] = R
     norm = _fix(R, Kb, col, row, free)
     if spring:
         norm = math.sqrt(norm * norm + out[0] * out[0])
@@ -197,6 +201,7 @@ def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untype
             assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
                      press, fext, Kb, R, col, row, out)
             counters[3] += 1
+            reac[:] = R
             norm = _fix(R, Kb, col, row, free)
             if spring:
                 norm = math.sqrt(norm * norm + out[0] * out[0])
@@ -247,6 +252,8 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     col = np.zeros(n)
     row = np.zeros(n)
     out = np.zeros(5)
+    reac = np.zeros(n)
+    fresh = False  # whether out and reac are those of the committed state
     fext = np.zeros(n)
     free = np.ones(n, dtype=np.int64)
     for i in fix_idx:
@@ -283,7 +290,9 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
             else:
                 pt[0] = c_new
             its = newton(tn, u_trial, pt, mesh, sig, epb, eps, rate, trial, tools, contact,
-                         ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters)
+                         ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters,
+                         reac)
+            fresh = its >= 0
             if its < 0:
                 counters[2] += 1
                 dt = 0.5 * h
@@ -329,12 +338,16 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
             if easy >= opts[EASY_N]:
                 dt = min(2.0 * dt, opts[DT_MAX])
                 easy = 0
-        # record (re-assemble at the converged state for forces and reactions)
-        assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
-                 press, fext, Kb, R, col, row, out)
+        # record the forces and reactions of the converged state: those of the last Newton
+        # assembly (assemble only if no step was taken since the last record)
+        if not fresh:
+            assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
+                     press, fext, Kb, R, col, row, out)
+            reac[:] = R
+            fresh = True
         for i in range(n):
             rec_u[j, i] = u[i]
-            rec_r[j, i] = R[i]
+            rec_r[j, i] = reac[i]
         c_now, _ = crank(t, press)
         rec_f[j, 0] = out[4]
         rec_f[j, 1] = out[2]
