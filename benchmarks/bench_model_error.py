@@ -11,8 +11,9 @@ On the embedded default (bundled physics DOE, its metamodel with the statistics 
 2. in the same folder (same data): a second repetition of the paper's likelihood in series
    1, 5, 6; repetitions 0-1 of the calibrated likelihood (``K_res`` fixed, the previous
    default) there too; series 8 (learned mu) for 2 repetitions;
-3. the resample-move filter (``filter="move"``, an option) in series 3, 5, 6, repetition 0,
-   in a sibling folder ``<out>_move`` sharing the data, against the default's repetition 0.
+3. the option filters (:data:`OPTION_FILTERS`: resample-move ``"move"``, the guided
+   proposals ``"guided"`` and ``"guided_lin"``), repetition 0, each in a sibling folder
+   ``<out>_<filter>`` sharing the data, against the default's repetition 0.
 
 Figures (default likelihood unless said; ratios over repetitions 0-1 of every dataset,
 identical data for both likelihoods):
@@ -51,6 +52,14 @@ TARGETS = {"s1_state_ratio": ("<=", 1.05), "s5_state_ratio": ("<=", 0.7),
            "s6_state_ratio": ("<=", 0.8), "min_skill": (">=", 0.0),
            "coverage90_min": (">=", 0.80), "coverage90_max": ("<=", 0.97),
            "s8_vs_s6": ("<=", 0.85), "study_s": ("<=", 600.0)}
+
+
+#: option filters measured against the default (repetition 0 of every dataset) and their
+#: series
+OPTION_FILTERS = {"move": (3, 5, 6), "guided": (1, 3, 5, 6), "guided_lin": (1, 3, 5, 6)}
+OPTION_NOTES = {"move": "resample-move, ~2x the cost",
+                "guided": "linearised Kalman proposal, a pilot evaluation per particle, ~2x",
+                "guided_lin": "the guided proposal from the parents' curves, ~1.1x"}
 
 
 def _mean(a: np.ndarray, axis: Any = None) -> Any:
@@ -94,19 +103,22 @@ def main() -> None:
                                             paper_repetitions=0), out, mm, mm_path, physics)
     full = run_study(base, out, mm, mm_path, physics)  # cached: the default study's numbers
     extra_s = time.perf_counter() - t1
-    move_dir = out.parent / f"{out.name}_move"  # same data, K_MC and metamodel
-    move_dir.mkdir(parents=True, exist_ok=True)
-    if not args.reuse:
-        shutil.rmtree(move_dir / "runs", ignore_errors=True)
-    for sub in ("data", "measurement", "model"):
-        if not (move_dir / sub).exists():
-            (move_dir / sub).symlink_to((out / sub).resolve())
-    t2 = time.perf_counter()
-    move = run_study(dataclasses.replace(
-        base, series=(3, 5, 6), n_repetitions=1, paper_repetitions=0,
-        tracker=dataclasses.replace(base.tracker, filter="move")), move_dir, mm, mm_path,
-        physics)
-    move_s = time.perf_counter() - t2
+    # option filters on the same data, K_MC and metamodel, each in a sibling folder
+    options: dict[str, tuple[StudyResult, float]] = {}
+    for name, series in OPTION_FILTERS.items():
+        folder = out.parent / f"{out.name}_{name}"
+        folder.mkdir(parents=True, exist_ok=True)
+        if not args.reuse:
+            shutil.rmtree(folder / "runs", ignore_errors=True)
+        for sub in ("data", "measurement", "model"):
+            if not (folder / sub).exists():
+                (folder / sub).symlink_to((out / sub).resolve())
+        t2 = time.perf_counter()
+        res = run_study(dataclasses.replace(
+            base, series=series, n_repetitions=1, paper_repetitions=0,
+            tracker=dataclasses.replace(base.tracker, filter=name)), folder, mm, mm_path,
+            physics)
+        options[name] = (res, time.perf_counter() - t2)
     nx = len(mm.spec.state)
     n_aug = len(mm.spec.augmented)
 
@@ -116,6 +128,32 @@ def main() -> None:
 
     def states_angles(c: np.ndarray) -> list[float]:
         return [round(float(v), 3) for v in np.r_[c[:nx], c[n_aug:n_aug + 2]]]
+
+    def option_block(name: str, res: StudyResult, runs_s: float) -> dict[str, Any]:
+        """Filter ``name`` against the default filter, repetition 0 of every dataset."""
+        dflt = base.tracker.filter
+        series = OPTION_FILTERS[name]
+        return {
+            "what": (f"filter={name!r} ({OPTION_NOTES[name]}) against the default filter, "
+                     "same likelihood, repetition 0 of every dataset"),
+            "state_nrmse": {f"series{s}": {
+                name: round(float(_mean(res.nrmse[s - 1, :, 0, :nx])), 4),
+                dflt: round(float(_mean(full.nrmse[s - 1, :, 0, :nx])), 4)} for s in series},
+            "skill_state_min": {f"series{s}": {
+                name: round(float(np.nanmin(_mean(res.skill[s - 1, :, 0, :nx], axis=0))), 3),
+                dflt: round(float(np.nanmin(_mean(full.skill[s - 1, :, 0, :nx], axis=0))), 3)}
+                for s in series},
+            "coverage_states_angles": {
+                f"series{s}": {name: states_angles(_mean(res.coverage[s - 1, :, 0], axis=0)),
+                               dflt: states_angles(_mean(full.coverage[s - 1, :, 0], axis=0))}
+                for s in series},
+            "mean_ess": {f"series{s}": {
+                name: round(float(_mean(res.ess[s - 1, :, 0])), 1),
+                dflt: round(float(_mean(full.ess[s - 1, :, 0])), 1)} for s in series},
+            "log_evidence": {f"series{s}": {
+                name: round(float(_mean(res.log_evidence[s - 1, :, 0]))),
+                dflt: round(float(_mean(full.log_evidence[s - 1, :, 0])))} for s in series},
+            "runs_s": round(runs_s, 1)}
 
     skill = {s: _mean(full.skill[s - 1], axis=(0, 1)) for s in (1, 3, 4, 5, 6)}
     cov = {s: _mean(full.coverage[s - 1], axis=(0, 1)) for s in (1, 3, 5, 6)}
@@ -174,25 +212,8 @@ def main() -> None:
                   for s in (1, 5, 6)},
             "paper": {f"series{s}": round(float(_mean(paper.paper["log_evidence"][s - 1])))
                       for s in (1, 5, 6)}},
-        "move_filter": {
-            "what": ("filter='move' (resample-move) against the default filter, same "
-                     "likelihood, repetition 0 of every dataset"),
-            "state_nrmse": {f"series{s}": {
-                "move": round(float(_mean(move.nrmse[s - 1, :, 0, :nx])), 4),
-                base.tracker.filter: round(float(_mean(full.nrmse[s - 1, :, 0, :nx])), 4)}
-                for s in (3, 5, 6)},
-            "skill_state_min": {f"series{s}": {
-                "move": round(float(np.nanmin(_mean(move.skill[s - 1, :, 0, :nx], axis=0))), 3),
-                base.tracker.filter: round(float(np.nanmin(
-                    _mean(full.skill[s - 1, :, 0, :nx], axis=0))), 3)} for s in (3, 5, 6)},
-            "coverage_states_angles": {
-                f"series{s}": states_angles(_mean(move.coverage[s - 1, :, 0], axis=0))
-                for s in (3, 5, 6)},
-            "log_evidence": {f"series{s}": {
-                "move": round(float(_mean(move.log_evidence[s - 1, :, 0]))),
-                base.tracker.filter: round(float(_mean(full.log_evidence[s - 1, :, 0])))}
-                for s in (3, 5, 6)},
-            "runs_s": round(move_s, 1)},
+        **{f"{name}_filter": option_block(name, res, runs_s)
+           for name, (res, runs_s) in options.items()},
         "load_average_1min_start": round(load0, 2),
         "load_average_1min_end": round(os.getloadavg()[0], 2),
         "settings": {"particles": base.tracker.n_particles, "products": base.n_products,

@@ -49,7 +49,7 @@ def test_low_variance_schemes_keep_the_integer_part() -> None:
 def test_unknown_names_list_the_known_ones_and_callables_pass() -> None:
     with pytest.raises(ValueError, match="known: multinomial, residual, stratified, systematic"):
         get_resampler("bogus")
-    with pytest.raises(ValueError, match="known: guided, move, regularised, sir"):
+    with pytest.raises(ValueError, match="known: guided, guided_lin, move, regularised, sir"):
         get_filter("bogus")
     first = lambda w, rng, m: np.zeros(m, dtype=np.intp)  # noqa: E731
     assert get_resampler(first) is first

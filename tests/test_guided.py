@@ -1,7 +1,9 @@
-"""The guided filter (``filter="guided"``): with a proposal that is not the posterior its
-weights still give the exact Kalman filter of a linear-Gaussian model; the bending model's
-proposal has importance ratios with mean 1 and the transition's mean; a tracker with it
-continues bit for bit and refuses what it cannot do."""
+"""The guided filters (``filter="guided"`` and ``"guided_lin"``): with a proposal that is
+not the posterior their weights still give the exact Kalman filter of a linear-Gaussian
+model; the bending model's proposals (with a pilot evaluation per particle, or linearised
+about the cloud's mean) give the bootstrap posterior at a larger ESS; the linearisation's
+residuals match the model's to second order; a tracker with either continues bit for bit
+and refuses what it cannot do."""
 
 from __future__ import annotations
 
@@ -15,8 +17,9 @@ from filter_refs import (
 )
 from scipy import stats
 
-from formtwin.filters import SIR, GuidedSIR
-from formtwin.tracker import TrackerConfig
+from formtwin.defaults import analytic_model
+from formtwin.filters import SIR, GuidedLinSIR, GuidedSIR
+from formtwin.tracker import TrackerConfig, build_tracker
 
 
 class LinearGaussian:
@@ -80,11 +83,12 @@ def test_guided_filter_matches_the_kalman_filter_with_an_imperfect_proposal() ->
         GuidedSIR(object(), 10, np.random.default_rng(0))  # type: ignore[arg-type]
 
 
-def _tracker(**kw: object) -> tuple[object, object]:
-    return analytic_tracker(filter="guided", **kw)
+def _tracker(filter: str = "guided", **kw: object) -> tuple[object, object]:
+    return analytic_tracker(filter=filter, **kw)
 
 
-def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess() -> None:
+@pytest.mark.parametrize("pilot", [True, False])
+def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess(pilot: bool) -> None:
     """One parent in the box, a curve from a state off the transition's mean: the draws
     weighted by likelihood x ratio have the posterior mean of the transition's draws
     weighted by the likelihood (within both Monte-Carlo errors), at a far larger ESS."""
@@ -106,7 +110,12 @@ def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess() -> N
 
     xb = ssm.sample_transition(np.repeat(parent[None, :], 200_000, axis=0), rng)
     mb, sb, essb = weighted(xb, ssm.loglik_fixed(xb, y))
-    xg, ratio = ssm.sample_guided(np.repeat(parent[None, :], 20_000, axis=0), y, rng)
+    parents = np.repeat(parent[None, :], 20_000, axis=0)
+    if not pilot:  # the parent's curve in the columns of guided_lin
+        ssm = _tracker("guided_lin")[1].ssm  # type: ignore[attr-defined]
+        parents = np.c_[parents, np.tile(model.predict_curves(parent[None, :n_in]),  # type: ignore[attr-defined]
+                                         (20_000, 1))]
+    xg, ratio = ssm.sample_guided(parents, y, rng, pilot=pilot)
     mg, sg, essg = weighted(xg, ssm.loglik_fixed(xg, y) + ratio)
     assert essg / 20_000 > 1.3 * essb / 200_000  # share of the draws that count
     tol = 5 * np.maximum(sb, sg) * np.sqrt(1 / essb + 1 / essg)
@@ -114,12 +123,40 @@ def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess() -> N
     np.testing.assert_allclose(sg, sb, rtol=0.3)
 
 
-def test_guided_tracker_continues_bit_for_bit_and_refuses_learned_statistics() -> None:
-    model, tr = _tracker()
+@pytest.mark.parametrize("name", ["guided", "guided_lin"])
+def test_guided_tracker_continues_bit_for_bit_and_refuses_learned_statistics(name: str) -> None:
+    model, tr = _tracker(name)
+    assert type(tr.filter) is {"guided": GuidedSIR, "guided_lin": GuidedLinSIR}[name]  # type: ignore[attr-defined]
     curves = interior_curves(model)
     for c in curves[:3]:
         tr.step(c)  # type: ignore[attr-defined]
     assert_continues_bit_for_bit(model, tr, curves[3:])
     for bad in ({"learn_mu": True}, {"likelihood": "discrepancy"}):
         with pytest.raises(ValueError, match="guided"):
-            TrackerConfig(filter="guided", **bad)  # type: ignore[arg-type]
+            TrackerConfig(filter=name, **bad)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("deviation", "share"), [(False, 0.1), (True, 0.5)])
+def test_parent_curve_moved_by_the_jacobian_is_the_models_curve(deviation: bool,
+                                                                share: float) -> None:
+    """Children a transition away from their parents (x by the AR(1) mean, theta by the
+    jitter, in a cloud 4 % of the box wide): the parents' curves moved by the Jacobian at
+    the cloud's mean err by at most ``share`` of the children's own change of residual
+    (the deviation's interpolation between samples has kinks: less is gained there)."""
+    model = analytic_model()
+    ssm = build_tracker(model, TrackerConfig(n_particles=10, n_mc=1000, filter="guided_lin",
+                                             estimate_deviation=deviation)).ssm
+    y = interior_curves(model, 1)[0]
+    rng = np.random.default_rng(4)
+    width = ssm._hi[:ssm.n_aug] - ssm._lo[:ssm.n_aug]
+    x = 0.5 * (ssm._lo[:ssm.n_aug] + ssm._hi[:ssm.n_aug]) + 0.02 * width * rng.uniform(
+        -1, 1, (200, width.size))
+    if not deviation:
+        x[:, ssm.n_in:] = 0.0
+    at = ssm.sample_transition(x, rng)
+    at[:, :ssm.n_x] = (1.0 - ssm._rho) * ssm._mu + ssm._rho * x[:, :ssm.n_x]
+    parents = ssm.residuals(x, y)
+    exact = ssm.residuals(at, y)
+    lin, H = ssm._linear_residuals(at, y, x, y - parents)
+    assert np.abs(lin - exact).max() < share * np.abs(parents - exact).max()
+    assert H.shape == (model.spec.n_t, ssm.n_x)

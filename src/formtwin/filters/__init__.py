@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from formtwin.filters.guided import GuidedSIR
+from formtwin.filters.guided import GuidedLinSIR, GuidedSIR
 from formtwin.filters.move import ResampleMoveSIR
 from formtwin.filters.regularised import RegularisedSIR
 from formtwin.filters.resampling import (
@@ -22,7 +22,8 @@ from formtwin.filters.sir import SIR, StateSpaceModel, Step, log_normalise, logs
 
 #: filter name -> class (constructor ``(model, n_particles, rng, resampling, ess_threshold)``)
 FILTERS: dict[str, type[SIR]] = {"sir": SIR, "regularised": RegularisedSIR,
-                                  "move": ResampleMoveSIR, "guided": GuidedSIR}
+                                  "move": ResampleMoveSIR, "guided": GuidedSIR,
+                                  "guided_lin": GuidedLinSIR}
 
 
 def get_filter(name: str | type[SIR]) -> type[SIR]:
@@ -41,6 +42,6 @@ def make_filter(name: str | type[SIR], *args: Any, **kwargs: Any) -> SIR:
     return get_filter(name)(*args, **kwargs)
 
 
-__all__ = ["FILTERS", "RESAMPLERS", "SIR", "GuidedSIR", "RegularisedSIR", "ResampleMoveSIR",
-           "Resampler", "StateSpaceModel", "Step", "get_filter", "get_resampler",
+__all__ = ["FILTERS", "RESAMPLERS", "SIR", "GuidedLinSIR", "GuidedSIR", "RegularisedSIR",
+           "ResampleMoveSIR", "Resampler", "StateSpaceModel", "Step", "get_filter", "get_resampler",
            "log_normalise", "logsumexp", "make_filter", "register_resampler"]

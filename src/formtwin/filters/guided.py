@@ -72,3 +72,22 @@ class GuidedSIR(SIR):
         self.log_ratio = np.asarray(ratio, dtype=np.float64)
         ll = np.asarray(m.loglik(xp, y), dtype=np.float64) + self.log_ratio
         return self.update(xp, ll)
+
+
+class GuidedLinSIR(GuidedSIR):
+    """:class:`GuidedSIR` asking the model for its proposal without a pilot evaluation per
+    particle (``sample_guided(x, y, rng, pilot=False)``: e.g. each parent's curve moved by
+    a Jacobian), so a step costs about one model evaluation per particle, as :class:`SIR`."""
+
+    name = "guided_lin"
+
+    def step(self, y: Any) -> Step:
+        """Assimilate ``y`` as :meth:`GuidedSIR.step`, with the pilot-free proposal."""
+        if self.x is None:
+            self.initialise()
+        m: Any = self.model
+        xp, ratio = m.sample_guided(self.x, y, self.rng, pilot=False)
+        xp = np.asarray(xp, dtype=np.float64)
+        self.log_ratio = np.asarray(ratio, dtype=np.float64)
+        ll = np.asarray(m.loglik(xp, y), dtype=np.float64) + self.log_ratio
+        return self.update(xp, ll)

@@ -15,7 +15,7 @@ import numpy as np
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.tracker.config import TrackerConfig
 from formtwin.tracker.core import Tracker
-from formtwin.tracker.ssm import residual_covariance
+from formtwin.tracker.discrepancy import residual_covariance
 
 log = logging.getLogger(__name__)
 

@@ -181,7 +181,8 @@ class TrackerConfig:
         if self.likelihood == "discrepancy" and self.filter == "move":
             raise ValueError("the move filter needs a likelihood without learned statistics: "
                              "not discrepancy")
-        if self.filter == "guided" and (self.learn_mu or self.likelihood == "discrepancy"):
+        if self.filter in ("guided", "guided_lin") and (
+                self.learn_mu or self.likelihood == "discrepancy"):
             raise ValueError("the guided filter needs a fixed mu and a likelihood without "
                              "learned statistics: not learn_mu, not discrepancy")
         if self.likelihood == "discrepancy" and not math.isinf(self.nu):

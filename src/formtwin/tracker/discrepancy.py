@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -183,3 +184,16 @@ class Discrepancy:
         lam = self.forget
         stats[good, :-1] = lam * stats[good, :-1] + c[good]
         stats[:, -1] = lam * stats[:, -1] + 1.0
+
+
+def residual_covariance(model: Any) -> FloatArray | None:
+    """``K_res`` (n_t, n_t) of ``model``: the curve covariance of its k-fold held-out
+    residuals (:class:`formtwin.metamodel.ResidualModel`), or ``None`` if it has none."""
+    res = getattr(model, "residuals", None)
+    return None if res is None else np.asarray(res.curve_cov, dtype=np.float64)
+
+
+def angle_residual_variance(model: Any) -> FloatArray | None:
+    """Variance (2,) deg^2 of the metamodel's held-out angle residuals, or ``None``."""
+    res = getattr(model, "residuals", None)
+    return None if res is None else np.diag(np.asarray(res.angle_cov, dtype=np.float64))

@@ -13,7 +13,12 @@ the Kalman step
     q(x | x_(k, i-1), z_i) = N(a_k + S H^T R^-1 (z_i - h(a_k)),  S),
     S = (Q^-1 + H^T R^-1 H)^-1,
 
-which costs one more model evaluation per particle (at ``a_k``). The draw is reflected into
+which costs one more model evaluation per particle (at ``a_k``; ``filter="guided"``). With
+``filter="guided_lin"`` each particle carries the model curve of its last product (``n_t``
+more columns, resampled and saved with it) and ``h(a_k)`` is that curve moved by the
+Jacobian at the cloud's mean in every column that varies (x, theta, theta_d: ``n + 1``
+evaluations, ``n <= 18``, instead of N): a step costs about one evaluation per particle as
+SIR's (the first product, with no parent curves, evaluates the pilots). The draw is reflected into
 the design box like the transition; the ratio ``log N(x; a_k, Q) - log q(x)`` is that of the
 Gaussians (the reflection's images are left out: the box is many ``sqrt(S)`` wide). The
 linearisation only makes ``q`` better or worse; the weights keep the filter's target exact.
@@ -44,6 +49,7 @@ class GuidedProposal(GridPosteriors):
     _sigma: FloatArray
     _rho: FloatArray
     _sizes: tuple[int, int, int]
+    _curve: int
     config: Any
     sample_transition: Any
     residuals: Any
@@ -61,25 +67,33 @@ class GuidedProposal(GridPosteriors):
             return np.asarray(self.measurement.covariance())
         return np.asarray(d.predictive_cov(None, np.exp(self.share_logpost)))
 
-    def sample_guided(self, x: FloatArray, y: FloatArray, rng: np.random.Generator
-                      ) -> tuple[FloatArray, FloatArray]:
+    def sample_guided(self, x: FloatArray, y: FloatArray, rng: np.random.Generator,
+                      pilot: bool = True) -> tuple[FloatArray, FloatArray]:
         """Particles (N, d) of the next product drawn from the guided proposal given this
         one's ``x`` (N, d) and its curve ``y`` (n_t,) N, and their log importance ratios
-        (N,) ``log p(x_new | x) - log q(x_new | x, y)`` (see the module doc)."""
+        (N,) ``log p(x_new | x) - log q(x_new | x, y)`` (see the module doc). ``pilot``:
+        the residual at each particle's prediction from a model evaluation (N more); else
+        from the parent's curve, carried in the particle's columns, and the Jacobian at the
+        cloud's mean (:meth:`_linear_residuals`; the pilot evaluation where a parent has
+        no curve: the first product, the model-space comparison)."""
         if self.config.learn_mu or (self.discrepancy is not None and self.discrepancy.shared):
             raise ValueError("the guided proposal needs a fixed mu and no shared discrepancy")
         nx = self._sizes[0]
         out = self.sample_transition(x, rng)  # constant parameters jittered as in SIR
         a = (1.0 - self._rho) * self._mu + self._rho * x[:, :nx]
         q = (1.0 - self._rho**2) * self._sigma**2
-        pilot = out.copy()
-        pilot[:, :nx] = a
-        r = self.residuals(pilot, y)  # z - h(a_k), (N, n_t)
-        step = self.fd_step * self._sigma
-        base = np.repeat(pilot.mean(axis=0)[None, :], nx + 1, axis=0)
-        base[1:, :nx] += np.diag(step)
-        r_fd = self.residuals(base, y)
-        H = (r_fd[0] - r_fd[1:]).T / step  # (n_t, nx): dh/dx (r = z - h)
+        at = out.copy()
+        at[:, :nx] = a
+        parents = x[:, self._curve:self._curve + len(y)] if self._curve else None
+        if pilot or parents is None or not np.all(np.isfinite(parents)):
+            r = self.residuals(at, y)  # z - h(a_k), (N, n_t)
+            step = self.fd_step * self._sigma
+            base = np.repeat(at.mean(axis=0)[None, :], nx + 1, axis=0)
+            base[1:, :nx] += np.diag(step)
+            r_fd = self.residuals(base, y)
+            H = (r_fd[0] - r_fd[1:]).T / step  # (n_t, nx): dh/dx (r = z - h)
+        else:
+            r, H = self._linear_residuals(at, y, x, parents)
         RiH = np.linalg.solve(self._lik_cov(), H)
         S = np.linalg.inv(np.diag(1.0 / q) + H.T @ RiH)
         S = 0.5 * (S + S.T)
@@ -93,3 +107,23 @@ class GuidedProposal(GridPosteriors):
                  - 0.5 * nx * math.log(2.0 * math.pi))
         out[:, :nx] = reflect(new, self._lo[:nx], self._hi[:nx])
         return out, log_p - log_q
+
+    def _linear_residuals(self, at: FloatArray, y: FloatArray, x: FloatArray,
+                          curves: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Residuals ``z - h`` (N, n_t) at the particles ``at`` (N, d) from their parents
+        ``x`` (N, d) with model curves ``curves`` (N, n_t) and the model's Jacobian ``J`` at
+        the mean ``c`` of ``at`` in every column that varies (the state, theta and, when
+        estimated, theta_d; finite differences, at most 19 evaluations instead of N):
+        ``r ~ z - curves - J (at - x)``; and the state's block ``H`` (n_t, n_x) of ``J``."""
+        nx, _, na = self._sizes
+        n_cols = na if self.config.estimate_deviation else self._sizes[1]
+        c = at.mean(axis=0)
+        spread = at[:, nx:n_cols].std(axis=0)
+        width = self._hi[nx:n_cols] - self._lo[nx:n_cols]
+        step = self.fd_step * np.r_[self._sigma, np.maximum(spread, 1e-3 * width)]
+        base = np.repeat(c[None, :], n_cols + 1, axis=0)
+        base[1:, :n_cols] += np.diag(step)
+        r_fd = self.residuals(base, y)
+        J = (r_fd[0] - r_fd[1:]).T / step  # (n_t, n_cols): dh/dcolumn
+        r = (y - curves) - (at[:, :n_cols] - x[:, :n_cols]) @ J.T
+        return r, J[:, :nx]

@@ -56,7 +56,11 @@ from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker.config import SCALES, SHARES, TrackerConfig
-from formtwin.tracker.discrepancy import Discrepancy
+from formtwin.tracker.discrepancy import (
+    Discrepancy,
+    angle_residual_variance,
+    residual_covariance,
+)
 from formtwin.tracker.guide import GuidedProposal
 from formtwin.tracker.moves import MoveHooks
 
@@ -104,6 +108,9 @@ class BendingSSM(MoveHooks, GuidedProposal):
     _n_bounded: int = field(init=False, repr=False, default=0)
     # the discrepancy's statistics are the columns [_disc, d)
     _disc: int = field(init=False, repr=False, default=0)
+    # filter "guided_lin": each particle's model curve (as the likelihood compared it at
+    # its last product) in the columns [_curve, _curve + n_t); 0: none
+    _curve: int = field(init=False, repr=False, default=0)
 
     def __post_init__(self) -> None:
         spec = self.model.spec
@@ -131,6 +138,10 @@ class BendingSSM(MoveHooks, GuidedProposal):
             if disc.shared:  # the statistics of the shared part: unbounded columns
                 lo = np.r_[lo, np.full(disc.width, -np.inf)]
                 hi = np.r_[hi, np.full(disc.width, np.inf)]
+        if self.config.filter == "guided_lin":  # the parents' curves: unbounded columns
+            object.__setattr__(self, "_curve", lo.size)
+            lo = np.r_[lo, np.full(spec.n_t, -np.inf)]
+            hi = np.r_[hi, np.full(spec.n_t, np.inf)]
         object.__setattr__(self, "_lo", lo)
         object.__setattr__(self, "_hi", hi)
         object.__setattr__(self, "deviation", DeviationModel.from_spec(spec))
@@ -219,6 +230,8 @@ class BendingSSM(MoveHooks, GuidedProposal):
             out[:, self.n_in:self.n_aug] = 0.0
         if self.discrepancy is not None and self.discrepancy.shared:
             out[:, self._disc:] = 0.0  # its statistics: nothing seen yet
+        if self._curve:
+            out[:, self._curve:] = np.nan  # no curve evaluated yet
         return out
 
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
@@ -259,6 +272,9 @@ class BendingSSM(MoveHooks, GuidedProposal):
         else:
             self._last["r"] = np.concatenate([p[1] for p in parts])
             ll = np.concatenate([p[0] for p in parts])
+        if self._curve:  # the particles' model curves, for the next guided proposal
+            x[:, self._curve:] = y - self._last["r"] if self.config.compare == "measurement" \
+                else np.nan
         disc = self.discrepancy
         if disc is not None:  # residuals net of each particle's shared discrepancy,
             stats = x[:, self._disc:] if disc.shared else None  # then this product
@@ -373,19 +389,6 @@ class BendingSSM(MoveHooks, GuidedProposal):
         ll = self.measurement.loglik_scaled(curves, obs, np.array(SCALES)) \
             if self.config.learn_scale else self.measurement.loglik(curves, obs)
         return ll, r, None
-
-
-def residual_covariance(model: ProcessModel) -> FloatArray | None:
-    """``K_res`` (n_t, n_t) of ``model``: the curve covariance of its k-fold held-out
-    residuals (:class:`formtwin.metamodel.ResidualModel`), or ``None`` if it has none."""
-    res = getattr(model, "residuals", None)
-    return None if res is None else np.asarray(res.curve_cov, dtype=np.float64)
-
-
-def angle_residual_variance(model: ProcessModel) -> FloatArray | None:
-    """Variance (2,) deg^2 of the metamodel's held-out angle residuals, or ``None``."""
-    res = getattr(model, "residuals", None)
-    return None if res is None else np.diag(np.asarray(res.angle_cov, dtype=np.float64))
 
 
 def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
