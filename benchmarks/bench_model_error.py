@@ -59,7 +59,7 @@ TARGETS = {"s1_state_ratio": ("<=", 1.05), "s5_state_ratio": ("<=", 0.7),
 OPTION_FILTERS = {"move": (3, 5, 6), "guided": (1, 3, 5, 6), "guided_lin": (1, 3, 5, 6)}
 OPTION_NOTES = {"move": "resample-move, ~2x the cost",
                 "guided": "linearised Kalman proposal, a pilot evaluation per particle, ~2x",
-                "guided_lin": "the guided proposal from the parents' curves, ~1.1x"}
+                "guided_lin": "the guided proposal from the parents' curves, ~1.5x"}
 
 
 def _mean(a: np.ndarray, axis: Any = None) -> Any:

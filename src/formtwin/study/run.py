@@ -201,7 +201,7 @@ def _cost(task: Task) -> float:
     model (~1.3x), learned mu (~1.1x), the two-evaluation filters (~2x)."""
     series = SERIES[task.series - 1]
     cost = (1.3 if series.deviation else 1.0) * (1.1 if series.learn_mu else 1.0)
-    return cost * {"guided": 2.0, "move": 2.0, "guided_lin": 1.1}.get(task.tracker.filter, 1.0)
+    return cost * {"guided": 2.0, "move": 2.0, "guided_lin": 1.5}.get(task.tracker.filter, 1.0)
 
 
 def _prior_angles(model: ProcessModel, realisations: list[Realisation],
