@@ -11,8 +11,8 @@ On the embedded default (bundled physics DOE, its metamodel with the statistics 
 2. in the same folder (same data): a second repetition of the paper's likelihood in series
    1, 5, 6; repetitions 0-1 of the calibrated likelihood (``K_res`` fixed, the previous
    default) there too; series 8 (learned mu) for 2 repetitions;
-3. the option filters (:data:`OPTION_FILTERS`: resample-move ``"move"``, the guided
-   proposals ``"guided"`` and ``"guided_lin"``), repetition 0, each in a sibling folder
+3. the option filters (:data:`OPTION_FILTERS`: the guided proposals ``"guided_lin"`` and
+   ``"guided"``), repetition 0, each in a sibling folder
    ``<out>_<filter>`` sharing the data, against the default's repetition 0.
 
 Figures (default likelihood unless said; ratios over repetitions 0-1 of every dataset,
@@ -55,8 +55,9 @@ TARGETS = {"s1_state_ratio": ("<=", 1.05), "s5_state_ratio": ("<=", 0.7),
 
 
 #: option filters measured against the default (repetition 0 of every dataset) and their
-#: series
-OPTION_FILTERS = {"move": (3, 5, 6), "guided": (1, 3, 5, 6), "guided_lin": (1, 3, 5, 6)}
+#: series (the resample-move filter, "move", was measured in session 6: docs/likelihood.md;
+#: left out to keep the benchmark within its lock time)
+OPTION_FILTERS = {"guided_lin": (1, 3, 5, 6), "guided": (3, 6)}
 OPTION_NOTES = {"move": "resample-move, ~2x the cost",
                 "guided": "linearised Kalman proposal, a pilot evaluation per particle, ~2x",
                 "guided_lin": "the guided proposal from the parents' curves, ~1.5x"}
