@@ -31,12 +31,13 @@ def payloads(tmp_path_factory: pytest.TempPathFactory) -> list[bytes]:
 
 
 def _start(path: Path, payloads: list[bytes]) -> tuple[Processor, float]:
-    """A processor that has taken the first product without control, then control on (the
-    defaults, but rho 0.5), with the target 0.5 deg above that product's predicted final
-    angle."""
+    """A processor that has taken the first product without control, then control on (weight
+    0.6, rho 0.5: every part of the state in use), with the target 0.5 deg above that
+    product's predicted final angle."""
     proc = open_processor(path, SETTINGS)
     target = float(proc.handle(payloads[0]).message["angles_mean"][1]) + 0.5
-    proc.controller = ServiceController(proc.tracker, ControlSettings(target, 0.1, rho=0.5),
+    proc.controller = ServiceController(proc.tracker,
+                                        ControlSettings(target, 0.1, weight=0.6, rho=0.5),
                                         proc.store)
     return proc, target
 
@@ -127,7 +128,8 @@ def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes]) ->
                              "angles_mean": [0.0, target]})
     proc.close()
     proc = open_processor(path, SETTINGS)
-    proc.controller = ServiceController(proc.tracker, ControlSettings(target, 0.1, rho=0.5),
+    proc.controller = ServiceController(proc.tracker,
+                                        ControlSettings(target, 0.1, weight=0.6, rho=0.5),
                                         proc.store)
     got += [proc.handle(p).message for p in payloads[8:20]]
     strip = ("flags", "received_at")

@@ -69,9 +69,9 @@ from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray,
 #: ``lam``, ``weight`` and ``rho`` the closed-loop study chose on its tuning dataset (the
 #: last ``benchmarks/results/bench_control.json``'s ``ff_lam``, ``ff_weight`` and ``ff_rho``,
 #: docs/control.md): the service's defaults
-TUNED_LAM = 0.7
-TUNED_WEIGHT = 0.75
-TUNED_RHO = 0.0
+TUNED_LAM = 0.02
+TUNED_WEIGHT = 1.0
+TUNED_RHO = 0.7
 
 
 @dataclass
