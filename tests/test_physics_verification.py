@@ -387,3 +387,35 @@ def test_contact_points_lie_on_the_face_of_a_bent_sheet() -> None:
                                    atol=1e-8)
     (_, dp), (_, dn) = shifted(5, h), shifted(5, -h)
     np.testing.assert_allclose((dp[0] - dn[0]) / (2 * h), d[4], rtol=1e-6, atol=1e-8)
+
+
+def test_closest_point_matches_a_sampled_tool_outline() -> None:
+    """The closest point of each stage-1 and stage-2 tool to random points (inside and
+    outside, near corners): its distance is the distance to the densely sampled outline,
+    and away from the chains' open ends the signed distance is the distance with its sign
+    and the normal points from the closest point to the query point."""
+    from formtwin.physics.bending.contact import closest_point, primitive_frames
+    from formtwin.physics.bending.geometry import FlapGeometry, make_toolset, tool_outline
+
+    g = FlapGeometry()
+    ts = make_toolset([("die1", 0, -1, g.die1()), ("holder", 0, +1, g.holder(T)),
+                       ("punch1", 1, +1, g.punch1(0.36, 0.0, 0.0)),
+                       ("die2", 0, -1, g.die2()), ("punch2", 1, +1, g.punch2(0.0))])
+    pre = primitive_frames(ts.ptype, ts.pdata)
+    rng = np.random.default_rng(3)
+    for k in range(ts.owner.size):
+        outline = tool_outline(ts, k, n_arc=4000)
+        # densify the straight parts too
+        dense = np.concatenate([np.linspace(outline[i], outline[i + 1], 2000)
+                                for i in range(len(outline) - 1)])
+        corners = outline[::200]
+        for _ in range(60):
+            q = corners[rng.integers(len(corners))] + rng.normal(0.0, 0.3, 2)
+            dist, sd, nx, ny, _ = closest_point(q[0], q[1], ts.tstart[k], ts.tstart[k + 1],
+                                                ts.ptype, ts.pdata, pre)
+            gaps = np.hypot(*(dense - q).T)
+            assert dist == pytest.approx(gaps.min(), abs=2e-3)
+            if 0 < np.argmin(gaps) < len(dense) - 1 and dist > 1e-2:
+                foot = q - sd * np.array([nx, ny])  # on the outline
+                assert np.min(np.hypot(*(dense - foot).T)) < 2e-3
+                assert abs(abs(sd) - dist) < 2e-3

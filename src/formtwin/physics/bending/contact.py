@@ -35,13 +35,30 @@ from formtwin.physics.bending.kernels import BW
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def primitive_frames(ptype, pdata):  # type: ignore[no-untyped-def]
+    """Per primitive ``(n_p, 4)``: a segment's unit tangent and length ``(tx, ty, L, 0)``, an
+    arc's end directions ``(cos a0, sin a0, cos a1, sin a1)`` (for :func:`closest_point`)."""
+    pre = np.zeros((ptype.shape[0], 4))
+    for j in range(ptype.shape[0]):
+        if ptype[j] == 0:
+            tx, ty = pdata[j, 2] - pdata[j, 0], pdata[j, 3] - pdata[j, 1]
+            L = math.sqrt(tx * tx + ty * ty)
+            pre[j, 0], pre[j, 1], pre[j, 2] = tx / L, ty / L, L
+        else:
+            pre[j, 0], pre[j, 1] = math.cos(pdata[j, 3]), math.sin(pdata[j, 3])
+            pre[j, 2], pre[j, 3] = math.cos(pdata[j, 4]), math.sin(pdata[j, 4])
+    return pre
+
+
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
-def closest_point(px, py, p0, p1, ptype, pdata):  # type: ignore[no-untyped-def]
+def closest_point(px, py, p0, p1, ptype, pdata, pre):  # type: ignore[no-untyped-def]
     """Closest point of a tool (primitives ``p0:p1``) to ``(px, py)`` (tool frame).
 
     Returns ``(distance, signed_distance, nx, ny, rho)`` with the outward normal at the
     closest point and ``rho`` the distance to the arc centre (0 for a straight face).
-    Segments have the tool on their right; arcs are convex corners (tool inside).
+    Segments have the tool on their right; arcs are convex corners (tool inside, spanning
+    less than 180 deg). ``pre`` from :func:`primitive_frames`.
     """
     best = 1e300
     sd = 0.0
@@ -50,11 +67,8 @@ def closest_point(px, py, p0, p1, ptype, pdata):  # type: ignore[no-untyped-def]
     brho = 0.0
     for j in range(p0, p1):
         if ptype[j] == 0:
-            x0, y0, x1, y1 = pdata[j, 0], pdata[j, 1], pdata[j, 2], pdata[j, 3]
-            tx, ty = x1 - x0, y1 - y0
-            L = math.sqrt(tx * tx + ty * ty)
-            tx /= L
-            ty /= L
+            x0, y0 = pdata[j, 0], pdata[j, 1]
+            tx, ty, L = pre[j, 0], pre[j, 1], pre[j, 2]
             nx, ny = -ty, tx
             sp = (px - x0) * tx + (py - y0) * ty
             spc = min(max(sp, 0.0), L)
@@ -63,18 +77,20 @@ def closest_point(px, py, p0, p1, ptype, pdata):  # type: ignore[no-untyped-def]
             sgn = (px - x0) * nx + (py - y0) * ny
             rho = 0.0
         else:
-            cx, cy, R, a0, a1 = pdata[j, 0], pdata[j, 1], pdata[j, 2], pdata[j, 3], pdata[j, 4]
+            cx, cy, R = pdata[j, 0], pdata[j, 1], pdata[j, 2]
+            c0, s0, c1, s1 = pre[j, 0], pre[j, 1], pre[j, 2], pre[j, 3]
             rx, ry = px - cx, py - cy
             rho = math.hypot(rx, ry)
-            ang = (math.atan2(ry, rx) - a0) % (2.0 * math.pi)
-            if ang <= a1 - a0 and rho > 0.0:
+            if c0 * ry - s0 * rx >= 0.0 and rx * s1 - ry * c1 >= 0.0 and rho > 0.0:
                 nx, ny = rx / rho, ry / rho
                 sgn = rho - R
                 dist = abs(sgn)
-            else:
-                aa = a0 if ang > 0.5 * (a1 - a0) + math.pi else a1
-                qx, qy = cx + R * math.cos(aa), cy + R * math.sin(aa)
-                nx, ny = math.cos(aa), math.sin(aa)
+            else:  # the nearer end (in angle)
+                if rx * c0 + ry * s0 > rx * c1 + ry * s1:
+                    nx, ny = c0, s0
+                else:
+                    nx, ny = c1, s1
+                qx, qy = cx + R * nx, cy + R * ny
                 dist = math.hypot(px - qx, py - qy)
                 sgn = (px - qx) * nx + (py - qy) * ny
                 rho = 0.0
@@ -157,12 +173,22 @@ def hermite_face(xa, ya, pa, xb, yb, pb, s, h, L0, xi, d):  # type: ignore[no-un
     ``dy/dp_b``, ``d2y/dp_a2``, ``d2y/dp_b2``, ``d2y/dp_a dp_b``; ``dy/dx_a = H1``,
     ``dy/dx_b = H3`` (times the identity).
     """
+    return hermite_face_cs(xa, ya, pa, math.cos(pa), math.sin(pa), xb, yb, pb, math.cos(pb),
+                           math.sin(pb), s, h, L0, xi, d)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
+def hermite_face_cs(xa, ya, pa, ca, sa, xb, yb, pb, cb, sb, s, h, L0, xi,  # type: ignore[no-untyped-def]
+                    d):
+    """:func:`hermite_face` with the nodes' ``cos, sin`` of their directions given."""
     x2 = xi * xi
     x3 = x2 * xi
     H1, H2, H3, H4 = 1.0 - 3.0 * x2 + 2.0 * x3, xi - 2.0 * x2 + x3, 3.0 * x2 - 2.0 * x3, x3 - x2
-    ca, sa, cb, sb = math.cos(pa), math.sin(pa), math.cos(pb), math.sin(pb)
-    ang = (1.0 - xi) * pa + xi * pb
-    cp, sp = math.cos(ang), math.sin(ang)
+    if xi == 0.0:
+        cp, sp = ca, sa
+    else:
+        ang = (1.0 - xi) * pa + xi * pb
+        cp, sp = math.cos(ang), math.sin(ang)
     sh = s * h
     wa, wb = 1.0 - xi, xi
     d[0, 0] = -H2 * L0 * sa - sh * cp * wa
@@ -239,12 +265,18 @@ def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore
     half = 0.5 * thick
     n_nodes = X.shape[0]
     dnode = np.empty(n_nodes)
+    pre = primitive_frames(ptype, pdata)
+    cnode = np.empty(n_nodes)  # cos, sin of the nodes' directions
+    snode = np.empty(n_nodes)
+    for i in range(n_nodes):
+        cnode[i] = math.cos(phi0[i] + u[3 * i + 2])
+        snode[i] = math.sin(phi0[i] + u[3 * i + 2])
     for k in range(towner.shape[0]):
         ty = p if towner[k] == 1 else 0.0
         s = tface[k]
         for i in range(n_nodes):  # the nodes' distances to the tool, to skip far elements
             dnode[i] = closest_point(X[i, 0] + u[3 * i], X[i, 1] + u[3 * i + 1] - ty,
-                                     tstart[k], tstart[k + 1], ptype, pdata)[0]
+                                     tstart[k], tstart[k + 1], ptype, pdata, pre)[0]
         for q in range(el.shape[0]):
             ct_act_t[q, k] = 0
             ct_t_t[q, k] = 0.0
@@ -258,13 +290,13 @@ def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore
             # than 2 L0 + 1.5 t from it has no contact point on it
             if min(dnode[e], dnode[e + 1]) > 2.0 * L0 + 1.5 * thick:
                 continue
-            px, py = hermite_face(
-                X[e, 0] + u[i0], X[e, 1] + u[i0 + 1], phi0[e] + u[i0 + 2],
+            px, py = hermite_face_cs(
+                X[e, 0] + u[i0], X[e, 1] + u[i0 + 1], phi0[e] + u[i0 + 2], cnode[e], snode[e],
                 X[e + 1, 0] + u[i0 + 3], X[e + 1, 1] + u[i0 + 4], phi0[e + 1] + u[i0 + 5],
-                s, half, L0, xi[q], d)
+                cnode[e + 1], snode[e + 1], s, half, L0, xi[q], d)
             py -= ty
             dist, gap, nx, ny, rho = closest_point(px, py, tstart[k], tstart[k + 1], ptype,
-                                                   pdata)
+                                                   pdata, pre)
             if gap >= 0.0 or gap < -thick:
                 continue
             tt_n = ct_t[q, k] if ct_act[q, k] == 1 else 0.0

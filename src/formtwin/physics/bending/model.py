@@ -58,9 +58,11 @@ class Discretisation:
         Largest displacement correction per Newton iteration (mm).
     predict
         Weight of the extrapolation of the last increment in the Newton predictor (0..1).
-    line_search, ls_ratio
-        Largest number of step halvings in the line search, and the ratio of residual
-        norms (new / old) above which the Newton step is halved.
+    line_search, ls_ratio, ls_energy
+        Largest number of step halvings in the line search, and the ratio (new / old)
+        above which the Newton step is halved: of the residual's work along the Newton
+        direction (its energy's directional derivative; ``ls_energy``, model 2.3-fast) or of
+        the residual norms (``ls_energy=False, ls_ratio=1.0``: model 2.3).
     easy_iter, easy_steps
         The step is doubled (up to ``dt_max``) after ``easy_steps`` consecutive steps that
         converged in at most ``easy_iter`` iterations.
@@ -94,7 +96,8 @@ class Discretisation:
     cap_disp: float = 0.05
     predict: float = 1.0
     line_search: int = 3
-    ls_ratio: float = 1.0
+    ls_ratio: float = 0.8
+    ls_energy: bool = True
     easy_iter: int = 8
     easy_steps: int = 2
     rate_window: float = 2.7
@@ -107,7 +110,7 @@ class Discretisation:
         return np.array([dt_max, self.dt_min, self.max_iter, self.tol_force, self.tol_disp,
                          self.cap_disp, self.predict, self.line_search, self.ls_ratio,
                          self.easy_iter, self.easy_steps, rate_tau, self.pressure_spread,
-                         float(self.transverse_shear)])
+                         float(self.transverse_shear), float(self.ls_energy)])
 
 
 @dataclass

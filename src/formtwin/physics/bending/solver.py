@@ -38,7 +38,7 @@ from formtwin.physics.bending.kernels import (
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 (DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
- RATE_TAU, SPREAD, SHEAR) = range(14)
+ RATE_TAU, SPREAD, SHEAR, LS_ENERGY) = range(15)
 # status codes
 OK, FAIL_STEP = 0, 1
 
@@ -133,10 +133,24 @@ def _fix(R, Kb, col, row, free):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def _work(x, dp, R, g, spring):  # type: ignore[no-untyped-def]
+    """``x . R + dp g``: the residual's work along the Newton direction ``(x, dp)``."""
+    acc = dp * g if spring else 0.0
+    for i in range(x.shape[0]):
+        acc += x[i] * R[i]
+    return acc
+
+
+@njit(cache=True)
 def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyped-def]
            tools, contact, ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters,
            reac):
     """Newton iterations with a backtracking line search at time ``t``.
+
+    The line search halves the step until, with ``opts[LS_ENERGY]``, the work of the residual
+    along the Newton direction ``|x . R(u + alpha x)|`` (the directional derivative of the
+    energy) is at most ``opts[LS_TOL]`` times its value at ``alpha = 0``, or else the
+    residual norm is below ``opts[LS_TOL]`` times the last one.
 
     Starts from the predictor in ``u, pa[0]``; ``free[i] = 0`` marks a prescribed dof
     (its value is already set in ``u``). The groups are those of :func:`assemble`.
@@ -192,6 +206,8 @@ def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untype
             u0[i] = u[i]
         p0 = pa[0]
         norm0 = norm
+        energy = opts[LS_ENERGY] > 0.0
+        work0 = _work(x1, dp, R, out[0], spring) if energy else 0.0
         alpha = scale
         n_ls = int(opts[LS_MAX])
         for ls in range(n_ls + 1):
@@ -205,7 +221,11 @@ def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untype
             norm = _fix(R, Kb, col, row, free)
             if spring:
                 norm = math.sqrt(norm * norm + out[0] * out[0])
-            if norm < opts[LS_TOL] * norm0 or ls == n_ls:
+            if energy:
+                accept = abs(_work(x1, dp, R, out[0], spring)) <= opts[LS_TOL] * abs(work0)
+            else:
+                accept = norm < opts[LS_TOL] * norm0
+            if accept or ls == n_ls:
                 break
             alpha *= 0.5
         if dmax * alpha < opts[TOL_U] and norm < 1e3 * opts[TOL_R]:
