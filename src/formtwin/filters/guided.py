@@ -16,7 +16,7 @@ the same particles, e.g. the tracker's share of the metamodel's error).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +52,8 @@ class GuidedSIR(SIR):
     """
 
     name = "guided"
+    #: keyword arguments of the model's ``sample_guided`` (none: its default proposal)
+    proposal_kwargs: ClassVar[dict[str, Any]] = {}
 
     def __init__(self, model: StateSpaceModel, n_particles: int, rng: np.random.Generator,
                  resampling: str | Resampler = "systematic",
@@ -67,7 +69,7 @@ class GuidedSIR(SIR):
         if self.x is None:
             self.initialise()
         m: Any = self.model
-        xp, ratio = m.sample_guided(self.x, y, self.rng)
+        xp, ratio = m.sample_guided(self.x, y, self.rng, **self.proposal_kwargs)
         xp = np.asarray(xp, dtype=np.float64)
         self.log_ratio = np.asarray(ratio, dtype=np.float64)
         ll = np.asarray(m.loglik(xp, y), dtype=np.float64) + self.log_ratio
@@ -80,14 +82,4 @@ class GuidedLinSIR(GuidedSIR):
     a Jacobian), so a step costs about one model evaluation per particle, as :class:`SIR`."""
 
     name = "guided_lin"
-
-    def step(self, y: Any) -> Step:
-        """Assimilate ``y`` as :meth:`GuidedSIR.step`, with the pilot-free proposal."""
-        if self.x is None:
-            self.initialise()
-        m: Any = self.model
-        xp, ratio = m.sample_guided(self.x, y, self.rng, pilot=False)
-        xp = np.asarray(xp, dtype=np.float64)
-        self.log_ratio = np.asarray(ratio, dtype=np.float64)
-        ll = np.asarray(m.loglik(xp, y), dtype=np.float64) + self.log_ratio
-        return self.update(xp, ll)
+    proposal_kwargs: ClassVar[dict[str, Any]] = {"pilot": False}

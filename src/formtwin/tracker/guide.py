@@ -87,11 +87,7 @@ class GuidedProposal(GridPosteriors):
         parents = x[:, self._curve:self._curve + len(y)] if self._curve else None
         if pilot or parents is None or not np.all(np.isfinite(parents)):
             r = self.residuals(at, y)  # z - h(a_k), (N, n_t)
-            step = self.fd_step * self._sigma
-            base = np.repeat(at.mean(axis=0)[None, :], nx + 1, axis=0)
-            base[1:, :nx] += np.diag(step)
-            r_fd = self.residuals(base, y)
-            H = (r_fd[0] - r_fd[1:]).T / step  # (n_t, nx): dh/dx (r = z - h)
+            H = self._jacobian(at.mean(axis=0), self.fd_step * self._sigma, y)
         else:
             r, H = self._linear_residuals(at, y, x, parents)
         RiH = np.linalg.solve(self._lik_cov(), H)
@@ -112,18 +108,24 @@ class GuidedProposal(GridPosteriors):
                           curves: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Residuals ``z - h`` (N, n_t) at the particles ``at`` (N, d) from their parents
         ``x`` (N, d) with model curves ``curves`` (N, n_t) and the model's Jacobian ``J`` at
-        the mean ``c`` of ``at`` in every column that varies (the state, theta and, when
+        the mean of ``at`` in every column that varies (the state, theta and, when
         estimated, theta_d; finite differences, at most 19 evaluations instead of N):
         ``r ~ z - curves - J (at - x)``; and the state's block ``H`` (n_t, n_x) of ``J``."""
         nx, _, na = self._sizes
         n_cols = na if self.config.estimate_deviation else self._sizes[1]
-        c = at.mean(axis=0)
         spread = at[:, nx:n_cols].std(axis=0)
         width = self._hi[nx:n_cols] - self._lo[nx:n_cols]
         step = self.fd_step * np.r_[self._sigma, np.maximum(spread, 1e-3 * width)]
-        base = np.repeat(c[None, :], n_cols + 1, axis=0)
-        base[1:, :n_cols] += np.diag(step)
-        r_fd = self.residuals(base, y)
-        J = (r_fd[0] - r_fd[1:]).T / step  # (n_t, n_cols): dh/dcolumn
+        J = self._jacobian(at.mean(axis=0), step, y)  # (n_t, n_cols): dh/dcolumn
         r = (y - curves) - (at[:, :n_cols] - x[:, :n_cols]) @ J.T
         return r, J[:, :nx]
+
+    def _jacobian(self, c: FloatArray, step: FloatArray, y: FloatArray) -> FloatArray:
+        """``dh/dcolumn`` (n_t, m) of the model curve at the particle ``c`` (d,) in its first
+        ``m = len(step)`` columns, by forward differences of ``step`` (m,) (``m + 1`` model
+        evaluations; the residuals are ``z - h``)."""
+        base = np.repeat(c[None, :], step.size + 1, axis=0)
+        base[1:, :step.size] += np.diag(step)
+        r_fd = self.residuals(base, y)
+        J: FloatArray = (r_fd[0] - r_fd[1:]).T / step
+        return J

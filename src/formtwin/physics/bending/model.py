@@ -61,8 +61,9 @@ class Discretisation:
     line_search, ls_ratio, ls_energy
         Largest number of step halvings in the line search, and the ratio (new / old)
         above which the Newton step is halved: of the residual's work along the Newton
-        direction (its energy's directional derivative; ``ls_energy``, model 2.3-fast) or of
-        the residual norms (``ls_energy=False, ls_ratio=1.0``: model 2.3).
+        direction (its energy's directional derivative; ``ls_energy``, the default) or of
+        the residual norms (``ls_energy=False, ls_ratio=1.0``: the search of the bundled
+        DOE's runs, same model to its roundoff level).
     easy_iter, easy_steps
         The step is doubled (up to ``dt_max``) after ``easy_steps`` consecutive steps that
         converged in at most ``easy_iter`` iterations.
