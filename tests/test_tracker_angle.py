@@ -39,8 +39,8 @@ def test_reweighting_is_the_gaussian_likelihood() -> None:
     wn = w / w.sum()
     assert a.mean() < wn @ a < angle
     assert wn @ (a - wn @ a) ** 2 < a.var()
-    # the feedforward over the tracker's cloud predicts with the new weights
-    s = Feedforward(float(a.mean()), Actuator(-1.0, 1.0)).choose(tr.final_angle, tr.weights())
+    # suggest() predicts with the new weights
+    s = tr.suggest(Feedforward(float(a.mean()), Actuator(-1.0, 1.0)))
     at = tr.final_angle(np.array([s.u]))[:, 0]
     assert s.angle_mean == pytest.approx(wn @ at, rel=1e-12)
 

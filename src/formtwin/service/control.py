@@ -130,7 +130,7 @@ class ServiceController:
         w = self.tracker.weights()
         # c_i: the posterior mean at the nominal setting (only a weight below 1 uses it)
         ref = ctl.reference(self.tracker.final_angle, w) if ctl.weight < 1 else None
-        s = ctl.choose(self.tracker.final_angle, w, self.u_prev, ref)
+        s = self.tracker.suggest(ctl, self.u_prev, ref)
         self.u_prev = s.u
         d = s.to_dict()
         measured = message.get("measured_angles_deg")

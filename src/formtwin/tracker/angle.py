@@ -12,7 +12,7 @@ controller's running estimate of it) and ``model_var`` the metamodel's own error
 at a given state (default: its held-out variance of the final angle, the tracker's
 ``ssm.angle_error_var[1]``). The weights stay with the particles (no resampling): the next
 filter step multiplies its curve likelihood in and resamples, and
-:meth:`~formtwin.tracker.Tracker.weights` reads them (for a controller choosing ``u``).
+:meth:`~formtwin.tracker.Tracker.suggest` reads them.
 
 >>> import numpy as np
 >>> from formtwin.defaults import analytic_model

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin._threads import retain_heap, single_blas_thread
+from formtwin.control import Combined, Feedforward, Suggestion
 from formtwin.estimates import Estimate, Estimates
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
@@ -231,6 +232,20 @@ class Tracker:
             return None
         out: FloatArray = np.exp(logw - logw.max())
         return out
+
+    def suggest(self, controller: Feedforward | Combined, u_prev: float | None = None,
+                reference: float | None = None) -> Suggestion:
+        """The press setting for the product just assimilated: ``controller``'s choice over
+        the current particles and weights (:mod:`formtwin.control.feedforward`: least
+        posterior expected squared error of the final angle, within the actuator's limits
+        and maximum step after ``u_prev``), with the predicted final angle there;
+        ``reference`` the :class:`~formtwin.control.Combined` controller's ``c_i`` (None:
+        computed by it where needed)."""
+        if self.filter.x is None:
+            raise RuntimeError("suggest: no particles yet (call step first)")
+        if isinstance(controller, Combined):
+            return controller.choose(self.final_angle, self.weights(), u_prev, reference)
+        return controller.choose(self.final_angle, self.weights(), u_prev)
 
     def _estimate(self, s: Step, v: FloatArray, scale: float = 1.0,
                   u: FloatArray | None = None) -> Estimate:
