@@ -33,8 +33,10 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--out", default=str(CACHE / "control"))
     p.add_argument("--products", type=int, default=1000)
-    p.add_argument("--datasets", type=int, default=5)
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--datasets", type=int, default=6,
+                   help="datasets, each scored with the weights chosen on the others")
+    p.add_argument("--workers", type=int, default=2,
+                   help="physics worker processes, and datasets tracked at once")
     p.add_argument("--no-angle-filter", action="store_true",
                    help="skip the feedforward with the measured angles in the filter (one "
                    "tracker pass per dataset less)")

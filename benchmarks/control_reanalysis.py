@@ -20,10 +20,10 @@ is scored by its error std over products 100-999 against ``w = 0`` (the EWMA alo
 
     a_hat_i = L + rho (a_j - L) + w ((c_i - K) - rho (c_j - K))      (j = i - 1)
 
-with ``(rho, lam, w)`` chosen on the tuning dataset (``tune_<k>.npz``: its plant's angle at
-the nominal setting and its estimates) and scored on each scored dataset (``tuned``), the same
-with ``w = 0`` (``tuned_no_estimates``: what the time-series model alone gives), and the best
-in hindsight per dataset (``best_in_sample``).
+with ``(rho, lam, w)`` chosen on the other datasets (least mean std: leave one dataset out,
+as the study chooses its weights) and scored on each (``tuned``), the same with ``w = 0``
+(``tuned_no_estimates``: what the time-series model alone gives), and the best in hindsight
+per dataset (``best_in_sample``).
 
 This is the nominal-setting proxy of the closed loop (the plant's angle is nearly linear in
 ``u``), not a closed-loop result. Run after ``bench_control.py``::
@@ -89,28 +89,26 @@ def ar_errors(a: np.ndarray, c: np.ndarray, rho: float, lam: float, w: float,
     return np.asarray(err)
 
 
-def ar_analysis(data: dict[str, tuple[np.ndarray, np.ndarray]], tune: str | None
-                ) -> dict[str, object]:
+def ar_analysis(data: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, object]:
     """``ar`` std ratios to the best plain EWMA of each dataset of ``data`` (name -> (a, c)),
-    the grid's choice on dataset ``tune`` (None: not available) applied to the others."""
+    each with the grid's choice on the other datasets (leave one out)."""
     sd = {k: np.array([np.std(ar_errors(a, c, *g)) for g in AR_GRID]) for k, (a, c) in
           data.items()}
     ewma = {k: min(float(np.std(ar_errors(a, c, 0.0, lm, 0.0))) for lm in LAMS)
             for k, (a, c) in data.items()}
-    out: dict[str, object] = {}
-    no_c = np.array([g[2] == 0.0 for g in AR_GRID])
-    if tune is not None:
-        best = int(np.argmin(sd[tune]))
-        best0 = int(np.flatnonzero(no_c)[np.argmin(sd[tune][no_c])])
-        out["tuned_on"] = {"dataset": tune, "rho_lam_w": AR_GRID[best],
-                           "no_estimates_rho_lam": AR_GRID[best0][:2]}
-        out["tuned"] = {k: round(float(v[best]) / ewma[k], 3) for k, v in sd.items()}
-        out["tuned_no_estimates"] = {k: round(float(v[best0]) / ewma[k], 3)
-                                     for k, v in sd.items()}
+    no_c = np.flatnonzero([g[2] == 0.0 for g in AR_GRID])
+    out: dict[str, dict[str, object]] = {"tuned": {}, "tuned_no_estimates": {}}
+    for k in sd if len(sd) > 1 else ():
+        others = np.mean([v for n, v in sd.items() if n != k], axis=0)
+        best, best0 = int(np.argmin(others)), int(no_c[np.argmin(others[no_c])])
+        out["tuned"][k] = {"rho_lam_w": AR_GRID[best],
+                           "ratio": round(float(sd[k][best]) / ewma[k], 3)}
+        out["tuned_no_estimates"][k] = {"rho_lam": AR_GRID[best0][:2],
+                                        "ratio": round(float(sd[k][best0]) / ewma[k], 3)}
     out["best_in_sample"] = {k: {"rho_lam_w": AR_GRID[int(np.argmin(v))],
                                  "ratio": round(float(v.min()) / ewma[k], 3)}
                              for k, v in sd.items()}
-    return out
+    return dict(out)
 
 
 def analyse(a: np.ndarray, c: np.ndarray) -> dict[str, object]:
@@ -129,7 +127,6 @@ def main() -> None:
     version = physics_model("bending", load_spec()).version
     out: dict[str, object] = {"physics_version": version}
     posterior: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    tune = None
     for k in range(6):
         plant = DoeDataset.load(plant_path(folder, k, version))
         n = plant.n // 3
@@ -137,16 +134,13 @@ def main() -> None:
         final = np.where(ok, plant.angles[:, 1].reshape(3, n)[1], np.nan)
         stage1 = np.where(ok, plant.angles[:, 0].reshape(3, n)[1], np.nan)
         res: dict[str, object] = {"stage1_angle": analyse(final, stage1)}
-        for name in (f"dataset_{k}.npz", f"tune_{k}.npz"):
-            if (folder / name).exists():
-                with np.load(folder / name) as f:
-                    if "nominal_mean" in f.files:
-                        a = f["angle_fixed"] if "angle_fixed" in f.files else f["angle_nominal"]
-                        posterior[f"dataset_{k}"] = (a, f["nominal_mean"])
-                        res["posterior"] = analyse(a, f["nominal_mean"])
-                        tune = f"dataset_{k}" if name.startswith("tune") else tune
+        if (folder / f"dataset_{k}.npz").exists():
+            with np.load(folder / f"dataset_{k}.npz") as f:
+                if "nominal_mean" in f.files:
+                    posterior[f"dataset_{k}"] = (f["angle_fixed"], f["nominal_mean"])
+                    res["posterior"] = analyse(f["angle_fixed"], f["nominal_mean"])
         out[f"dataset_{k}"] = res
-    out["ar"] = ar_analysis(posterior, tune)
+    out["ar"] = ar_analysis(posterior)
     print(json.dumps(out, indent=1))
 
 

@@ -35,7 +35,7 @@ def test_control_study_on_the_analytic_stand_in(tmp_path: Path) -> None:
     model = analytic_model()
     physics = physics_model("analytic", model.spec)
     settings = ControlStudySettings(
-        products=60, datasets=1, burn_in=10, interp_check=5, workers=1, seed=3, target=90.0,
+        products=60, datasets=2, burn_in=10, interp_check=5, workers=1, seed=5, target=91.5,
         angle_sd=0.05,
         tracker=TrackerConfig(n_particles=100, n_mc=1000, estimate_deviation=True))
     s = run_control_study(model, physics, settings, tmp_path)
@@ -46,11 +46,19 @@ def test_control_study_on_the_analytic_stand_in(tmp_path: Path) -> None:
     # the trims bring the mean error near 0 where the open feedforward is biased (mu unknown)
     assert abs(s["feedforward"]["mean_error_deg"]) < 0.2 < s["feedforward_open"]["mean_error_deg"]
     assert s["r2r_lam"] in R2R_LAMS and s["full_lam"] in FF_RHOS[0.0]
-    assert s["ff_weight"] in FF_WEIGHTS and s["tuned_on_datasets"] == [1]
-    assert s["ff_lam"] in FF_RHOS[s["ff_rho"]]
-    # the tuned triple is the best of the grid on the tuning dataset
-    grid, sds = np.array(s["tuning_std_deg"]["ff_grid"]), s["tuning_std_deg"]["ff"]
-    assert list(grid[int(np.argmin(sds))]) == [s["ff_lam"], s["ff_weight"], s["ff_rho"]]
+    assert s["ff_weight"] in FF_WEIGHTS and s["ff_lam"] in FF_RHOS[s["ff_rho"]]
+    # the service's triple is the best of the grid on all datasets; each dataset's the best
+    # on the others (leave one out), and the feedforward scored there is that one
+    t = s["tuning_std_deg"]
+    grid, sds = np.array(t["ff_grid"]), np.array(t["ff_per_dataset"])
+    assert list(grid[int(np.argmin(sds.mean(0)))]) == [s["ff_lam"], s["ff_weight"], s["ff_rho"]]
+    for k, w in enumerate(s["per_dataset_weights"]):
+        row = int(np.argmin(np.delete(sds, k, 0).mean(0)))
+        assert list(grid[row]) == [w["ff_lam"], w["ff_weight"], w["ff_rho"]]
+        assert s["per_dataset_std_deg"]["feedforward"][k] == pytest.approx(sds[k, row],
+                                                                           abs=1e-4)
+        lam = int(np.argmin(np.delete(np.array(t["r2r_per_dataset"]), k, 0).mean(0)))
+        assert w["r2r_lam"] == R2R_LAMS[lam]
     # weight 0: the trim alone, the same (lam, rho)
     assert s["trim_only"]["products"] == s["feedforward"]["products"]
     r = s["within_dataset_std_ratio_ff_vs_fixed"]
@@ -73,7 +81,7 @@ def test_results_are_keyed_by_the_model_not_only_its_version() -> None:
     from formtwin.study.control_run import _key
 
     model = analytic_model()
-    settings = ControlStudySettings(products=60, datasets=1)
+    settings = ControlStudySettings(products=60, datasets=2)
     shifted = SimpleNamespace(spec=model.spec, predict_angles=model.predict_angles,
                               predict_curves=lambda X: model.predict_curves(X) + 1e-9)
     key = _key(settings, 90.0, "v1", model)

@@ -21,7 +21,8 @@ def register(sub: Any) -> None:
     p.add_argument("--out", default="out/control", help="folder (default: %(default)s)")
     p.add_argument("--metamodel", help="metamodel file (default: fitted from the bundled DOE)")
     p.add_argument("--products", type=int, default=1000, help="products per dataset")
-    p.add_argument("--datasets", type=int, default=5, help="datasets")
+    p.add_argument("--datasets", type=int, default=6, help="datasets, each scored with the "
+                   "controllers' weights chosen on the others (default: %(default)s)")
     p.add_argument("--burn-in", type=int, default=100, help="first products not scored")
     p.add_argument("--target", type=float, help="final angle wanted, deg (default: the "
                    "metamodel's at the mid-range state and nominal setting)")
@@ -36,9 +37,6 @@ def register(sub: Any) -> None:
                    "product-to-product change the feedforward trusts, 0-1 (default: tuned)")
     p.add_argument("--ff-rho", type=float, help="persistence of the last product's deviation "
                    "in the feedforward's trim, 0-1 (default: tuned)")
-    p.add_argument("--tune-datasets", type=int, default=1, help="datasets of their own "
-                   "(not scored) on which the controllers' weights are tuned; 0: the first "
-                   "scored one (default: %(default)s)")
     p.add_argument("--no-angle-filter", action="store_true",
                    help="skip the feedforward with the measured angles in the filter")
     p.add_argument("--angle-sd", type=float, help="sd of the measured angle's likelihood, "
@@ -65,7 +63,6 @@ def run(args: argparse.Namespace) -> int:
         products=args.products, datasets=args.datasets, burn_in=args.burn_in,
         tracker=tracker, target=args.target, max_step=args.max_step, r2r_delay=args.delay,
         trim_lam=args.trim_lam, ff_weight=args.ff_weight, ff_rho=args.ff_rho,
-        tune_datasets=args.tune_datasets,
         angle_in_filter=not args.no_angle_filter,
         angle_sd=args.angle_sd, seed=args.seed, workers=args.workers)
     print(f"control study into {out}: {settings.datasets} datasets x {settings.products} "

@@ -10,14 +10,14 @@ with the deviation estimated. Per dataset (``products`` products):
 * ``fixed``: ``u`` at its nominal value (no control);
 * ``ewma``: run-to-run EWMA on the measured final angles of earlier products
   (:class:`~formtwin.control.EwmaRunToRun`; gain from the metamodel, ``lam`` the best of
-  :data:`R2R_LAMS` on the tuning datasets, measurements ``r2r_delay`` products late);
+  :data:`R2R_LAMS` on the other datasets, measurements ``r2r_delay`` products late);
 * ``feedforward``: feedforward plus feedback (:class:`~formtwin.control.Combined`): after
   each product's curve, :class:`~formtwin.control.Feedforward` over the tracker's
   particles (the metamodel's final angle at each candidate ``u``), aiming at the target
   minus a trim: an EWMA of its prediction error on the measured angles of earlier
   products, trusting a share ``weight`` of the posterior's product-to-product change, with
   the persistence ``rho`` of the last product's deviation (the EWMA's weight, the share and
-  ``rho`` the best of :data:`FF_RHOS` x :data:`FF_WEIGHTS` on the tuning datasets, each
+  ``rho`` the best of :data:`FF_RHOS` x :data:`FF_WEIGHTS` on the other datasets, each
   ``rho`` with its ``lam`` values); ``feedforward_full`` the same with the whole change
   trusted and no persistence (weight 1, rho 0, its EWMA weight tuned likewise: the earlier
   sessions' controller); ``trim_only`` the tuned one with weight 0 (the estimates' change unused:
@@ -34,9 +34,11 @@ The physics model's final angle of every product is computed at three settings (
 actuator's limits and the nominal) and interpolated quadratically in ``u``
 (:class:`PlantAngles`); ``interp_check`` products are also run at the chosen feedforward
 setting to measure the interpolation error. Each controller respects the actuator's limits
-and maximum step. The controllers' weights are tuned on ``tune_datasets`` datasets of their
-own (seeds apart from the scored ones) and scored on the ``datasets`` others. Scores: over
-the products after ``burn_in``, pooled over datasets and within each.
+and maximum step. The controllers' weights are chosen leave one dataset out: each dataset
+is scored with the weights that did best on the others (every weight of the grids runs on
+every dataset: one tracker pass each), so no dataset is scored with weights chosen on it;
+the weights reported for the service are those best on all of them. Scores: over the
+products after ``burn_in``, pooled over datasets and within each.
 """
 
 from __future__ import annotations
@@ -83,7 +85,8 @@ class ControlStudySettings:
 
     Attributes
     ----------
-    products, datasets : products per dataset, datasets (issue: 1000 x 5).
+    products, datasets : products per dataset, datasets (issue: 1000 x 5; each is scored
+        with the weights chosen on the others, so at least 2).
     burn_in : first products of each dataset not scored (the filter's convergence).
     tracker : tracker settings (deviation estimated, mu mid-range: series 6).
     target : final angle wanted, degrees; ``None``: the metamodel's at the mid-range state,
@@ -94,25 +97,22 @@ class ControlStudySettings:
     band : half-width of the tolerance band scored, degrees.
     interp_check : products per dataset also run at their feedforward setting.
     trim_lam : EWMA weight of the feedforward's trim (its prediction error on earlier
-        products' measured angles, ``r2r_delay`` late); None: tuned (see ``tune_datasets``).
+        products' measured angles, ``r2r_delay`` late); None: tuned (leave one dataset out).
     ff_weight : share of the posterior's product-to-product change the feedforward trusts;
         None: tuned with ``trim_lam`` and ``ff_rho`` (the best of :data:`FF_RHOS` x
         :data:`FF_WEIGHTS`).
     ff_rho : persistence of the last product's deviation in the trim
         (:class:`~formtwin.control.Combined`'s ``rho``); None: tuned with ``ff_weight``.
-    tune_datasets : datasets (indices ``datasets`` onwards: seeds apart from the scored
-        ones) on which the EWMA weights and ``ff_weight`` are tuned, not scored; 0: tuned on
-        the first scored dataset.
     angle_in_filter : also run the combined feedforward with the measured angles in the
         filter (``feedforward_angle``; needs ``r2r_delay`` 1).
     angle_sd : sd of that angle likelihood, degrees; None: the metamodel's held-out error
         of the final angle.
     seed : master seed.
-    workers : physics worker processes.
+    workers : physics worker processes, and datasets tracked at once.
     """
 
     products: int = 1000
-    datasets: int = 5
+    datasets: int = 6
     burn_in: int = 100
     tracker: TrackerConfig = field(default_factory=lambda: TrackerConfig(
         n_particles=500, estimate_deviation=True))
@@ -124,11 +124,15 @@ class ControlStudySettings:
     trim_lam: float | None = None
     ff_weight: float | None = None
     ff_rho: float | None = None
-    tune_datasets: int = 1
     angle_in_filter: bool = True
     angle_sd: float | None = None
     seed: int = 0
     workers: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.datasets < 2:
+            raise ValueError(f"datasets = {self.datasets}: the weights of each dataset are "
+                             "chosen on the others, so at least 2 are needed")
 
 
 class PlantAngles:
@@ -219,91 +223,66 @@ def _setup(metamodel: ProcessModel, settings: ControlStudySettings, target: floa
     return act, Feedforward(target, act), float(c.nominal[0])
 
 
-def _std(plant: PlantAngles, ok: NDArray[np.bool_], u: FloatArray, burn_in: int) -> float:
-    """Std of the plant's final angle at settings ``u`` (n,) over the scored products."""
-    return float(np.nanstd([plant(i, u[i]) for i in range(burn_in, u.size) if ok[i]]))
-
-
-def tune_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
-                 k: int, folder: Path, target: float, gain: float) -> dict[str, Any]:
-    """The weights' grids on dataset ``k`` (a tuning dataset): the std of the final angle
-    (after ``burn_in``) of the combined feedforward for every ``(lam, weight)`` of
-    ``ff_grid`` (``ff_std``) and of the run-to-run EWMA for every ``r2r_lams``
-    (``r2r_std``)."""
-    run, curves, ok, plant = plant_run(metamodel.spec, physics, settings, k, folder)
-    act, ff, nominal = _setup(metamodel, settings, target)
+def controller_grid(settings: ControlStudySettings) -> list[tuple[float, float, float]]:
+    """The combined feedforward's ``(lam, weight, rho)`` tried: :data:`FF_RHOS` x
+    :data:`FF_WEIGHTS` (those the settings fix held), and the earlier sessions' controller
+    (weight 1, rho 0) with each of its ``lam`` values."""
     weights = FF_WEIGHTS if settings.ff_weight is None else (settings.ff_weight,)
     rho_lams = dict(FF_RHOS) if settings.ff_rho is None else \
         {settings.ff_rho: FF_RHOS.get(settings.ff_rho, R2R_LAMS)}
     if settings.trim_lam is not None:
         rho_lams = {r: (settings.trim_lam,) for r in rho_lams}
-    grid_set = {(lm, w, r) for r, lams in rho_lams.items() for lm in lams for w in weights}
-    # the earlier sessions' controller (weight 1, rho 0) is scored too, its lam tuned as well
+    grid = {(lm, w, r) for r, lams in rho_lams.items() for lm in lams for w in weights}
     full_lams = FF_RHOS[0.0] if settings.trim_lam is None else (settings.trim_lam,)
-    grid = sorted(grid_set | {(lm, 1.0, 0.0) for lm in full_lams})
-    config = replace(settings.tracker, seed=settings.seed + k)
-    p = track_and_choose(metamodel, config, curves, ok, plant, ff, grid, nominal,
-                         settings.r2r_delay)
-    b = settings.burn_in
-    r2r_std = [_std(plant, ok, r2r(plant, ok, run.n, target, gain, lm, act, nominal,
-                                   settings.r2r_delay), b) for lm in R2R_LAMS]
-    return {"ff_grid": np.array(grid), "ff_std": np.array([_std(plant, ok, p.u[c], b)
-                                                          for c in range(len(grid))]),
-            "r2r_lams": np.array(R2R_LAMS), "r2r_std": np.array(r2r_std),
-            "angle_nominal": np.where(ok, [plant(i, nominal) for i in range(run.n)], np.nan),
-            "nominal_mean": p.nominal_mean}
+    return sorted(grid | {(lm, 1.0, 0.0) for lm in full_lams})
 
 
-def choose_weights(tunes: list[dict[str, Any]]) -> dict[str, float]:
-    """The weights with the least mean std over the tuning datasets: ``r2r_lam`` (EWMA),
-    ``ff_lam``, ``ff_weight`` and ``ff_rho`` (combined feedforward), ``full_lam`` (its
-    trim's weight with the whole change trusted and rho 0)."""
-    ff = np.mean([t["ff_std"] for t in tunes], axis=0)
-    grid = tunes[0]["ff_grid"]
-    full = np.flatnonzero((grid[:, 1] == 1.0) & (grid[:, 2] == 0.0))
-    r2r_std = np.mean([t["r2r_std"] for t in tunes], axis=0)
+def choose_weights(ff_std: FloatArray, r2r_std: FloatArray,
+                   grid: list[tuple[float, float, float]] | FloatArray) -> dict[str, float]:
+    """The weights with the least mean std over the datasets given: ``ff_std`` (K, m) of
+    the combined feedforward for each ``(lam, weight, rho)`` of ``grid`` (m, 3), ``r2r_std``
+    (K, len(:data:`R2R_LAMS`)) of the run-to-run EWMA; returns ``r2r_lam`` (EWMA),
+    ``ff_lam``, ``ff_weight`` and ``ff_rho`` (combined feedforward), ``full_lam`` (its trim's
+    weight with the whole change trusted and rho 0).
+
+    >>> g = [(0.1, 0.0, 0.7), (0.1, 1.0, 0.0), (0.5, 1.0, 0.0)]
+    >>> choose_weights(np.array([[1.0, 2.0, 3.0], [1.0, 0.5, 3.0]]), np.ones((2, 8)), g)
+    ... # doctest: +NORMALIZE_WHITESPACE
+    {'r2r_lam': 0.02, 'ff_lam': 0.1, 'ff_weight': 0.0, 'ff_rho': 0.7, 'full_lam': 0.1}
+    """
+    g = np.asarray(grid, dtype=np.float64)
+    ff = np.mean(ff_std, axis=0)
+    full = np.flatnonzero((g[:, 1] == 1.0) & (g[:, 2] == 0.0))
     best = int(np.argmin(ff))
-    return {"r2r_lam": float(tunes[0]["r2r_lams"][int(np.argmin(r2r_std))]),
-            "ff_lam": float(grid[best, 0]), "ff_weight": float(grid[best, 1]),
-            "ff_rho": float(grid[best, 2]),
-            "full_lam": float(grid[full[int(np.argmin(ff[full]))], 0])}
+    return {"r2r_lam": float(R2R_LAMS[int(np.argmin(np.mean(r2r_std, axis=0)))]),
+            "ff_lam": float(g[best, 0]), "ff_weight": float(g[best, 1]),
+            "ff_rho": float(g[best, 2]),
+            "full_lam": float(g[full[int(np.argmin(ff[full]))], 0])}
 
 
 def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
-                k: int, folder: Path, target: float, gain: float, tuned: dict[str, float]
-                ) -> dict[str, Any]:
-    """All controllers on dataset ``k`` with the weights ``tuned``
-    (:func:`choose_weights`): per controller the settings ``u`` (n,) and the plant's final
-    angles (n,); the feedforward's predicted means and intervals, the posterior mean of the
-    final angle at the nominal setting and of the run inputs, the true inputs and the
-    metamodel's final angle there at the nominal setting."""
+                k: int, folder: Path, target: float, gain: float) -> dict[str, Any]:
+    """Every controller of every weight on dataset ``k`` (the choice among the weights is
+    made across datasets afterwards, :func:`choose_weights`): the settings ``u_<name>`` (n,)
+    and the plant's final angles ``angle_<name>`` (n,) of ``fixed``, ``oracle`` and
+    ``feedforward_open``; ``u_grid``, ``angle_grid`` (m, n) and the predicted final angles
+    ``pred_grid`` (m, n, 3) of the combined feedforward for each ``(lam, weight, rho)`` of
+    ``grid`` (m, 3, :func:`controller_grid`); ``u_r2r``, ``angle_r2r`` (len(:data:`R2R_LAMS`),
+    n) of the run-to-run EWMA; the posterior mean of the final angle at the nominal setting
+    and of the run inputs, the true inputs and the metamodel's final angle there at the
+    nominal setting."""
     spec = metamodel.spec
     run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
     n = run.n
     act, ff, nominal = _setup(metamodel, settings, target)
-    names = [c for c in CONTROLLERS if c != "feedforward_angle" or settings.angle_in_filter]
-    u = {name: np.full(n, nominal) for name in names}
-    # feedforward from the tracker (series 6: deviation estimated, mu mid-range): open, the
-    # combined one with the tuned weights, and with the whole change trusted
+    grid = controller_grid(settings)
+    # one tracker pass (series 6: deviation estimated, mu mid-range) for the open feedforward
+    # and every combined one: the tracker does not depend on the settings chosen
     config = replace(settings.tracker, seed=settings.seed + k)
-    best = (tuned["ff_lam"], tuned["ff_weight"], tuned["ff_rho"])
-    p = track_and_choose(metamodel, config, curves, ok, plant, ff,
-                         [(0.0, 1.0, 0.0), best, (tuned["full_lam"], 1.0, 0.0),
-                          (tuned["ff_lam"], 0.0, tuned["ff_rho"])], nominal,
-                         settings.r2r_delay)
-    u["feedforward_open"], u["feedforward"], u["feedforward_full"], u["trim_only"] = p.u
-    out: dict[str, Any] = {"ok": ok, "target": target, "pred": p.pred[1],
-                           "nominal_mean": p.nominal_mean, **tuned,
-                           "input_mean": p.input_mean, "inputs": run.inputs,
-                           "truth_nominal": metamodel_final(metamodel, run.inputs,
-                                                            np.array([nominal]))[:, 0]}
-    if settings.angle_in_filter:
-        q = track_and_choose(metamodel, config, curves, ok, plant, ff, [best], nominal,
-                             settings.r2r_delay, angle_in_filter=True, sd=settings.angle_sd)
-        u["feedforward_angle"] = q.u[0]
-        out.update(pred_angle=q.pred[0], angle_sd=q.angle_sd)
-    # oracle: the true inputs, one particle
-    prev = nominal
+    p = track_and_choose(metamodel, config, curves, ok, plant, ff, [(0.0, 1.0, 0.0), *grid],
+                         nominal, settings.r2r_delay)
+    u = {"fixed": np.full(n, nominal), "feedforward_open": p.u[0], "oracle": np.full(n, nominal)}
+    prev = nominal  # oracle: the true inputs, one particle
     for i in range(n):
         x = run.inputs[i: i + 1]
 
@@ -312,15 +291,47 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
 
         s = ff.choose(truth, u_prev=prev)
         prev = u["oracle"][i] = s.u
-    u["ewma"] = r2r(plant, ok, n, target, gain, tuned["r2r_lam"], act, nominal,
-                    settings.r2r_delay)
-    for name in names:
-        out[f"u_{name}"] = u[name]
-        out[f"angle_{name}"] = np.where(ok, [plant(i, u[name][i]) for i in range(n)], np.nan)
+
+    def angles(us: FloatArray) -> FloatArray:
+        return np.where(ok, [plant(i, us[i]) for i in range(n)], np.nan)
+
+    out: dict[str, Any] = {"ok": ok, "target": target, "nominal_mean": p.nominal_mean,
+                           "input_mean": p.input_mean, "inputs": run.inputs,
+                           "truth_nominal": metamodel_final(metamodel, run.inputs,
+                                                            np.array([nominal]))[:, 0],
+                           "grid": np.array(grid), "u_grid": p.u[1:], "pred_grid": p.pred[1:],
+                           "angle_grid": np.array([angles(v) for v in p.u[1:]])}
+    out["u_r2r"] = np.array([r2r(plant, ok, n, target, gain, lm, act, nominal,
+                                 settings.r2r_delay) for lm in R2R_LAMS])
+    out["angle_r2r"] = np.array([angles(v) for v in out["u_r2r"]])
+    for name, v in u.items():
+        out[f"u_{name}"], out[f"angle_{name}"] = v, angles(v)
+    return out
+
+
+def finish_dataset(metamodel: ProcessModel, physics: Simulator,
+                   settings: ControlStudySettings, k: int, folder: Path, target: float,
+                   tuned: dict[str, float], u_ff: FloatArray) -> dict[str, Any]:
+    """What needs dataset ``k``'s weights ``tuned``: the physics at ``interp_check`` of the
+    feedforward's own settings ``u_ff`` (n,) (``interp_angle`` at products ``interp_idx``),
+    and with ``angle_in_filter`` the feedforward with the measured angles in the filter
+    (``u_feedforward_angle``, ``angle_feedforward_angle``, ``pred_angle``, ``angle_sd``)."""
+    spec = metamodel.spec
+    run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
+    _, ff, nominal = _setup(metamodel, settings, target)
+    out: dict[str, Any] = {}
+    if settings.angle_in_filter:
+        config = replace(settings.tracker, seed=settings.seed + k)
+        best = (tuned["ff_lam"], tuned["ff_weight"], tuned["ff_rho"])
+        q = track_and_choose(metamodel, config, curves, ok, plant, ff, [best], nominal,
+                             settings.r2r_delay, angle_in_filter=True, sd=settings.angle_sd)
+        out.update(u_feedforward_angle=q.u[0], pred_angle=q.pred[0], angle_sd=q.angle_sd,
+                   angle_feedforward_angle=np.where(
+                       ok, [plant(i, q.u[0][i]) for i in range(run.n)], np.nan))
     if settings.interp_check > 0:  # physics at the feedforward's own settings
         idx = np.flatnonzero(ok)[:: max(1, ok.sum() // settings.interp_check)]
         idx = idx[: settings.interp_check]
-        X = spec.run_columns(run.inputs[idx], u["feedforward"][idx])
+        X = spec.run_columns(run.inputs[idx], u_ff[idx])
         path = folder / f"check_{k}.h5"
         try:  # 20 runs: a file of other settings or another model version is replaced
             if path.exists():
@@ -329,7 +340,7 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
             path.unlink()
         chk = run_design(physics, X, path, executor="processes", workers=settings.workers,
                          seed=settings.seed)
-        out["interp_error"] = chk.angles[:, 1] - out["angle_feedforward"][idx]
+        out.update(interp_idx=idx, interp_angle=chk.angles[:, 1])
     return out
 
 
@@ -356,5 +367,6 @@ def scores(angles: FloatArray, target: float, band: float) -> dict[str, float]:
 
 
 __all__ = ["CONTROLLERS", "FF_RHOS", "FF_WEIGHTS", "R2R_LAMS", "ControlStudySettings",
-           "PlantAngles", "choose_weights", "default_target", "metamodel_final", "plant_path",
-           "plant_run", "r2r", "r2r_gain", "run_dataset", "scores", "tune_dataset"]
+           "PlantAngles", "choose_weights", "controller_grid", "default_target", "finish_dataset",
+           "metamodel_final", "plant_path", "plant_run", "r2r", "r2r_gain", "run_dataset",
+           "scores"]

@@ -9,6 +9,9 @@ import dataclasses
 import hashlib
 import json
 import logging
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -20,14 +23,15 @@ from formtwin.measurement import ProcessModel
 from formtwin.simulator import Simulator
 from formtwin.study.control import (
     CONTROLLERS,
+    R2R_LAMS,
     ControlStudySettings,
     choose_weights,
     default_target,
+    finish_dataset,
     plant_run,
     r2r_gain,
     run_dataset,
     scores,
-    tune_dataset,
 )
 
 log = logging.getLogger(__name__)
@@ -55,7 +59,8 @@ def _key(settings: ControlStudySettings, target: float, version: str,
     of the package outside :data:`NOT_IN_RESULTS` (tracker, controllers, plant, study)."""
     d = dataclasses.asdict(settings)
     d["tracker"] = settings.tracker.to_dict()
-    d.pop("workers")
+    for name in ("workers", "datasets"):  # a dataset's result depends on neither
+        d.pop(name)
     h = hashlib.sha256(json.dumps([d, target, version], sort_keys=True,
                                   default=str).encode())
     spec = metamodel.spec
@@ -72,39 +77,100 @@ def _key(settings: ControlStudySettings, target: float, version: str,
 def build_plants(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
                  out: str | Path) -> int:
     """Run (or complete) the physics of every dataset's plant
-    (:func:`~formtwin.study.control.plant_path` in ``out``, the scored datasets and the tuning
-    ones) without any controller, so that the study itself can run later from the cache;
-    return the number of datasets."""
+    (:func:`~formtwin.study.control.plant_path` in ``out``) without any controller, so that
+    the study itself can run later from the cache; return the number of datasets."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    n = settings.datasets + max(settings.tune_datasets, 0)
-    for k in range(n):
-        log.info("control study: plant of dataset %d of %d", k + 1, n)
+    for k in range(settings.datasets):
+        log.info("control study: plant of dataset %d of %d", k + 1, settings.datasets)
         plant_run(metamodel.spec, physics, settings, k, out)
-    return n
+    return settings.datasets
+
+
+def _datasets(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
+              out: Path, key: str, target: float, gain: float) -> list[dict[str, Any]]:
+    """Every dataset's :func:`~formtwin.study.control.run_dataset`, from ``dataset_<k>.npz``
+    when stored there with ``key``; the others computed, ``settings.workers`` at a time
+    (their plants first, one after the other)."""
+    paths = [out / f"dataset_{k}.npz" for k in range(settings.datasets)]
+    res: list[dict[str, Any] | None] = [_load(p, key) for p in paths]
+    todo = [k for k, r in enumerate(res) if r is None]
+    if not todo:
+        return [r for r in res if r is not None]
+    for k in todo:
+        plant_run(metamodel.spec, physics, settings, k, out)
+    args = [(metamodel, physics, settings, k, out, target, gain) for k in todo]
+    n = min(settings.workers or os.cpu_count() or 1, len(todo))
+    log.info("control study: %d datasets, %d at a time", len(todo), n)
+    if n > 1:
+        with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("forkserver")) as pool:
+            done = list(pool.map(_run_dataset, args))
+    else:
+        done = [_run_dataset(a) for a in args]
+    for k, r in zip(todo, done, strict=True):
+        _save(paths[k], key, r)
+        res[k] = r
+    return [r for r in res if r is not None]
+
+
+def _run_dataset(args: tuple[Any, ...]) -> dict[str, Any]:
+    """:func:`~formtwin.study.control.run_dataset` of one argument tuple (for a pool)."""
+    log.info("control study: dataset %d", args[3])
+    return run_dataset(*args)
+
+
+def _tuned_result(base: dict[str, Any], tuned: dict[str, float]) -> dict[str, Any]:
+    """A dataset's result in the controllers' names with the weights ``tuned``: the grids'
+    rows of ``feedforward`` (the tuned ``(lam, weight, rho)``), ``feedforward_full``
+    (``full_lam``, 1, 0), ``trim_only`` (the tuned ``lam`` and ``rho``, weight 0) and
+    ``ewma`` (``r2r_lam``)."""
+    grid = [tuple(g) for g in np.asarray(base["grid"]).tolist()]
+    rows = {"feedforward": grid.index((tuned["ff_lam"], tuned["ff_weight"], tuned["ff_rho"])),
+            "feedforward_full": grid.index((tuned["full_lam"], 1.0, 0.0))}
+    if (tuned["ff_lam"], 0.0, tuned["ff_rho"]) in grid:
+        rows["trim_only"] = grid.index((tuned["ff_lam"], 0.0, tuned["ff_rho"]))
+    r = {n: v for n, v in base.items() if not n.endswith(("_grid", "_r2r")) and n != "grid"}
+    for name, row in rows.items():
+        r[f"u_{name}"], r[f"angle_{name}"] = base["u_grid"][row], base["angle_grid"][row]
+    r["pred"] = base["pred_grid"][rows["feedforward"]]
+    lam = R2R_LAMS.index(tuned["r2r_lam"])
+    r["u_ewma"], r["angle_ewma"] = base["u_r2r"][lam], base["angle_r2r"][lam]
+    return r
 
 
 def run_control_study(metamodel: ProcessModel, physics: Simulator,
                       settings: ControlStudySettings, out: str | Path) -> dict[str, Any]:
-    """Run (or reuse) every dataset, write the figure and ``control_study.json``; return
-    the summary (per controller: mean error, std, RMSE, share in the band; the ratios of
-    the feedforward's std to the others')."""
+    """Run (or reuse) every dataset, choose each one's weights on the others (leave one
+    dataset out), write the figure and ``control_study.json``; return the summary (per
+    controller: mean error, std, RMSE, share in the band; the ratios of the feedforward's
+    std to the others'; the weights chosen on all datasets, for the service)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     target = default_target(metamodel) if settings.target is None else settings.target
     gain = r2r_gain(metamodel, np.random.default_rng(settings.seed))
     key = _key(settings, target, str(getattr(physics, "version", "")), metamodel)
-    tune_ks = (range(settings.datasets, settings.datasets + settings.tune_datasets)
-               if settings.tune_datasets > 0 else range(1))
-    tunes = [_cached(out / f"tune_{k}.npz", key, lambda k=k: tune_dataset(
-        metamodel, physics, settings, k, out, target, gain), f"tuning dataset {k}")
-        for k in tune_ks]
-    tuned = choose_weights(tunes)
-    results = [_cached(out / f"dataset_{k}.npz", key, lambda k=k: run_dataset(
-        metamodel, physics, settings, k, out, target, gain, tuned),
-        f"dataset {k + 1} of {settings.datasets}") for k in range(settings.datasets)]
+    bases = _datasets(metamodel, physics, settings, out, key, target, gain)
     b = settings.burn_in
-    names = [c for c in CONTROLLERS if f"angle_{c}" in results[0]]
+    grid = bases[0]["grid"]
+    ff_std = np.array([np.nanstd(r["angle_grid"][:, b:], axis=1) for r in bases])
+    r2r_std = np.array([np.nanstd(r["angle_r2r"][:, b:], axis=1) for r in bases])
+    K = len(bases)
+    chosen = [choose_weights(np.delete(ff_std, k, 0), np.delete(r2r_std, k, 0), grid)
+              for k in range(K)]
+    results = []
+    for k, (base, tuned) in enumerate(zip(bases, chosen, strict=True)):
+        r = _tuned_result(base, tuned)
+        fin_key = f"{key}-{sorted(tuned.items())}"
+        fin = _load(out / f"final_{k}.npz", fin_key)
+        if fin is None:
+            fin = finish_dataset(metamodel, physics, settings, k, out, target, tuned,
+                                 r["u_feedforward"])
+            _save(out / f"final_{k}.npz", fin_key, fin)
+        if "interp_idx" in fin:
+            fin["interp_error"] = (fin["interp_angle"]
+                                   - r["angle_feedforward"][np.asarray(fin["interp_idx"])])
+        results.append({**r, **fin})
+    names = [c for c in CONTROLLERS if all(f"angle_{c}" in r for r in results)]
     pooled = {c: np.concatenate([r[f"angle_{c}"][b:] for r in results]) for c in names}
     summary: dict[str, Any] = {c: scores(pooled[c], target, settings.band) for c in names}
     sd = {c: summary[c]["std_deg"] for c in names}
@@ -122,14 +188,18 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
                 "median": round(float(np.median(r)), 3),
                 "of_mean_std": round(float(np.mean(per[ff]) / np.mean(per[other])), 4)}
     summary.update({
-        "target_deg": target, "r2r_gain_deg_per_unit": round(gain, 6), **tuned,
-        "tuned_on_datasets": list(tune_ks), "burn_in": b,
+        "target_deg": target, "r2r_gain_deg_per_unit": round(gain, 6),
+        **choose_weights(ff_std, r2r_std, grid),  # on every dataset: the service's
+        "tuning": "leave one dataset out: dataset k scored with the weights best on the "
+                  "others (per_dataset_weights); the top-level weights are the best on all",
+        "per_dataset_weights": chosen, "burn_in": b,
         "per_dataset_std_deg": {c: [round(v, 4) for v in per[c]] for c in names},
-        "tuning_std_deg": {"ff_grid": tunes[0]["ff_grid"].tolist(),
-                           "ff": np.round(np.mean([t["ff_std"] for t in tunes], 0), 4).tolist(),
-                           "r2r_lams": tunes[0]["r2r_lams"].tolist(),
-                           "r2r": np.round(np.mean([t["r2r_std"] for t in tunes], 0),
-                                           4).tolist()},
+        "tuning_std_deg": {"ff_grid": np.asarray(grid).tolist(),
+                           "ff_per_dataset": np.round(ff_std, 4).tolist(),
+                           "ff": np.round(ff_std.mean(0), 4).tolist(),
+                           "r2r_lams": list(R2R_LAMS),
+                           "r2r_per_dataset": np.round(r2r_std, 4).tolist(),
+                           "r2r": np.round(r2r_std.mean(0), 4).tolist()},
     })
     for ff, key in (("feedforward", "pred"), ("feedforward_angle", "pred_angle")):
         if ff in names:
@@ -148,18 +218,19 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     return summary
 
 
-def _cached(path: Path, key: str, compute: Any, what: str) -> dict[str, Any]:
-    """A dataset's result from ``path`` when stored there with ``key``, else ``compute()``d
-    and stored."""
+def _load(path: Path, key: str) -> dict[str, Any] | None:
+    """The arrays stored in ``path`` with ``key`` (None: absent or another key)."""
     if path.exists():
         with np.load(path, allow_pickle=False) as f:
             if str(f["key"]) == key:
-                return {n: (f[n].item() if f[n].ndim == 0 and n != "key" else f[n])
+                return {n: (f[n].item() if f[n].ndim == 0 else f[n])
                         for n in f.files if n != "key"}
-    log.info("control study: %s", what)
-    res: dict[str, Any] = compute()
+    return None
+
+
+def _save(path: Path, key: str, res: dict[str, Any]) -> None:
+    """Store the arrays ``res`` in ``path`` with ``key``."""
     np.savez(path, key=np.array(key), **{n: np.asarray(v) for n, v in res.items()})  # type: ignore[arg-type]
-    return res
 
 
 def prediction_scores(pred: FloatArray, angle: FloatArray, name: str) -> dict[str, float]:
