@@ -5,8 +5,11 @@ Run ``python benchmarks/bench_monitoring.py`` (heavy, ~15 min: run it under
 ``flock /tmp/formtwin-heavy.lock``). Model: the metamodel of the bundled physics DOE
 (:func:`formtwin._bench.bundled_metamodel`, what a fresh clone gets); tracker: the default
 :class:`~formtwin.tracker.TrackerConfig` (its likelihood) with N = ``--particles``, the
-line's state means ``mu`` known (the spec's mid-range), deviation not estimated
-(``--deviation`` to estimate it), ``K_MC`` from 10^4 curves. Every curve gets measurement
+line's state means ``mu`` known (the spec's mid-range), no deviation on the curves and
+none estimated (``--deviation``: every run's curves distorted by the deviation model with
+its theta_d drawn once per run, as in the paper's series 6 and on a line, and the tracker
+estimating it, as the service does; ``--name monitoring_deviation`` keeps its JSON apart),
+``K_MC`` from 10^4 curves. Every curve gets measurement
 noise as the likelihood assumes it, ``N(0, Sigma)``
 (:func:`~formtwin.monitoring.calibrate.measurement_noise`). The tracked series (posterior
 means, predicted angles, health statistics) are cached in ``benchmarks/.cache/monitoring``
@@ -109,14 +112,19 @@ def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
 
 def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, change: Change,
             n: int, seed: int, noise: bool = True) -> tuple[np.ndarray, Estimates]:
-    """Track one production run with ``change``, its curves with measurement noise: its
-    true states (n, 7) and estimates."""
+    """Track one production run with ``change``, its curves with measurement noise (and,
+    when the tracker estimates the deviation, distorted by it, theta_d drawn): its true
+    states (n, 7) and estimates."""
     rng = np.random.default_rng(seed)
-    run = changed_run(model.spec, n, np.asarray(tcfg.mu), rng, change)
+    tracker = Tracker(model, mm, replace(tcfg, seed=seed))
+    dev = tcfg.estimate_deviation
+    run = changed_run(model.spec, n, np.asarray(tcfg.mu), rng, change, deviation=dev)
     curves = model.predict_curves(run.inputs)
+    if dev:
+        curves = tracker.ssm.deviation.apply(curves, np.tile(run.theta_d, (n, 1)))
     if noise:
         curves = curves + measurement_noise(mm, n, rng)
-    return run.x, Tracker(model, mm, replace(tcfg, seed=seed)).run(curves)
+    return run.x, tracker.run(curves)
 
 
 def estimates_code() -> str:
@@ -202,6 +210,8 @@ def main() -> None:
     p.add_argument("--bound-draws", type=int, default=4,
                    help="machine-parameter draws of the linear-Gaussian bound")
     p.add_argument("--out", help="result folder (default benchmarks/results)")
+    p.add_argument("--name", default="monitoring",
+                   help="result file bench_NAME.json (default: %(default)s)")
     args = p.parse_args()
     model, _, info = bundled_metamodel()
     spec = model.spec
@@ -224,6 +234,8 @@ def main() -> None:
            "tracker": tcfg.to_dict(), "code": estimates_code(),
            "noise": "none" if args.no_noise else "N(0, Sigma)",
            "seed": args.seed, "at": args.at, "after": args.after}
+    if args.deviation:  # the changed runs' curves carry the deviation too
+        key["curves"] = "g(theta_d), theta_d drawn per run"
     bound = linear_bound(model, mm, mu, design, args)
     if args.bound_only:
         print(json.dumps(bound, indent=1))
@@ -301,7 +313,7 @@ def main() -> None:
                      "oracle_charts": oracle["charts"]},
         "tracking_s": round(track_s, 1),
     }
-    write_result("monitoring", figures, directory=args.out, model=info)
+    write_result(args.name, figures, directory=args.out, model=info)
 
 
 def linear_bound(model: Any, mm: MeasurementModel, mu: np.ndarray, design: ChartDesign,

@@ -308,6 +308,20 @@ def test_step_in_a_state_mean_is_detected(spec: ProcessSpec, line: tuple[
     assert any(a.variable == "punch_end_distance" and a.side == "high" for a in alarms)
 
 
+def test_changed_run_draws_the_deviation_only_when_asked(spec: ProcessSpec) -> None:
+    """With ``deviation`` theta_d is drawn once in its bounds (not 0) and the same states and
+    change follow; without it theta_d is 0 (g = identity)."""
+    mu, change = spec.state.mu_mid, Change("step", ("thickness",), at=5, size=2.0)
+    plain = changed_run(spec, 10, mu, np.random.default_rng(3), change)
+    dev = changed_run(spec, 10, mu, np.random.default_rng(3), change, deviation=True)
+    d = spec.deviation.group
+    assert np.all(plain.theta_d == 0)
+    assert np.all((dev.theta_d >= d.lo) & (dev.theta_d <= d.hi)) and np.any(dev.theta_d != 0)
+    j = spec.state.names.index("thickness")
+    for run in (plain, dev):  # the step is there in both
+        assert run.x[5:, j].mean() - run.x[:5, j].mean() > spec.state.sigma[j]
+
+
 def test_model_mismatch_raises_the_mismatch_alarm(spec: ProcessSpec, line: tuple[
         AnalyticModel, MeasurementModel, TrackerConfig]) -> None:
     """Curves 10 % stronger than any the model makes from product 150 on (a deviation the

@@ -98,11 +98,12 @@ class Change:
 
 
 def changed_run(spec: ProcessSpec, n: int, mu: FloatArray, rng: np.random.Generator,
-                change: Change) -> ProductionRun:
-    """A production run of ``n`` products of a line with state means ``mu`` (7,) and no
-    deviation, drawn by :func:`~formtwin.production.draw_production_run` (machine
-    parameters uniform in their bounds, states by eq. 4-5), with ``change`` applied."""
-    run = draw_production_run(spec, n, rng, mu=mu, deviation=False)
+                change: Change, deviation: bool = False) -> ProductionRun:
+    """A production run of ``n`` products of a line with state means ``mu`` (7,), drawn by
+    :func:`~formtwin.production.draw_production_run` (machine parameters uniform in their
+    bounds, the deviation's theta_d too with ``deviation``, else 0; states by eq. 4-5),
+    with ``change`` applied."""
+    run = draw_production_run(spec, n, rng, mu=mu, deviation=deviation)
     return replace(run, x=change.apply(run.x, spec))
 
 
