@@ -24,6 +24,12 @@ COMPARE = ("model", "measurement")
 #: shared by the products, prior N(0, (1 - kappa) K_res)
 LIKELIHOODS = ("calibrated", "paper", "adaptive", "discrepancy")
 
+#: the reported intervals (:mod:`formtwin.tracker.intervals`): "cloud" the particles'
+#: weighted std; "calibrated" adds in quadrature floors learned offline on physics runs
+#: of the bundled metamodel; "sandwich" adds the covariance ``B`` of the error a persistent
+#: metamodel error ``N(0, K_res)`` puts in the estimate; "gated" adds ``P(kappa > 0) B``
+INTERVALS = ("cloud", "calibrated", "sandwich", "gated")
+
 #: priors of a learned mu (``learn_mu``): "uniform" is ``U(mu_min, mu_max)``, the law the
 #: paper's statistics are drawn from (posterior: a truncated Normal), "normal" the Normal
 #: with its mean and variance (posterior: a Normal, may leave the range)
@@ -97,6 +103,13 @@ class TrackerConfig:
         (for the discrepancy likelihood the rest, ``(1 - kappa) K_res``, is the prior of
         the shared discrepancy); ``None`` (default): learned over :data:`SHARES` by the
         evidence.
+    intervals : the reported std of the estimates and angles, see :data:`INTERVALS`:
+        ``"cloud"`` (default) the particles' weighted std; ``"calibrated"`` adds floors
+        learned offline on physics runs of the bundled metamodel (not the study's data:
+        :mod:`formtwin.study.calibrate`); ``"sandwich"`` adds the part of
+        the error that a persistent metamodel error puts in the estimate
+        (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
+        particles, weights, means, ESS and evidence are the same for all three.
     discrepancy_memory : with ``likelihood="discrepancy"``, the memory (products) of its
         statistics: ``1 - 1/memory`` is the forgetting factor; ``inf``: none.
     learn_scale : learn a factor ``c`` on the likelihood's covariance online: a posterior
@@ -147,6 +160,10 @@ class TrackerConfig:
         "share of K_res in the adaptive/discrepancy likelihood (default: learned)"))
     discrepancy_memory: float = field(default=math.inf, metadata=_help(
         "memory of the learned discrepancy, products (inf: no forgetting)"))
+    intervals: str = field(default="cloud", metadata=_help(
+        "reported std: cloud (the particles'), calibrated (+ floors learned offline on "
+        "physics runs), sandwich (+ the persistent metamodel error's part) or gated (that "
+        "times P(kappa > 0))"))
 
     def __post_init__(self) -> None:
         if self.angle_particles is not None and self.angle_particles < 1:
@@ -156,6 +173,8 @@ class TrackerConfig:
         if self.likelihood not in LIKELIHOODS:
             raise ValueError(f"likelihood = {self.likelihood!r}; known: "
                              f"{', '.join(LIKELIHOODS)}")
+        if self.intervals not in INTERVALS:
+            raise ValueError(f"intervals = {self.intervals!r}; known: {', '.join(INTERVALS)}")
         if self.mu_prior not in MU_PRIORS:
             raise ValueError(f"mu_prior = {self.mu_prior!r}; known: {', '.join(MU_PRIORS)}")
         if not self.fraction > 0:

@@ -37,6 +37,7 @@ from formtwin.spec import ProcessSpec
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
+from formtwin.tracker.intervals import STATE_KEYS, Sandwich, calibration_floors
 from formtwin.tracker.ssm import BendingSSM
 
 FloatArray = NDArray[np.float64]
@@ -154,6 +155,10 @@ class Tracker:
         self.filter: SIR = make_filter(self.config.filter, self.ssm, self.config.n_particles,
                                        self.rng, self.config.resampling,
                                        self.config.ess_threshold)
+        self.sandwich = Sandwich(self.ssm, gated=self.config.intervals == "gated") \
+            if self.config.intervals in ("sandwich", "gated") else None
+        self.floors = calibration_floors(model, self.config.estimate_deviation) \
+            if self.config.intervals == "calibrated" else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
@@ -200,6 +205,7 @@ class Tracker:
         saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
         scale = self.ssm.scale_logpost if self.config.learn_scale else None
         share = self.ssm.share_logpost
+        sw = None if self.sandwich is None else self.sandwich.snapshot()
         try:
             logw_prev = f.logw
             s = f.step(y)
@@ -208,9 +214,11 @@ class Tracker:
             ratio = getattr(f, "log_ratio", None)  # guided filter: p(x | parent) / q(x)
             self.ssm.update_share(logw_prev if ratio is None else logw_prev + ratio)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
-            return self._estimate(s, np.exp(saved[1]), c, uu)
+            return self._estimate(s, np.exp(saved[1]), c, uu, y)
         except BaseException:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
+            if self.sandwich is not None and sw is not None:
+                self.sandwich.restore(sw)
             self.rng.bit_generator.state = saved[3]
             if scale is not None:
                 self.ssm.set_scale_logpost(scale)
@@ -248,10 +256,11 @@ class Tracker:
         return controller.choose(self.final_angle, self.weights(), u_prev)
 
     def _estimate(self, s: Step, v: FloatArray, scale: float = 1.0,
-                  u: FloatArray | None = None) -> Estimate:
+                  u: FloatArray | None = None, y: FloatArray | None = None) -> Estimate:
         """The estimate of step ``s``; ``v`` (N,) the predictive weights of its particles,
         ``scale`` the predictive mean of the likelihood's covariance factor, ``u`` the
-        product's press setting (None: nominal) for the predicted angles."""
+        product's press setting (None: nominal) for the predicted angles, ``y`` its curve
+        (for the sandwich intervals)."""
         m = self.config.angle_particles
         if m is None or m >= s.x.shape[0]:
             keep = heaviest(s.w, ANGLE_MASS)
@@ -269,6 +278,13 @@ class Tracker:
         else:
             am = astd = np.full(2, np.nan)
         mean, std, na = s.mean(), s.std(), len(self.names)
+        if self.sandwich is not None and y is not None:  # the intervals only
+            var, avar = self.sandwich.update(s.x, s.w, y, self.filter.t - 1, u)
+            std = np.sqrt(std[:na] ** 2 + var)
+            astd = np.sqrt(astd**2 + avar)
+        if self.floors is not None:  # calibrated offline: floors in quadrature
+            std = np.sqrt(std[:na] ** 2 + self.floors[0] ** 2)
+            astd = np.sqrt(astd**2 + self.floors[1] ** 2)
         mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None
         fit = assess(self.ssm.last_residuals(), v, s.ess, self.measurement, s.collapsed,
                      self.fit_rule, scale, self.ssm.last_covariance())
@@ -311,6 +327,8 @@ class Tracker:
             if self.config.learn_scale else {}
         if self.ssm.share_logpost.size > 1:
             model["share_logpost"] = [float(v) for v in self.ssm.share_logpost]
+        if self.sandwich is not None:
+            model.update(self.sandwich.state())
         return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
                                    t=f.t, rng=dict(self.rng.bit_generator.state),
                                    config=self._config_dict, names=self.names,
@@ -331,6 +349,8 @@ class Tracker:
             self.ssm.set_scale_logpost(np.array(s.model["scale_logpost"], dtype=np.float64))
         if "share_logpost" in s.model:
             self.ssm.set_share_logpost(np.array(s.model["share_logpost"], dtype=np.float64))
+        if self.sandwich is not None:
+            self.sandwich.set_state({k: s.model[k] for k in STATE_KEYS if k in s.model})
         self.filter.x = s.particles if s.t > 0 and s.particles.size else None
         self.filter.logw = s.logw
         self.filter.t = s.t

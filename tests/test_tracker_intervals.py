@@ -1,0 +1,187 @@
+"""The sandwich intervals (``TrackerConfig(intervals="sandwich")``): on a linear-Gaussian
+model with a persistent measurement offset the recursion gives the Kalman estimate's mean
+error and mean squared error in closed form; in the tracker only the reported std change."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from filter_refs import interior_curves, kalman_filter
+
+from formtwin.defaults import analytic_model
+from formtwin.tracker import Tracker, TrackerConfig, build_tracker
+from formtwin.tracker.intervals import sandwich_step
+
+
+def _linear_model() -> dict[str, np.ndarray]:
+    """A 3-variable AR(1)/random-walk state seen through 5 samples."""
+    rng = np.random.default_rng(4)
+    J = rng.standard_normal((5, 3))
+    a = rng.standard_normal((5, 5))
+    return {"F": np.array([0.8, 0.5, 1.0]), "Q": np.array([0.3, 0.2, 1e-3]), "J": J,
+            "S": a @ a.T / 5 + 0.5 * np.eye(5), "P0": np.diag([1.0, 2.0, 3.0]),
+            "delta": np.array([0.4, -0.3, 0.2, 0.5, -0.1])}
+
+
+def test_sandwich_is_the_biased_kalman_estimates_error_in_closed_form() -> None:
+    """Truth 0, no noise, curves = the fixed offset delta: the Kalman estimate is its
+    error, and equals G delta; the filter's P is the sandwich's P_lin; with K_res =
+    delta delta^T the reported covariance P + G K_res G^T is the estimate's mean squared
+    error, checked against 20000 simulated runs."""
+    lm = _linear_model()
+    F, Q, J, S, P0, delta = (lm[k] for k in ("F", "Q", "J", "S", "P0", "delta"))
+    n = 40
+    kf = list(kalman_filter(np.diag(F), np.diag(Q), J, S, np.zeros(3), P0,
+                            [delta] * n))
+    G, P_prev, gains, Ps = np.zeros((3, 5)), P0, [], []
+    for m, P, _ in kf:
+        G = sandwich_step(G, P_prev, J, np.linalg.solve(S, J), F, Q)
+        np.testing.assert_allclose(m, G @ delta, rtol=1e-10, atol=1e-12)
+        Pp = np.diag(F) @ P_prev @ np.diag(F) + np.diag(Q)
+        gains.append(Pp @ J.T @ np.linalg.inv(J @ Pp @ J.T + S))
+        Ps.append(P)
+        P_prev = P
+    assert np.abs(G @ delta).max() > 0.05  # a bias the cloud's P does not contain
+    # Monte Carlo: x_0 ~ N(0, P0), x_i = F x + N(0, Q), y_i = J x_i + delta + N(0, S)
+    rng = np.random.default_rng(5)
+    r = 20_000
+    x = rng.standard_normal((r, 3)) * np.sqrt(np.diag(P0))
+    est = np.zeros((r, 3))
+    cs = np.linalg.cholesky(S)
+    for K in gains:
+        x = F * x + rng.standard_normal((r, 3)) * np.sqrt(Q)
+        y = x @ J.T + delta + rng.standard_normal((r, 5)) @ cs.T
+        pred = F * est
+        est = pred + (y - pred @ J.T) @ K.T
+    err = est - x
+    mse = err.T @ err / r
+    sandwich = Ps[-1] + G @ np.outer(delta, delta) @ G.T
+    np.testing.assert_allclose(err.mean(axis=0), G @ delta,
+                               atol=4 * float(np.sqrt(np.diag(Ps[-1]).max() / r)))
+    np.testing.assert_allclose(mse, sandwich, atol=0.04 * float(np.abs(sandwich).max()))
+    assert not np.allclose(mse, Ps[-1], atol=0.04 * float(np.abs(sandwich).max()))
+
+
+def test_without_memory_one_step_is_the_classic_sandwich() -> None:
+    """F = 0: G = P J^T S^-1 with P the one-product posterior, so G K G^T is
+    P J^T S^-1 K S^-1 J P."""
+    lm = _linear_model()
+    J, S, Q = lm["J"], lm["S"], lm["Q"]
+    G = sandwich_step(np.ones((3, 5)), lm["P0"], J, np.linalg.solve(S, J), np.zeros(3), Q)
+    P = np.linalg.inv(np.diag(1 / Q) + J.T @ np.linalg.solve(S, J))
+    K_res = np.diag(np.arange(1.0, 6.0))
+    Si = np.linalg.inv(S)
+    np.testing.assert_allclose(G @ K_res @ G.T, P @ J.T @ Si @ K_res @ Si @ J @ P,
+                               rtol=1e-9)
+
+
+class _ModelWithError:
+    """The analytic stand-in with a stated metamodel error ``K_res`` (its residuals)."""
+
+    def __init__(self) -> None:
+        from formtwin.metamodel import ResidualModel
+
+        self._m = analytic_model()
+        t = np.arange(self._m.spec.n_t)
+        k_res = 4.0 * np.exp(-0.5 * ((t[:, None] - t[None, :]) / 6.0) ** 2)
+        self.residuals = ResidualModel(k_res, np.zeros(len(k_res)), 0.01 * np.eye(2),
+                                       np.zeros(2), k=5, n=100)
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._m, name)
+
+
+def _run(intervals: str, deviation: bool = False) -> tuple[Tracker, list]:
+    model = _ModelWithError()
+    cfg = TrackerConfig(n_particles=200, estimate_deviation=deviation, n_mc=500, seed=3,
+                        intervals=intervals)
+    tr = build_tracker(model, cfg)  # type: ignore[arg-type]
+    return tr, [tr.step(c) for c in interior_curves(model._m, n=8)]
+
+
+@pytest.mark.parametrize("deviation", [False, True])
+def test_sandwich_changes_only_the_reported_std(deviation: bool) -> None:
+    """Same seed: particles, weights, means, angles, ESS, evidence, fit and health are
+    bit for bit those of the cloud's intervals; the std only grow (gated: by a part)."""
+    cloud, ec = _run("cloud", deviation)
+    sand, es = _run("sandwich", deviation)
+    gated, eg = _run("gated", deviation)
+    for tr in (sand, gated):
+        np.testing.assert_array_equal(tr.particles, cloud.particles)
+        np.testing.assert_array_equal(tr.filter.logw, cloud.filter.logw)
+        np.testing.assert_array_equal(tr.final_angle(np.zeros(3)), cloud.final_angle(np.zeros(3)))
+    for a, b, c in zip(ec, es, eg, strict=True):
+        for e in (b, c):
+            for key in ("mean", "angles_mean"):
+                np.testing.assert_array_equal(getattr(e, key), getattr(a, key))
+            assert (e.ess, e.loglik, e.fit, e.health) == (a.ess, a.loglik, a.fit, a.health)
+        assert np.all(b.std >= a.std) and np.all(b.angles_std >= a.angles_std)
+        assert np.all(c.std >= a.std) and np.all(c.std <= b.std * (1 + 1e-12))
+    assert np.any(es[-1].std[:7] > 1.05 * ec[-1].std[:7])
+    assert np.any(es[-1].angles_std > ec[-1].angles_std)
+    if not deviation:
+        np.testing.assert_array_equal(es[-1].std[10:], 0.0)  # theta_d is not estimated
+
+
+def test_sandwich_tracker_continues_bit_for_bit() -> None:
+    """Restored from its state bytes (the sensitivity G and the last Jacobians in the
+    model state) a tracker reports the same std as the original."""
+    model = _ModelWithError()
+    tr, _ = _run("sandwich")
+    back = Tracker.from_state_bytes(tr.state_bytes(), model, tr.measurement)  # type: ignore[arg-type]
+    curves = interior_curves(model._m, n=6, seed=2)
+    for c in curves:
+        a, b = tr.step(c), back.step(c)
+        np.testing.assert_array_equal(a.std, b.std)
+        np.testing.assert_array_equal(a.angles_std, b.angles_std)
+    with pytest.raises(ValueError, match="intervals"):
+        TrackerConfig(intervals="wide")
+    assert TrackerConfig.from_json(TrackerConfig(intervals="gated").to_json()).intervals == \
+        "gated"
+
+
+def test_calibrated_intervals_add_the_floors_of_the_metamodels_calibration(
+        tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
+    """std = sqrt(cloud std^2 + b^2) with the floors b of the calibration learned for this
+    metamodel (its K_res fingerprint); another metamodel's calibration adds nothing."""
+    import json
+    from pathlib import Path
+
+    from formtwin.tracker import intervals
+
+    model = _ModelWithError()
+    floors = np.linspace(0.01, 0.18, 18)
+    cal = {"fingerprint": intervals.model_fingerprint(model), "model_version": "test",
+           "no_deviation": {"floors": list(floors), "angle_floors": [0.2, 0.3]},
+           "deviation": {"floors": list(2 * floors), "angle_floors": [0.4, 0.6]}}
+    path = Path(str(tmp_path)) / "cal.json"
+    path.write_text(json.dumps(cal))
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)
+    cloud, ec = _run("cloud", True)
+    calib, ek = _run("calibrated", True)
+    for a, b in zip(ec, ek, strict=True):
+        np.testing.assert_array_equal(b.mean, a.mean)
+        np.testing.assert_allclose(b.std, np.sqrt(a.std**2 + (2 * floors) ** 2), rtol=1e-12)
+        np.testing.assert_allclose(b.angles_std, np.sqrt(a.angles_std**2 + [0.16, 0.36]),
+                                   rtol=1e-12)
+    cal["fingerprint"] = "another"
+    path2 = Path(str(tmp_path)) / "other.json"
+    path2.write_text(json.dumps(cal))
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH", path2)
+    _, eo = _run("calibrated", True)
+    np.testing.assert_array_equal(eo[-1].std, ec[-1].std)
+
+
+def test_learned_floors_give_the_target_coverage_on_their_data() -> None:
+    """Errors with a bias the std does not show: after the floors the 90 % intervals hold
+    90 % of the errors (up to the quantile's interpolation), columns already covered get 0."""
+    from formtwin.study.calibrate import learn_floors
+    from formtwin.study.metrics import Z90
+
+    rng = np.random.default_rng(0)
+    std = np.c_[np.full(4000, 1.0), np.full(4000, 1.0)]
+    err = np.c_[3.0 + rng.standard_normal(4000), 0.5 * rng.standard_normal(4000)]
+    b = learn_floors(err, std)
+    inside = np.abs(err) <= Z90 * np.sqrt(std**2 + b**2)
+    assert inside[:, 0].mean() == pytest.approx(0.9, abs=1e-3)
+    assert b[1] == 0.0 and b[0] > 1.0
