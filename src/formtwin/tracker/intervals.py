@@ -187,14 +187,14 @@ def model_fingerprint(model: Any) -> str | None:
 
 
 @functools.lru_cache(maxsize=4)
-def _calibration(fingerprint: str | None, path: Path) -> dict[str, Any] | None:
+def _calibration(fingerprint: str, path: Path) -> dict[str, Any] | None:
     """The calibration at ``path`` if it was learned for the metamodel ``fingerprint``."""
     if not path.exists():
         log.warning("intervals='calibrated': no calibration file %s; reporting the cloud's "
                     "std", path)
         return None
     cal: dict[str, Any] = json.loads(path.read_text("utf-8"))
-    if fingerprint is None or cal.get("fingerprint") != fingerprint:
+    if cal.get("fingerprint") != fingerprint:
         log.warning("intervals='calibrated': no interval calibration for this metamodel "
                     "(learned for %s, K_res %s); reporting the cloud's std",
                     cal.get("model_version"), cal.get("fingerprint"))
@@ -205,10 +205,12 @@ def _calibration(fingerprint: str | None, path: Path) -> dict[str, Any] | None:
 def calibration_floors(model: Any, deviation: bool) -> tuple[FloatArray, FloatArray]:
     """The floors ``b`` (18,) internal units and (2,) degrees that the calibrated intervals
     add in quadrature to the cloud's std (``sqrt(std^2 + b^2)``) for a tracker on ``model``
-    estimating theta_d (``deviation``) or not; zeros when the bundled calibration was
-    learned for another metamodel (logged once)."""
+    estimating theta_d (``deviation``) or not; zeros for a model without an error model
+    (no ``K_res``, as the analytic stand-in) and, logged once, when the bundled calibration
+    was learned for another metamodel."""
     n = len(model.spec.augmented)
-    cal = _calibration(model_fingerprint(model), CALIBRATION_PATH)
+    fingerprint = model_fingerprint(model)
+    cal = None if fingerprint is None else _calibration(fingerprint, CALIBRATION_PATH)
     if cal is None:
         return np.zeros(n), np.zeros(2)
     entry = cal["deviation" if deviation else "no_deviation"]
