@@ -11,9 +11,9 @@ On the embedded default (bundled physics DOE, its metamodel with the statistics 
 2. in the same folder (same data): a second repetition of the paper's likelihood in series
    1, 5, 6; repetitions 0-1 of the calibrated likelihood (``K_res`` fixed, the previous
    default) there too; series 8 (learned mu) for 2 repetitions;
-3. the option filters (:data:`OPTION_FILTERS`: the guided proposals ``"guided_lin"`` and
-   ``"guided"``), repetition 0, each in a sibling folder
-   ``<out>_<filter>`` sharing the data, against the default's repetition 0.
+3. the options (:data:`OPTIONS`: the guided proposal ``"guided_lin"``, the reported
+   intervals), repetition 0, each in a sibling folder ``<out>_<option>`` sharing the
+   data, against the default's repetition 0.
 
 Figures (default likelihood unless said; ratios over repetitions 0-1 of every dataset,
 identical data for both likelihoods):
@@ -54,13 +54,22 @@ TARGETS = {"s1_state_ratio": ("<=", 1.05), "s5_state_ratio": ("<=", 0.7),
            "s8_vs_s6": ("<=", 0.85), "study_s": ("<=", 600.0)}
 
 
-#: option filters measured against the default (repetition 0 of every dataset) and their
-#: series (the resample-move filter, "move", was measured in session 6: docs/likelihood.md;
-#: left out to keep the benchmark within its lock time)
-OPTION_FILTERS = {"guided_lin": (1, 3, 5, 6), "guided": (3, 6)}
-OPTION_NOTES = {"move": "resample-move, ~2x the cost",
-                "guided": "linearised Kalman proposal, a pilot evaluation per particle, ~2x",
-                "guided_lin": "the guided proposal from the parents' curves, ~1.5x"}
+#: options measured against the default (repetition 0 of every dataset, same data): the
+#: guided proposal from the parents' curves and the reported intervals (the resample-move
+#: filter was measured in session 6, the guided proposal with a pilot evaluation in
+#: session 7: docs/likelihood.md; left out to keep the benchmark within its lock time);
+#: name: (tracker settings, series, note); an option equal to the default is skipped
+OPTIONS: dict[str, tuple[dict[str, Any], tuple[int, ...], str]] = {
+    "guided_lin": ({"filter": "guided_lin"}, (1, 3, 5, 6),
+                   "the guided proposal from the parents' curves, ~1.5x"),
+    "intervals_cloud": ({"intervals": "cloud"}, (1, 3, 5, 6),
+                        "the particles' weighted std alone"),
+    "intervals_calibrated": ({"intervals": "calibrated"}, (1, 3, 5, 6),
+                             "floors learned offline on independent physics runs"),
+    "intervals_sandwich": ({"intervals": "sandwich"}, (1, 3, 5, 6),
+                           "+ B = G K_res G^T, the linearised response to a persistent "
+                           "metamodel error"),
+}
 
 
 def _mean(a: np.ndarray, axis: Any = None) -> Any:
@@ -104,9 +113,11 @@ def main() -> None:
                                             paper_repetitions=0), out, mm, mm_path, physics)
     full = run_study(base, out, mm, mm_path, physics)  # cached: the default study's numbers
     extra_s = time.perf_counter() - t1
-    # option filters on the same data, K_MC and metamodel, each in a sibling folder
+    # options on the same data, K_MC and metamodel, each in a sibling folder
     options: dict[str, tuple[StudyResult, float]] = {}
-    for name, series in OPTION_FILTERS.items():
+    for name, (change, series, _) in OPTIONS.items():
+        if all(getattr(base.tracker, k) == v for k, v in change.items()):
+            continue  # the default itself
         folder = out.parent / f"{out.name}_{name}"
         folder.mkdir(parents=True, exist_ok=True)
         if not args.reuse:
@@ -117,7 +128,7 @@ def main() -> None:
         t2 = time.perf_counter()
         res = run_study(dataclasses.replace(
             base, series=series, n_repetitions=1, paper_repetitions=0,
-            tracker=dataclasses.replace(base.tracker, filter=name)), folder, mm, mm_path,
+            tracker=dataclasses.replace(base.tracker, **change)), folder, mm, mm_path,
             physics)
         options[name] = (res, time.perf_counter() - t2)
     nx = len(mm.spec.state)
@@ -131,12 +142,12 @@ def main() -> None:
         return [round(float(v), 3) for v in np.r_[c[:nx], c[n_aug:n_aug + 2]]]
 
     def option_block(name: str, res: StudyResult, runs_s: float) -> dict[str, Any]:
-        """Filter ``name`` against the default filter, repetition 0 of every dataset."""
-        dflt = base.tracker.filter
-        series = OPTION_FILTERS[name]
+        """Option ``name`` against the default, repetition 0 of every dataset."""
+        change, series, note = OPTIONS[name]
+        dflt = "default"
         return {
-            "what": (f"filter={name!r} ({OPTION_NOTES[name]}) against the default filter, "
-                     "same likelihood, repetition 0 of every dataset"),
+            "what": (f"{change} ({note}) against the default (same data, same likelihood), "
+                     "repetition 0 of every dataset"),
             "state_nrmse": {f"series{s}": {
                 name: round(float(_mean(res.nrmse[s - 1, :, 0, :nx])), 4),
                 dflt: round(float(_mean(full.nrmse[s - 1, :, 0, :nx])), 4)} for s in series},
@@ -175,6 +186,7 @@ def main() -> None:
         "study_filter_runs": int(timings["filter_runs_computed"]),
         "extra_runs_s": round(extra_s, 1),
         "likelihood": lik,
+        "intervals": base.tracker.intervals,
         "method": ("study_s: the default `formtwin study` (bending) in an emptied folder, "
                    "as its timings record it: pseudo-data (physics runs), K_MC builds, "
                    f"{int(timings['filter_runs_computed'])} filter runs, scoring; the "
@@ -213,7 +225,7 @@ def main() -> None:
                   for s in (1, 5, 6)},
             "paper": {f"series{s}": round(float(_mean(paper.paper["log_evidence"][s - 1])))
                       for s in (1, 5, 6)}},
-        **{f"{name}_filter": option_block(name, res, runs_s)
+        **{f"{name}_option": option_block(name, res, runs_s)
            for name, (res, runs_s) in options.items()},
         "load_average_1min_start": round(load0, 2),
         "load_average_1min_end": round(os.getloadavg()[0], 2),
