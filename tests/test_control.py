@@ -220,3 +220,26 @@ def test_combined_rho_predicts_an_ar1_around_the_level() -> None:
             assert np.std(innov[200:]) < 0.01
     with pytest.raises(ValueError, match="rho"):
         Combined(Feedforward(T, act), 0.5, rho=1.0)
+
+
+def test_combined_adaptive_weight_is_the_slope_of_the_angle_on_the_posterior() -> None:
+    """A plant whose angle at the reference setting (u = 0) moves by ``s`` times the
+    posterior's change plus noise: the learned weight tends to ``s`` (clipped to [0, 1]:
+    0 for a negative slope); with rho the slope is taken on the AR(1) innovations of both."""
+    from formtwin.control import Combined
+
+    rng = np.random.default_rng(8)
+    act = Actuator(-100.0, 100.0)
+    n = 3000
+    for rho, s, expected in ((0.0, 0.5, 0.5), (0.7, 0.3, 0.3), (0.0, -0.4, 0.0)):
+        ctl = Combined(Feedforward(T, act), 0.01, weight=0.0, rho=rho, adaptive=True)
+        cp, ap = 0.0, 0.0
+        for _ in range(n):
+            # posterior c_i: an AR(1) about 88; plant a_i = 88.5 + s (c_i - 88) plus an own
+            # AR(1) part whose innovations are independent of the posterior's
+            cp = rho * cp + rng.normal(0, 0.2)
+            ap = rho * ap + rng.normal(0, 0.05)
+            c, a = 88.0 + cp, 88.5 + s * cp + ap
+            ctl.measured(a, c, reference=c)  # at u = 0: predicted = c
+        assert ctl.weight == pytest.approx(expected, abs=0.04)
+        assert ctl.sxx > 0

@@ -20,6 +20,7 @@ from formtwin.study.control import (
     ControlStudySettings,
     PlantAngles,
 )
+from formtwin.study.control_ff import ADAPTIVE
 from formtwin.study.control_run import angle_drivers, estimate_worth, run_control_study
 from formtwin.tracker import TrackerConfig
 
@@ -49,14 +50,23 @@ def test_control_study_on_the_analytic_stand_in(tmp_path: Path) -> None:
     assert s["ff_weight"] in FF_WEIGHTS and s["ff_lam"] in FF_RHOS[s["ff_rho"]]
     # the service's triple is the best of the grid on all datasets; each dataset's the best
     # on the others (leave one out), and the feedforward scored there is that one
+    # (fixed weights; the learned weight, ADAPTIVE in the grid, is chosen apart)
     t = s["tuning_std_deg"]
     grid, sds = np.array(t["ff_grid"]), np.array(t["ff_per_dataset"])
-    assert list(grid[int(np.argmin(sds.mean(0)))]) == [s["ff_lam"], s["ff_weight"], s["ff_rho"]]
+    fixed, learned = grid[:, 1] != ADAPTIVE, grid[:, 1] == ADAPTIVE
+    assert learned.sum() == sum(len(v) for v in FF_RHOS.values())
+    big = np.where(fixed, 0.0, np.inf)  # leaves out the learned rows
+    assert list(grid[int(np.argmin(sds.mean(0) + big))]) == [s["ff_lam"], s["ff_weight"],
+                                                             s["ff_rho"]]
     for k, w in enumerate(s["per_dataset_weights"]):
-        row = int(np.argmin(np.delete(sds, k, 0).mean(0)))
+        row = int(np.argmin(np.delete(sds, k, 0).mean(0) + big))
         assert list(grid[row]) == [w["ff_lam"], w["ff_weight"], w["ff_rho"]]
         assert s["per_dataset_std_deg"]["feedforward"][k] == pytest.approx(sds[k, row],
                                                                            abs=1e-4)
+        row = int(np.argmin(np.delete(sds, k, 0).mean(0) + np.where(learned, 0.0, np.inf)))
+        assert list(grid[row]) == [w["adaptive_lam"], ADAPTIVE, w["adaptive_rho"]]
+        assert s["per_dataset_std_deg"]["feedforward_adaptive"][k] == pytest.approx(
+            sds[k, row], abs=1e-4)
         lam = int(np.argmin(np.delete(np.array(t["r2r_per_dataset"]), k, 0).mean(0)))
         assert w["r2r_lam"] == R2R_LAMS[lam]
     # weight 0: the trim alone, the same (lam, rho)

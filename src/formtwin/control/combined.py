@@ -39,6 +39,12 @@ its level, the predicted angle at ``u_ref`` is::
 (an AR(1) around a slowly moving level, ``lam`` small; the posterior's change counted beyond
 what its own persistence predicts). ``rho = 0`` is the controller above.
 
+With ``adaptive`` the weight is learned on the line itself: after each measured product,
+``w`` is the least-squares slope (clipped to [0, 1]) of what the trim left of the measured
+products' angles, ``(A_j - L) - rho (A_{j-1} - L)``, on the posterior's change it would
+have counted, ``(c_j - k) - rho (c_{j-1} - k)`` (each with the level before product ``j``):
+near 1 on a line whose posterior follows its angle, near 0 on one whose does not.
+
 >>> from formtwin.control.feedforward import Actuator, Feedforward
 >>> import numpy as np
 >>> c = Combined(Feedforward(90.0, Actuator(-100, 100)), lam=0.5)
@@ -92,6 +98,9 @@ class Combined:
         [0, 1) (0: none).
     last_error : ``e_j`` of the last measured product, degrees (None before the first).
     last_reference : its ``c_j``, degrees (None before the first given).
+    adaptive : learn ``weight`` from the measured products (its value until then: the
+        initial weight).
+    sxy, sxx : the sums of the weight's least-squares slope (``adaptive``).
     """
 
     feedforward: Feedforward
@@ -103,6 +112,9 @@ class Combined:
     rho: float = 0.0
     last_error: float | None = None
     last_reference: float | None = None
+    adaptive: bool = False
+    sxy: float = 0.0
+    sxx: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.lam <= 1:
@@ -155,6 +167,8 @@ class Combined:
         ``reference``, its ``c_j``; return the new trim. Non-finite values are skipped."""
         if math.isfinite(angle) and math.isfinite(predicted):
             e = angle - predicted
+            if self.adaptive and reference is not None and math.isfinite(reference):
+                self._learn_weight(e, reference)
             first = self.last_error is None and self.lam > 0
             self.bias = e if first else self.lam * e + (1 - self.lam) * self.bias
             self.last_error = e
@@ -163,6 +177,19 @@ class Combined:
                     self.lam * reference + (1 - self.lam) * self.level
                 self.last_reference = reference
         return self.bias
+
+    def _learn_weight(self, e: float, c: float) -> None:
+        """Add product ``j`` (error ``e``, reference ``c``) to the weight's slope, with the
+        state before it is taken in; set ``weight`` to the clipped slope."""
+        if self.level is None or self.last_error is None or self.last_reference is None:
+            return
+        L = self.bias + self.level
+        x = (c - self.level) - self.rho * (self.last_reference - self.level)
+        y = (e + c - L) - self.rho * (self.last_error + self.last_reference - L)
+        self.sxy += x * y
+        self.sxx += x * x
+        if self.sxx > 0:
+            self.weight = min(max(self.sxy / self.sxx, 0.0), 1.0)
 
 
 __all__ = ["TUNED_LAM", "TUNED_RHO", "TUNED_WEIGHT", "Combined"]

@@ -21,8 +21,9 @@ with the deviation estimated. Per dataset (``products`` products):
   ``rho`` with its ``lam`` values); ``feedforward_full`` the same with the whole change
   trusted and no persistence (weight 1, rho 0, its EWMA weight tuned likewise: the earlier
   sessions' controller); ``trim_only`` the tuned one with weight 0 (the estimates' change unused:
-  what the trim's time-series model alone gives); ``feedforward_open`` the feedforward
-  without the trim;
+  what the trim's time-series model alone gives); ``feedforward_adaptive`` the weight
+  learned on the line itself (``Combined(adaptive=True)``, its ``lam`` and ``rho`` chosen
+  likewise); ``feedforward_open`` the feedforward without the trim;
 * ``feedforward_angle``: ``feedforward`` with each measured final angle also entering the
   filter as a second measurement of its product's state
   (:func:`formtwin.tracker.angle.update_angle`, likelihood sd the metamodel's held-out
@@ -44,6 +45,7 @@ products after ``burn_in``, pooled over datasets and within each.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -58,7 +60,7 @@ from formtwin.doe import run_design
 from formtwin.measurement import ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.simulator import Simulator
-from formtwin.study.control_ff import track_and_choose
+from formtwin.study.control_ff import ADAPTIVE, track_and_choose
 from formtwin.tracker import TrackerConfig
 
 log = logging.getLogger(__name__)
@@ -67,7 +69,7 @@ FloatArray = NDArray[np.float64]
 
 #: the controllers compared
 CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "feedforward_full",
-               "trim_only", "feedforward_angle")
+               "trim_only", "feedforward_adaptive", "feedforward_angle")
 #: EWMA weights tried for the run-to-run controller and the feedforward's trim
 R2R_LAMS = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 #: shares of the posterior's product-to-product change tried for the feedforward
@@ -225,8 +227,9 @@ def _setup(metamodel: ProcessModel, settings: ControlStudySettings, target: floa
 
 def controller_grid(settings: ControlStudySettings) -> list[tuple[float, float, float]]:
     """The combined feedforward's ``(lam, weight, rho)`` tried: :data:`FF_RHOS` x
-    :data:`FF_WEIGHTS` (those the settings fix held), and the earlier sessions' controller
-    (weight 1, rho 0) with each of its ``lam`` values."""
+    :data:`FF_WEIGHTS` (those the settings fix held), the earlier sessions' controller
+    (weight 1, rho 0) with each of its ``lam`` values, and each ``(lam, rho)`` with the
+    weight learned on the line (weight :data:`~formtwin.study.control_ff.ADAPTIVE`)."""
     weights = FF_WEIGHTS if settings.ff_weight is None else (settings.ff_weight,)
     rho_lams = dict(FF_RHOS) if settings.ff_rho is None else \
         {settings.ff_rho: FF_RHOS.get(settings.ff_rho, R2R_LAMS)}
@@ -234,7 +237,8 @@ def controller_grid(settings: ControlStudySettings) -> list[tuple[float, float, 
         rho_lams = {r: (settings.trim_lam,) for r in rho_lams}
     grid = {(lm, w, r) for r, lams in rho_lams.items() for lm in lams for w in weights}
     full_lams = FF_RHOS[0.0] if settings.trim_lam is None else (settings.trim_lam,)
-    return sorted(grid | {(lm, 1.0, 0.0) for lm in full_lams})
+    learned = {(lm, ADAPTIVE, r) for r, lams in rho_lams.items() for lm in lams}
+    return sorted(grid | learned | {(lm, 1.0, 0.0) for lm in full_lams})
 
 
 def choose_weights(ff_std: FloatArray, r2r_std: FloatArray,
@@ -242,22 +246,31 @@ def choose_weights(ff_std: FloatArray, r2r_std: FloatArray,
     """The weights with the least mean std over the datasets given: ``ff_std`` (K, m) of
     the combined feedforward for each ``(lam, weight, rho)`` of ``grid`` (m, 3), ``r2r_std``
     (K, len(:data:`R2R_LAMS`)) of the run-to-run EWMA; returns ``r2r_lam`` (EWMA),
-    ``ff_lam``, ``ff_weight`` and ``ff_rho`` (combined feedforward), ``full_lam`` (its trim's
-    weight with the whole change trusted and rho 0).
+    ``ff_lam``, ``ff_weight`` and ``ff_rho`` (combined feedforward, a fixed weight),
+    ``full_lam`` (its trim's weight with the whole change trusted and rho 0), and
+    ``adaptive_lam``, ``adaptive_rho`` (the weight learned on the line; NaN: none in the
+    grid).
 
-    >>> g = [(0.1, 0.0, 0.7), (0.1, 1.0, 0.0), (0.5, 1.0, 0.0)]
-    >>> choose_weights(np.array([[1.0, 2.0, 3.0], [1.0, 0.5, 3.0]]), np.ones((2, 8)), g)
-    ... # doctest: +NORMALIZE_WHITESPACE
-    {'r2r_lam': 0.02, 'ff_lam': 0.1, 'ff_weight': 0.0, 'ff_rho': 0.7, 'full_lam': 0.1}
+    >>> g = [(0.1, -1.0, 0.7), (0.1, 0.0, 0.7), (0.1, 1.0, 0.0), (0.5, 1.0, 0.0)]
+    >>> choose_weights(np.array([[0.1, 1.0, 2.0, 3.0], [0.1, 1.0, 0.5, 3.0]]),
+    ...                np.ones((2, 8)), g)  # doctest: +NORMALIZE_WHITESPACE
+    {'r2r_lam': 0.02, 'ff_lam': 0.1, 'ff_weight': 0.0, 'ff_rho': 0.7, 'full_lam': 0.1,
+     'adaptive_lam': 0.1, 'adaptive_rho': 0.7}
     """
     g = np.asarray(grid, dtype=np.float64)
     ff = np.mean(ff_std, axis=0)
     full = np.flatnonzero((g[:, 1] == 1.0) & (g[:, 2] == 0.0))
-    best = int(np.argmin(ff))
-    return {"r2r_lam": float(R2R_LAMS[int(np.argmin(np.mean(r2r_std, axis=0)))]),
-            "ff_lam": float(g[best, 0]), "ff_weight": float(g[best, 1]),
-            "ff_rho": float(g[best, 2]),
-            "full_lam": float(g[full[int(np.argmin(ff[full]))], 0])}
+    fixed, learned = np.flatnonzero(g[:, 1] != ADAPTIVE), np.flatnonzero(g[:, 1] == ADAPTIVE)
+    best = int(fixed[np.argmin(ff[fixed])])
+    out = {"r2r_lam": float(R2R_LAMS[int(np.argmin(np.mean(r2r_std, axis=0)))]),
+           "ff_lam": float(g[best, 0]), "ff_weight": float(g[best, 1]),
+           "ff_rho": float(g[best, 2]),
+           "full_lam": float(g[full[int(np.argmin(ff[full]))], 0]),
+           "adaptive_lam": math.nan, "adaptive_rho": math.nan}
+    if learned.size:
+        a = int(learned[np.argmin(ff[learned])])
+        out.update(adaptive_lam=float(g[a, 0]), adaptive_rho=float(g[a, 2]))
+    return out
 
 
 def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,

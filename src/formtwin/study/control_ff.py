@@ -29,6 +29,10 @@ from formtwin.tracker.angle import angle_sd, update_angle
 
 FloatArray = NDArray[np.float64]
 
+#: the ``weight`` of a controller tuple that stands for a weight learned on the line
+#: (:class:`~formtwin.control.Combined` with ``adaptive``, starting at 0)
+ADAPTIVE = -1.0
+
 
 @dataclass(frozen=True)
 class Pass:
@@ -60,7 +64,8 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                      sd: float | None = None) -> Pass:
     """Run a tracker (``config``) over the measured ``curves`` (n, n_t) of the products with
     ``ok``; after each curve every controller ``Combined(ff, lam, weight, rho=rho)`` (one
-    per ``(lam, weight, rho)`` of ``controllers``, reference setting ``nominal``) chooses its
+    per ``(lam, weight, rho)`` of ``controllers``, ``weight`` :data:`ADAPTIVE`: learned;
+    reference setting ``nominal``) chooses its
     product's setting (start ``nominal``); ``plant(i, u)`` is product ``i``'s measured
     final angle at ``u``, known ``delay`` products later. With ``angle_in_filter`` (one
     controller, ``delay`` 1: the angle arrives before the next curve) the measured angle also
@@ -70,7 +75,8 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
         raise ValueError("angles in the filter: one controller and delay 1 (got "
                          f"{len(controllers)} controllers, delay {delay})")
     tracker = build_tracker(metamodel, config)
-    ctl = [Combined(ff, lam, weight, nominal, rho=rho) for lam, weight, rho in controllers]
+    ctl = [Combined(ff, lam, max(weight, 0.0), nominal, rho=rho, adaptive=weight == ADAPTIVE)
+           for lam, weight, rho in controllers]
     m, n = len(ctl), curves.shape[0]
     u = np.full((m, n), nominal)
     pred = np.full((m, n, 3), np.nan)
@@ -103,4 +109,4 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                 input_mean)
 
 
-__all__ = ["Pass", "track_and_choose"]
+__all__ = ["ADAPTIVE", "Pass", "track_and_choose"]

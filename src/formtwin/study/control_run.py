@@ -33,6 +33,7 @@ from formtwin.study.control import (
     run_dataset,
     scores,
 )
+from formtwin.study.control_ff import ADAPTIVE
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,8 @@ LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
           "feedforward_open": "feedforward without trim",
           "feedforward_full": "feedforward with trim, whole change trusted",
           "feedforward_angle": "feedforward with trim, angles in the filter",
-          "trim_only": "the same trim, estimates' change unused (weight 0)"}
+          "trim_only": "the same trim, estimates' change unused (weight 0)",
+          "feedforward_adaptive": "feedforward with trim, weight learned on the line"}
 #: the cases of the figure (those the study ran)
 SHOWN = ("fixed", "ewma", "feedforward", "feedforward_angle", "oracle")
 
@@ -122,13 +124,17 @@ def _run_dataset(args: tuple[Any, ...]) -> dict[str, Any]:
 def _tuned_result(base: dict[str, Any], tuned: dict[str, float]) -> dict[str, Any]:
     """A dataset's result in the controllers' names with the weights ``tuned``: the grids'
     rows of ``feedforward`` (the tuned ``(lam, weight, rho)``), ``feedforward_full``
-    (``full_lam``, 1, 0), ``trim_only`` (the tuned ``lam`` and ``rho``, weight 0) and
-    ``ewma`` (``r2r_lam``)."""
+    (``full_lam``, 1, 0), ``trim_only`` (the tuned ``lam`` and ``rho``, weight 0),
+    ``feedforward_adaptive`` (``adaptive_lam``, learned, ``adaptive_rho``) and ``ewma``
+    (``r2r_lam``)."""
     grid = [tuple(g) for g in np.asarray(base["grid"]).tolist()]
     rows = {"feedforward": grid.index((tuned["ff_lam"], tuned["ff_weight"], tuned["ff_rho"])),
             "feedforward_full": grid.index((tuned["full_lam"], 1.0, 0.0))}
     if (tuned["ff_lam"], 0.0, tuned["ff_rho"]) in grid:
         rows["trim_only"] = grid.index((tuned["ff_lam"], 0.0, tuned["ff_rho"]))
+    if (tuned["adaptive_lam"], ADAPTIVE, tuned["adaptive_rho"]) in grid:
+        rows["feedforward_adaptive"] = grid.index(
+            (tuned["adaptive_lam"], ADAPTIVE, tuned["adaptive_rho"]))
     r = {n: v for n, v in base.items() if not n.endswith(("_grid", "_r2r")) and n != "grid"}
     for name, row in rows.items():
         r[f"u_{name}"], r[f"angle_{name}"] = base["u_grid"][row], base["angle_grid"][row]
@@ -176,7 +182,8 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     sd = {c: summary[c]["std_deg"] for c in names}
     per = {c: [float(np.nanstd(r[f"angle_{c}"][b:])) for r in results] for c in names}
     for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
-                    ("feedforward_full", "fffull"), ("trim_only", "trim")):
+                    ("feedforward_full", "fffull"), ("trim_only", "trim"),
+                    ("feedforward_adaptive", "ffadapt")):
         for other in ("fixed", "oracle", "ewma"):
             if ff not in sd:
                 continue
