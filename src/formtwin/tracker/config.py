@@ -104,9 +104,10 @@ class TrackerConfig:
         the shared discrepancy); ``None`` (default): learned over :data:`SHARES` by the
         evidence.
     intervals : the reported std of the estimates and angles, see :data:`INTERVALS`:
-        ``"cloud"`` (default) the particles' weighted std; ``"calibrated"`` adds floors
-        learned offline on physics runs of the bundled metamodel (not the study's data:
-        :mod:`formtwin.study.calibrate`); ``"sandwich"`` adds the part of
+        ``"calibrated"`` (default) adds to the particles' weighted std, in quadrature,
+        floors learned offline on physics runs of the bundled metamodel (not the study's
+        data: :mod:`formtwin.study.calibrate`; none for another metamodel); ``"cloud"`` the
+        particles' weighted std alone; ``"sandwich"`` adds the part of
         the error that a persistent metamodel error puts in the estimate
         (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
         particles, weights, means, ESS and evidence are the same for all three.
@@ -160,7 +161,7 @@ class TrackerConfig:
         "share of K_res in the adaptive/discrepancy likelihood (default: learned)"))
     discrepancy_memory: float = field(default=math.inf, metadata=_help(
         "memory of the learned discrepancy, products (inf: no forgetting)"))
-    intervals: str = field(default="cloud", metadata=_help(
+    intervals: str = field(default="calibrated", metadata=_help(
         "reported std: cloud (the particles'), calibrated (+ floors learned offline on "
         "physics runs), sandwich (+ the persistent metamodel error's part) or gated (that "
         "times P(kappa > 0))"))
