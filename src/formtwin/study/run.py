@@ -183,8 +183,10 @@ def _tasks(settings: StudySettings, folder: Path, metamodel_path: Path,
     runs = [(settings.tracker, settings.n_repetitions,
              "" if lik == TrackerConfig().likelihood else f"_{lik}", settings.series)]
     if settings.compares_paper:
-        # eq. 12 as the paper writes it: its covariance, compared in model space
-        runs.append((dataclasses.replace(settings.tracker, likelihood="paper", compare="model"),
+        # eq. 12 as the paper writes it: its covariance, compared in model space, and the
+        # particles' std as its intervals (eq. 14)
+        runs.append((dataclasses.replace(settings.tracker, likelihood="paper", compare="model",
+                                         intervals="cloud"),
                      settings.paper_repetitions, "_paper", settings.paper_series))
     return [Task(series=s, realisation=k, repetition=r, metamodel_path=str(metamodel_path),
                  realisation_path=str(data_dir / f"realisation_{k}.nc"),
