@@ -6,6 +6,9 @@ metamodel's held-out angle error) are taken *before* resampling. With
 ``estimate_deviation=False`` ``theta_d`` is reported with mean 0 and std 0 (an exact,
 NaN-free statement of the filter's assumption); with ``learn_mu=True`` the estimate adds
 ``mu_mean``/``mu_std`` while ``names``/``mean``/``std`` stay the 18 augmented variables.
+The reported ``std`` and ``angles_std`` are the particles' plus what ``config.intervals``
+adds (:mod:`formtwin.tracker.intervals`: floors calibrated offline by default); nothing
+else depends on them.
 
 Bad input: :meth:`Tracker.step` validates the curve first (1-D, numeric, length ``n_t``,
 finite) and raises ``ValueError`` naming the problem; the tracker's state, RNG included, is
