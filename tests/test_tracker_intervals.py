@@ -185,3 +185,22 @@ def test_learned_floors_give_the_target_coverage_on_their_data() -> None:
     inside = np.abs(err) <= Z90 * np.sqrt(std**2 + b**2)
     assert inside[:, 0].mean() == pytest.approx(0.9, abs=1e-3)
     assert b[1] == 0.0 and b[0] > 1.0
+
+
+def test_shipped_calibration_is_complete_and_learned_off_the_study_data() -> None:
+    """The package's floors: 18 + 2 non-negative numbers per tracker configuration, none for
+    theta_d without the deviation model, learned on pseudo-data of another study seed."""
+    import json
+
+    from formtwin.study.calibrate import SEED
+    from formtwin.study.run import StudySettings
+    from formtwin.tracker.intervals import CALIBRATION_PATH
+
+    cal = json.loads(CALIBRATION_PATH.read_text())
+    assert cal["settings"]["seed"] == SEED != StudySettings().seed
+    assert len(cal["fingerprint"]) == 16
+    for key in ("no_deviation", "deviation"):
+        floors, angles = np.array(cal[key]["floors"]), np.array(cal[key]["angle_floors"])
+        assert floors.shape == (18,) and angles.shape == (2,)
+        assert np.all(floors >= 0) and np.all(angles >= 0) and np.all(np.isfinite(floors))
+    np.testing.assert_array_equal(cal["no_deviation"]["floors"][10:], 0.0)
