@@ -30,15 +30,16 @@ def payloads(tmp_path_factory: pytest.TempPathFactory) -> list[bytes]:
     return [dumps(s.to_message()) for s in read_stream(path)]
 
 
-def _start(path: Path, payloads: list[bytes]) -> tuple[Processor, float]:
+def _start(path: Path, payloads: list[bytes], adaptive: bool = False
+           ) -> tuple[Processor, float]:
     """A processor that has taken the first product without control, then control on (weight
-    0.6, rho 0.5: every part of the state in use), with the target 0.5 deg above that
-    product's predicted final angle."""
+    0.6, rho 0.5: every part of the state in use; ``adaptive``: the weight learned), with the
+    target 0.5 deg above that product's predicted final angle."""
     proc = open_processor(path, SETTINGS)
     target = float(proc.handle(payloads[0]).message["angles_mean"][1]) + 0.5
-    proc.controller = ServiceController(proc.tracker,
-                                        ControlSettings(target, 0.1, weight=0.6, rho=0.5),
-                                        proc.store)
+    proc.controller = ServiceController(
+        proc.tracker, ControlSettings(target, 0.1, weight=0.6, rho=0.5, adaptive=adaptive),
+        proc.store)
     return proc, target
 
 
@@ -114,12 +115,16 @@ def test_defaults_are_the_control_studys_tuning() -> None:
     assert tuned == (TUNED_LAM, TUNED_WEIGHT, TUNED_RHO)
 
 
-def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes]) -> None:
-    ref_proc, target = _start(tmp_path / "ref.sqlite", payloads)
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes],
+                                       adaptive: bool) -> None:
+    ref_proc, target = _start(tmp_path / "ref.sqlite", payloads, adaptive)
     ref = [ref_proc.handle(p).message for p in payloads[1:20]]
     assert all(m["control"]["level_deg"] is not None for m in ref)
+    if adaptive:  # the weight is learned: it leaves its start and its sums are stored
+        assert ref[-1]["control"]["weight"] != 0.6 and ref[-1]["control"]["weight_sxx"] > 0
     path = tmp_path / "crash.sqlite"
-    proc, _ = _start(path, payloads)
+    proc, _ = _start(path, payloads, adaptive)
     got = [proc.handle(p).message for p in payloads[1:8]]
     # stepped and suggested (trim and level moved), then "killed" before the commit
     msg = json.loads(payloads[8])
@@ -128,9 +133,9 @@ def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes]) ->
                              "angles_mean": [0.0, target]})
     proc.close()
     proc = open_processor(path, SETTINGS)
-    proc.controller = ServiceController(proc.tracker,
-                                        ControlSettings(target, 0.1, weight=0.6, rho=0.5),
-                                        proc.store)
+    proc.controller = ServiceController(
+        proc.tracker, ControlSettings(target, 0.1, weight=0.6, rho=0.5, adaptive=adaptive),
+        proc.store)
     got += [proc.handle(p).message for p in payloads[8:20]]
     strip = ("flags", "received_at")
     assert [{k: v for k, v in m.items() if k not in strip} for m in got] == \
@@ -140,14 +145,14 @@ def test_restart_continues_bit_for_bit(tmp_path: Path, payloads: list[bytes]) ->
 
 
 def test_rollback_restores_the_state(tmp_path: Path, payloads: list[bytes]) -> None:
-    proc, target = _start(tmp_path / "r.sqlite", payloads)
+    proc, target = _start(tmp_path / "r.sqlite", payloads, adaptive=True)
     for p in payloads[1:5]:
         proc.handle(p)
     c = proc.controller
 
     def state() -> tuple[object, ...]:
         k = c.controller
-        return c.u_prev, k.bias, k.level, k.last_error, k.last_reference
+        return c.u_prev, k.bias, k.level, k.last_error, k.last_reference, k.sxy, k.sxx
 
     before = state()
     proc.tracker.step(json.loads(payloads[5])["force_N"])

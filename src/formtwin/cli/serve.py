@@ -74,7 +74,8 @@ def _controller(args: argparse.Namespace, proc: Any) -> None:
     proc.controller = ServiceController(
         proc.tracker, ControlSettings(args.target_angle, args.control_max_step,
                                       args.control_lam, args.control_weight,
-                                      args.control_rho), proc.store)
+                                      args.control_rho, args.control_adaptive),
+        proc.store)
 
 
 def _monitor(args: argparse.Namespace, proc: Any) -> Any:
@@ -225,6 +226,9 @@ def register(sub: Any) -> None:
     g.add_argument("--control-rho", type=float, default=TUNED_RHO, metavar="RHO",
                    help="persistence of the last product's deviation from the level, 0-1 "
                    "(default: the control study's tuning, %(default)s)")
+    g.add_argument("--control-adaptive", action="store_true",
+                   help="learn the weight of the estimates' change on the line, starting "
+                   "at --control-weight (the control study's best controller)")
     p.add_argument("--status-every", type=float, default=60.0, metavar="S",
                    help="print a status line every S seconds (0: never)")
     p.add_argument("--connect-timeout", type=float, default=10.0,

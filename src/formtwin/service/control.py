@@ -67,6 +67,8 @@ class ControlSettings:
         of it); default: the closed-loop study's tuning.
     rho : persistence of the last product's deviation from the level, in [0, 1); default:
         the closed-loop study's tuning.
+    adaptive : learn the weight on the line (``Combined(adaptive=True)``, starting at
+        ``weight``; the control study's best controller, docs/control.md).
     """
 
     target_deg: float
@@ -74,6 +76,7 @@ class ControlSettings:
     lam: float = TUNED_LAM
     weight: float = TUNED_WEIGHT
     rho: float = TUNED_RHO
+    adaptive: bool = False
 
     def __post_init__(self) -> None:
         if not 0 < self.max_step <= 1:
@@ -110,7 +113,7 @@ class ServiceController:
         self.controller = Combined(Feedforward(settings.target_deg,
                                                Actuator(lo, hi, settings.max_step * (hi - lo))),
                                    settings.lam, settings.weight, float(c.nominal[0]),
-                                   rho=settings.rho)
+                                   rho=settings.rho, adaptive=settings.adaptive)
         self.u_prev: float | None = None
         for row in store.products(since_seq=max(store.next_seq() - 50, 0), status="accepted"):
             ctl = (row.estimate or {}).get("control")
@@ -120,16 +123,21 @@ class ServiceController:
                 for name, key in _STATE:
                     v = ctl.get(key)
                     setattr(self.controller, name, None if v is None else float(v))
+                if settings.adaptive and ctl.get("adaptive"):  # the learned weight's state
+                    for name, key in _LEARNED:
+                        setattr(self.controller, name, float(ctl[key]))
         self._saved: tuple[Any, ...] | None = None
 
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:
         """The ``"control"`` entry for the product just stepped (:meth:`rollback` undoes
         the change of the controller's state)."""
         ctl = self.controller
-        self._saved = (self.u_prev, ctl.bias, *(getattr(ctl, n) for n, _ in _STATE))
+        self._saved = (self.u_prev, ctl.bias, *(getattr(ctl, n) for n, _ in _STATE + _LEARNED))
         w = self.tracker.weights()
-        # c_i: the posterior mean at the nominal setting (only a weight below 1 uses it)
-        ref = ctl.reference(self.tracker.final_angle, w) if ctl.weight < 1 else None
+        # c_i: the posterior mean at the nominal setting (a weight below 1 or a learned one
+        # uses it)
+        ref = ctl.reference(self.tracker.final_angle, w) \
+            if ctl.weight < 1 or ctl.adaptive else None
         s = self.tracker.suggest(ctl, self.u_prev, ref)
         self.u_prev = s.u
         d = s.to_dict()
@@ -142,13 +150,15 @@ class ServiceController:
                 "interval_deg": d["interval"], "coverage": ctl.feedforward.coverage,
                 "limited": d["limited"], "trim_deg": _num(ctl.bias),
                 **{key: _num(getattr(ctl, name)) for name, key in _STATE},
-                "lam": ctl.lam, "weight": ctl.weight, "rho": ctl.rho}
+                "lam": ctl.lam, "weight": ctl.weight, "rho": ctl.rho,
+                **({"adaptive": True, "weight_sxy": ctl.sxy, "weight_sxx": ctl.sxx}
+                   if ctl.adaptive else {})}
 
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
         if self._saved is not None:
             self.u_prev, self.controller.bias, *state = self._saved
-            for (name, _), v in zip(_STATE, state, strict=True):
+            for (name, _), v in zip(_STATE + _LEARNED, state, strict=True):
                 setattr(self.controller, name, v)
             self._saved = None
 
@@ -156,6 +166,8 @@ class ServiceController:
 #: the controller's state besides the trim: (attribute of Combined, key in the message)
 _STATE = (("level", "level_deg"), ("last_error", "last_error_deg"),
           ("last_reference", "last_reference_deg"))
+#: the learned weight's state (``adaptive``): (attribute of Combined, key in the message)
+_LEARNED = (("weight", "weight"), ("sxy", "weight_sxy"), ("sxx", "weight_sxx"))
 
 
 def _num(v: float | None) -> float | None:
