@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="folder of the calibration's pseudo-data and filter runs")
     parser.add_argument("--model", default="benchmarks/.cache/study/model",
                         help="folder of the bundled metamodel (fitted there if missing)")
-    parser.add_argument("--datasets", type=int, default=3)
+    parser.add_argument("--datasets", type=int, default=8)
     parser.add_argument("--repetitions", type=int, default=2)
     parser.add_argument("--products", type=int, default=1000,
                         help="products per dataset (the last half are scored)")
