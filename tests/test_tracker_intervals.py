@@ -143,7 +143,8 @@ def test_sandwich_tracker_continues_bit_for_bit() -> None:
 def test_calibrated_intervals_add_the_floors_of_the_metamodels_calibration(
         tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
     """std = sqrt(cloud std^2 + b^2) with the floors b of the calibration learned for this
-    metamodel (its K_res fingerprint); another metamodel's calibration adds nothing."""
+    metamodel (its diag(K_res), to rounding: the same fit on another BLAS); another
+    metamodel's calibration adds nothing."""
     import json
     from pathlib import Path
 
@@ -151,7 +152,9 @@ def test_calibrated_intervals_add_the_floors_of_the_metamodels_calibration(
 
     model = _ModelWithError()
     floors = np.linspace(0.01, 0.18, 18)
-    cal = {"fingerprint": intervals.model_fingerprint(model), "model_version": "test",
+    signature = intervals.residual_signature(model)
+    assert signature is not None
+    cal = {"k_res_diag": list(signature * (1 + 1e-12)), "model_version": "test",
            "no_deviation": {"floors": list(floors), "angle_floors": [0.2, 0.3]},
            "deviation": {"floors": list(2 * floors), "angle_floors": [0.4, 0.6]}}
     path = Path(str(tmp_path)) / "cal.json"
@@ -164,7 +167,7 @@ def test_calibrated_intervals_add_the_floors_of_the_metamodels_calibration(
         np.testing.assert_allclose(b.std, np.sqrt(a.std**2 + (2 * floors) ** 2), rtol=1e-12)
         np.testing.assert_allclose(b.angles_std, np.sqrt(a.angles_std**2 + [0.16, 0.36]),
                                    rtol=1e-12)
-    cal["fingerprint"] = "another"
+    cal["k_res_diag"] = list(signature * 1.01)  # another fit of the metamodel
     path2 = Path(str(tmp_path)) / "other.json"
     path2.write_text(json.dumps(cal))
     monkeypatch.setattr(intervals, "CALIBRATION_PATH", path2)
@@ -198,7 +201,8 @@ def test_shipped_calibration_is_complete_and_learned_off_the_study_data() -> Non
 
     cal = json.loads(CALIBRATION_PATH.read_text())
     assert cal["settings"]["seed"] == SEED != StudySettings().seed
-    assert len(cal["fingerprint"]) == 16
+    assert len(cal["k_res_diag"]) == 101
+    assert min(cal["k_res_diag"]) >= 0 and max(cal["k_res_diag"]) > 0
     for key in ("no_deviation", "deviation"):
         floors, angles = np.array(cal[key]["floors"]), np.array(cal[key]["angle_floors"])
         assert floors.shape == (18,) and angles.shape == (2,)

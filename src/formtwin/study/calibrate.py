@@ -10,8 +10,8 @@ truth in 90 % of the products of independent physics pseudo-data: realisations d
 the study seed :data:`SEED` (the study's default is 0, so they share no realisation with
 the study or the benchmarks), filtered as series 5 (no deviation model) and series 6
 (deviation estimated, mu assumed), the last ``window`` products of each run. The floors
-are stored with the fingerprint of the metamodel's ``K_res``
-(:func:`~formtwin.tracker.intervals.model_fingerprint`): another metamodel gets none.
+are stored with the diagonal of the metamodel's ``K_res``
+(:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
 
 >>> import numpy as np
 >>> err = np.array([[0.0], [1.0], [2.0], [3.0]]); std = np.full((4, 1), 1.0)
@@ -36,7 +36,7 @@ from formtwin.study.metrics import Z90
 from formtwin.study.run import StudyResult, StudySettings, run_study
 from formtwin.study.series import SERIES
 from formtwin.tracker import TrackerConfig
-from formtwin.tracker.intervals import CALIBRATION_PATH, model_fingerprint
+from formtwin.tracker.intervals import CALIBRATION_PATH, residual_signature
 
 FloatArray = NDArray[np.float64]
 
@@ -111,6 +111,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.seed == StudySettings().seed:
         raise SystemExit("--seed: the study's own seed would calibrate on its data")
     mm, mm_path = default_metamodel(Path(args.model), "bending")
+    signature = residual_signature(mm)
+    if signature is None:
+        raise SystemExit(f"{mm_path}: the metamodel has no held-out residual statistics")
     settings = StudySettings(n_realisations=args.datasets, n_repetitions=args.repetitions,
                              n_products=args.products, window=args.products // 2,
                              seed=args.seed, series=tuple(SERIES_OF.values()),
@@ -120,7 +123,8 @@ def main(argv: list[str] | None = None) -> None:
     out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
                    "cloud's std by TrackerConfig(intervals='calibrated'), learned on "
                    "independent physics pseudo-data (formtwin.study.calibrate)",
-           "fingerprint": model_fingerprint(mm), "model_version": mm.model_version,
+           "model_version": mm.model_version,
+           "k_res_diag": [float(v) for v in signature],
            "names": list(mm.spec.augmented.names) + ["angle1", "angle2"],
            "settings": {"seed": args.seed, "datasets": args.datasets,
                         "repetitions": args.repetitions, "products": settings.n_products,

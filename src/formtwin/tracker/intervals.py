@@ -33,7 +33,6 @@ numbers). What this does and does not explain on the physics data: docs/likeliho
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import logging
 from pathlib import Path
@@ -54,6 +53,9 @@ CALIBRATION_PATH = Path(__file__).parents[1] / "data" / "interval_calibration.js
 #: the curve's Jacobian and the angles' gradient are refreshed every this many products
 #: (the cloud's mean drifts slowly; each refresh costs m + 1 + n_in + 1 model rows)
 EVERY = 4
+
+#: relative tolerance on ``diag(K_res)`` for a calibration to belong to a metamodel
+SIGNATURE_RTOL = 1e-6
 
 #: keys of the sandwich's state in :attr:`formtwin.tracker.TrackerState.model`
 STATE_KEYS = ("sandwich_G", "sandwich_P", "sandwich_J", "sandwich_Ja")
@@ -177,29 +179,50 @@ class Sandwich:
         self.Ja = np.array(d["sandwich_Ja"], dtype=np.float64).reshape(2, n_in)
 
 
-def model_fingerprint(model: Any) -> str | None:
-    """A short hash of ``model``'s held-out residual covariance ``K_res`` (identifies the
-    metamodel fit a calibration was learned for), ``None`` without residual statistics."""
+def residual_signature(model: Any) -> FloatArray | None:
+    """The diagonal (n_t,) of ``model``'s held-out residual covariance ``K_res``: identifies
+    the metamodel fit a calibration was learned for (compared with a tolerance: the same fit
+    made with another BLAS or thread count differs in the last bits), ``None`` without
+    residual statistics."""
     k_res = residual_covariance(model)
-    if k_res is None:
-        return None
-    return hashlib.sha256(np.ascontiguousarray(k_res, dtype="<f8").tobytes()).hexdigest()[:16]
+    return None if k_res is None else np.ascontiguousarray(np.diag(k_res), dtype=np.float64)
+
+
+def matches(signature: FloatArray, stored: Any) -> bool:
+    """Whether a calibration's stored ``k_res_diag`` is that of the metamodel with
+    ``signature`` (:func:`residual_signature`), to :data:`SIGNATURE_RTOL` of each entry or
+    of the largest.
+
+    >>> import numpy as np
+    >>> d = np.array([1.0, 2.0, 3.0])
+    >>> matches(d * (1 + 1e-12), list(d)), matches(d * 1.01, list(d)), matches(d, [1.0])
+    (True, False, False)
+    >>> matches(np.array([3.0, 1e-29]), [3.0, 0.0])   # rounding noise of a zero entry
+    True
+    """
+    ref = np.asarray(stored if stored is not None else [], dtype=np.float64)
+    if ref.shape != signature.shape or ref.size == 0:
+        return False
+    tol = SIGNATURE_RTOL * float(np.abs(ref).max())  # entries near 0 are rounding noise
+    return bool(np.allclose(signature, ref, rtol=SIGNATURE_RTOL, atol=tol))
 
 
 @functools.lru_cache(maxsize=4)
-def _calibration(fingerprint: str, path: Path) -> dict[str, Any] | None:
-    """The calibration at ``path`` if it was learned for the metamodel ``fingerprint``."""
+def _calibration(path: Path) -> dict[str, Any] | None:
+    """The calibration file at ``path`` (``None``, logged once, if there is none)."""
     if not path.exists():
         log.warning("intervals='calibrated': no calibration file %s; reporting the cloud's "
                     "std", path)
         return None
     cal: dict[str, Any] = json.loads(path.read_text("utf-8"))
-    if cal.get("fingerprint") != fingerprint:
-        log.warning("intervals='calibrated': no interval calibration for this metamodel "
-                    "(learned for %s, K_res %s); reporting the cloud's std",
-                    cal.get("model_version"), cal.get("fingerprint"))
-        return None
     return cal
+
+
+@functools.lru_cache(maxsize=4)
+def _warn_other_model(version: str, path: Path) -> None:
+    """Log once that the calibration at ``path`` was learned for another metamodel."""
+    log.warning("intervals='calibrated': no interval calibration for this metamodel (%s was "
+                "learned for another fit of %s); reporting the cloud's std", path.name, version)
 
 
 def calibration_floors(model: Any, deviation: bool) -> tuple[FloatArray, FloatArray]:
@@ -209,9 +232,12 @@ def calibration_floors(model: Any, deviation: bool) -> tuple[FloatArray, FloatAr
     (no ``K_res``, as the analytic stand-in) and, logged once, when the bundled calibration
     was learned for another metamodel."""
     n = len(model.spec.augmented)
-    fingerprint = model_fingerprint(model)
-    cal = None if fingerprint is None else _calibration(fingerprint, CALIBRATION_PATH)
-    if cal is None:
+    signature = residual_signature(model)
+    cal = None if signature is None else _calibration(CALIBRATION_PATH)
+    if cal is None or signature is None:
+        return np.zeros(n), np.zeros(2)
+    if not matches(signature, cal.get("k_res_diag")):
+        _warn_other_model(str(cal.get("model_version")), CALIBRATION_PATH)
         return np.zeros(n), np.zeros(2)
     entry = cal["deviation" if deviation else "no_deviation"]
     floors = np.array(entry["floors"], dtype=np.float64)
