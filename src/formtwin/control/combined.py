@@ -124,6 +124,12 @@ class Combined:
         if not 0 <= self.rho < 1:
             raise ValueError(f"combined control rho = {self.rho}, expected 0 <= rho < 1")
 
+    @property
+    def uses_reference(self) -> bool:
+        """Whether ``c_i`` counts: a weight below 1 discounts the posterior's change, a
+        learned weight needs it for its slope."""
+        return self.weight < 1 or self.adaptive
+
     def reference(self, final_angle: AngleFunction, weights: FloatArray | None = None) -> float:
         """``c_i``: the posterior mean of the final angle at ``u_ref``, degrees."""
         a = np.asarray(final_angle(np.array([self.u_ref])), dtype=np.float64)[:, 0]

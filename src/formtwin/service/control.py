@@ -134,10 +134,8 @@ class ServiceController:
         ctl = self.controller
         self._saved = (self.u_prev, ctl.bias, *(getattr(ctl, n) for n, _ in _STATE + _LEARNED))
         w = self.tracker.weights()
-        # c_i: the posterior mean at the nominal setting (a weight below 1 or a learned one
-        # uses it)
-        ref = ctl.reference(self.tracker.final_angle, w) \
-            if ctl.weight < 1 or ctl.adaptive else None
+        # c_i: the posterior mean at the nominal setting
+        ref = ctl.reference(self.tracker.final_angle, w) if ctl.uses_reference else None
         s = self.tracker.suggest(ctl, self.u_prev, ref)
         self.u_prev = s.u
         d = s.to_dict()

@@ -110,7 +110,7 @@ class TrackerConfig:
         particles' weighted std alone; ``"sandwich"`` adds the part of
         the error that a persistent metamodel error puts in the estimate
         (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
-        particles, weights, means, ESS and evidence are the same for all three.
+        particles, weights, means, ESS and evidence are the same for all four.
     discrepancy_memory : with ``likelihood="discrepancy"``, the memory (products) of its
         statistics: ``1 - 1/memory`` is the forgetting factor; ``inf``: none.
     learn_scale : learn a factor ``c`` on the likelihood's covariance online: a posterior

@@ -111,14 +111,26 @@ class GuidedProposal(GridPosteriors):
         the mean of ``at`` in every column that varies (the state, theta and, when
         estimated, theta_d; finite differences, at most 19 evaluations instead of N):
         ``r ~ z - curves - J (at - x)``; and the state's block ``H`` (n_t, n_x) of ``J``."""
-        nx, _, na = self._sizes
-        n_cols = na if self.config.estimate_deviation else self._sizes[1]
-        spread = at[:, nx:n_cols].std(axis=0)
-        width = self._hi[nx:n_cols] - self._lo[nx:n_cols]
-        step = self.fd_step * np.r_[self._sigma, np.maximum(spread, 1e-3 * width)]
-        J = self._jacobian(at.mean(axis=0), step, y)  # (n_t, n_cols): dh/dcolumn
+        nx, n_cols = self._sizes[0], self.n_varying
+        J, _ = self._cloud_jacobian(at.mean(axis=0), at[:, nx:n_cols].std(axis=0), y)
         r = (y - curves) - (at[:, :n_cols] - x[:, :n_cols]) @ J.T
         return r, J[:, :nx]
+
+    @property
+    def n_varying(self) -> int:
+        """The particle columns that vary: the state, theta and, when estimated, theta_d."""
+        _, n_in, na = self._sizes
+        return na if self.config.estimate_deviation else n_in
+
+    def _cloud_jacobian(self, c: FloatArray, spread: FloatArray, y: FloatArray
+                        ) -> tuple[FloatArray, FloatArray]:
+        """``dh/dcolumn`` (n_t, m) at the particle ``c`` (d,) in the ``m`` columns that vary
+        (:attr:`n_varying`), and its steps (m,): ``fd_step`` times the state's sigma and the
+        cloud's ``spread`` (m - n_x,) of the other columns (at least 1e-3 of their range)."""
+        nx, m = self._sizes[0], self.n_varying
+        width = self._hi[nx:m] - self._lo[nx:m]
+        step = self.fd_step * np.r_[self._sigma, np.maximum(spread, 1e-3 * width)]
+        return self._jacobian(c, step, y), step
 
     def _jacobian(self, c: FloatArray, step: FloatArray, y: FloatArray) -> FloatArray:
         """``dh/dcolumn`` (n_t, m) of the model curve at the particle ``c`` (d,) in its first

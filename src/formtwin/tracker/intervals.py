@@ -91,8 +91,7 @@ class Sandwich:
         ``gated``: ``B`` times the posterior probability of ``kappa > 0``."""
         self.ssm = ssm
         self.gated = gated
-        nx, n_in, na = ssm._sizes
-        self.m = na if ssm.config.estimate_deviation else n_in
+        nx, self.m = ssm.n_x, ssm.n_varying
         lo, hi = ssm._lo[:self.m], ssm._hi[:self.m]
         self.F = np.r_[ssm._rho, np.ones(self.m - nx)]
         self.Q = np.r_[(1.0 - ssm._rho**2) * ssm._sigma**2,
@@ -142,10 +141,8 @@ class Sandwich:
     def _refresh(self, mean: FloatArray, spread: FloatArray, y: FloatArray,
                  u: FloatArray | None) -> None:
         """The curve's Jacobian (n_t, m) and the angles' gradient (2, n_in) at ``mean``."""
-        ssm, m, nx, n_in = self.ssm, self.m, self.ssm.n_x, self.ssm.n_in
-        width = ssm._hi[nx:m] - ssm._lo[nx:m]
-        step = ssm.fd_step * np.r_[ssm._sigma, np.maximum(spread[nx:], 1e-3 * width)]
-        self.J = ssm._jacobian(mean, step, y)
+        ssm, n_in = self.ssm, self.ssm.n_in
+        self.J, step = ssm._cloud_jacobian(mean, spread[ssm.n_x:], y)
         base = np.repeat(mean[None, :n_in], n_in + 1, axis=0)
         base[1:] += np.diag(step[:n_in])
         a = ssm.model.predict_angles(base, u)
