@@ -17,7 +17,7 @@ from formtwin.defaults import analytic_model, bundled_doe
 from formtwin.production import draw_production_run
 from formtwin.service.health import HealthRule, HealthWindow
 from formtwin.service.messages import STROKE_SCHEMA, dumps
-from formtwin.service.plausibility import Plausibility
+from formtwin.service.plausibility import CLIP_SAMPLES, Plausibility
 from formtwin.service.runtime import ServiceSettings, open_processor
 from formtwin.service.streams import make_stream, read_stream
 from formtwin.tracker import TrackerConfig, build_tracker
@@ -89,6 +89,19 @@ def test_plausibility_limits_come_from_the_spec_and_can_be_overridden(tmp_path: 
     assert out.message["reason"] == "no_stroke" and "9999 N" in out.message["detail"]
     proc.close()
     proc.store.close()
+
+
+def test_default_clip_limit_rejects_80_percent_clipping_and_keeps_valid_curves() -> None:
+    """On the bundled DOE's physics curves: clipped at 80 % of the peak, every one is a
+    clipped_sensor; as they are, none is."""
+    data = DoeDataset.load(bundled_doe("bending"))
+    c = data.curves[data.ok][::5]
+    t = data.spec.time
+    lim = Plausibility(min_peak_N=1.0, clip_samples=CLIP_SAMPLES, peak_window_s=(t[0], t[-1]),
+                       time=t)
+    clipped = np.minimum(c, 0.8 * c.max(axis=1, keepdims=True))
+    assert all(getattr(lim.check(x), "reason", None) == "clipped_sensor" for x in clipped)
+    assert all(getattr(lim.check(x), "reason", None) != "clipped_sensor" for x in c)
 
 
 def test_mismatched_model_raises_model_mismatch_within_10_products_once(

@@ -12,6 +12,7 @@ from typing import Any
 
 from formtwin.cli.options import add_tracker_options, tracker_config
 from formtwin.control import TUNED_LAM, TUNED_RHO, TUNED_WEIGHT
+from formtwin.service.plausibility import CLIP_SAMPLES
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
 
@@ -102,7 +103,7 @@ def add_check_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--min-peak", type=float, metavar="N",
                    help="lowest peak force of a stroke, N (default: half the smallest peak "
                    "the model gives over the spec's ranges): below it, no_stroke")
-    g.add_argument("--clip-samples", type=int, default=5, metavar="K",
+    g.add_argument("--clip-samples", type=int, default=CLIP_SAMPLES, metavar="K",
                    help="K consecutive samples at the maximum are a clipped sensor "
                    "(default: %(default)s)")
     g.add_argument("--peak-window", metavar="LO,HI",

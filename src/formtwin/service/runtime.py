@@ -26,7 +26,7 @@ from formtwin.measurement import MeasurementModel
 from formtwin.service.gate import OutlierGate
 from formtwin.service.health import HealthRule, ModelHealth
 from formtwin.service.messages import Limits
-from formtwin.service.plausibility import Plausibility
+from formtwin.service.plausibility import CLIP_SAMPLES, Plausibility
 from formtwin.service.processor import Processor, replay
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker, TrackerConfig, build_measurement, build_tracker
@@ -65,7 +65,7 @@ class ServiceSettings:
     min_force_N: float = -50.0
     max_force_N: float = 1.0e4
     min_peak_N: float | None = None
-    clip_samples: int = 5
+    clip_samples: int = CLIP_SAMPLES
     peak_window_ms: tuple[float, float] | None = None
     health_k: int = 5
     health_m: int = 10
