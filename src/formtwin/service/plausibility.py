@@ -93,7 +93,8 @@ class Plausibility:
     @classmethod
     def from_model(cls, model: ProcessModel, min_peak_N: float | None = None,
                    clip_samples: int = CLIP_SAMPLES,
-                   peak_window_ms: tuple[float, float] | None = None, seed: int = 0) -> Plausibility:
+                   peak_window_ms: tuple[float, float] | None = None,
+                   seed: int = 0) -> Plausibility:
         """Limits derived from the spec's ranges through ``model`` (overrides win)."""
         spec = model.spec
         lo, hi = spec.inputs.lo, spec.inputs.hi
