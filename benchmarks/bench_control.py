@@ -10,11 +10,15 @@ bundled physics DOE (what a fresh clone gets, fitted into the study folder). See
 :mod:`formtwin.study.control` and ``docs/control.md``.
 
 Figures (``benchmarks/results/bench_control.json``): per controller (fixed, ewma,
-feedforward, feedforward_open, oracle) the mean error, std, RMSE and share within
-+-0.5 deg of the final angle over the scored products; ``angle2_std_ratio_ff_vs_fixed``
-(target <= 0.5), ``angle2_std_ratio_ff_vs_oracle`` (<= 1.5), ``angle2_std_ratio_ff_vs_ewma``
-(<= 0.8); the feedforward's interval coverage and prediction error; the plant
-interpolation's largest error at the feedforward's own settings.
+feedforward: the weight learned on the line, the service's default; feedforward_fixed: the
+best fixed weight; feedforward_full, trim_only, feedforward_open, oracle) the mean error,
+std, RMSE and share within +-0.5 deg of the final angle over the scored products;
+``angle2_std_ratio_ff_vs_fixed`` (target <= 0.5), ``angle2_std_ratio_ff_vs_oracle``
+(<= 1.5), ``angle2_std_ratio_ff_vs_ewma`` (<= 0.8) of the feedforward (``_fffixed_``: the
+fixed weight's), pooled and within datasets (``within_dataset_std_ratio_*``); the weights
+chosen (by the mean within-dataset ratio to fixed u, leave one dataset out); the
+feedforward's interval coverage and prediction error; the plant interpolation's largest
+error at the feedforward's own settings.
 """
 
 from __future__ import annotations

@@ -243,3 +243,47 @@ def test_combined_adaptive_weight_is_the_slope_of_the_angle_on_the_posterior() -
             ctl.measured(a, c, reference=c)  # at u = 0: predicted = c
         assert ctl.weight == pytest.approx(expected, abs=0.04)
         assert ctl.sxx > 0
+
+
+@pytest.mark.parametrize(("rho", "expected"), [(0.0, 0.8), (0.7, 0.01 / (0.01 + 1.49 * 0.01))])
+def test_combined_adaptive_weight_converges_to_the_least_squares_weight(
+        rho: float, expected: float) -> None:
+    """Closed loop on a synthetic line whose angle at the reference setting is
+    ``88.5 + z_i + eps_i`` and whose posterior says ``c_i = 88 + z_i + eta_i``: the state
+    ``z`` an AR(1) (coefficient ``rho``, innovations sd 0.1 deg; i.i.d. sd 0.2 for rho 0),
+    the estimate's error ``eta`` and the plant's own noise ``eps`` i.i.d. (sd 0.1 and 0.05).
+    The trim removes what its AR(1) predicts, so the weight regresses the innovation
+    ``v_j + eps_j - rho eps_{j-1}`` on ``v_j + eta_j - rho eta_{j-1}``: its least-squares
+    value is ``var v / (var v + (1 + rho^2) var eta)`` (0.8 for rho 0, 0.40 for rho 0.7).
+    The learned weight reaches it, and the closed loop's angles are then as good as those
+    of a controller given that weight from the start."""
+    from formtwin.control import Combined
+
+    rng = np.random.default_rng(21)
+    b, n = -0.05, 6000
+    sd_v = 0.2 if rho == 0 else 0.1
+    z, zs = 0.0, np.empty(n)
+    for i in range(n):
+        z = rho * z + rng.normal(0, sd_v)
+        zs[i] = z
+    c = 88.0 + zs + rng.normal(0, 0.1, n)
+    a_ref = 88.5 + zs + rng.normal(0, 0.05, n)
+
+    def run(ctl: Combined) -> np.ndarray:
+        u_prev, out = None, np.empty(n)
+        for i in range(n):
+            model = lambda u, ci=c[i]: np.array([[ci]]) + b * np.asarray(u)[None, :]  # noqa: E731
+            s = ctl.choose(model, u_prev=u_prev)
+            out[i] = a_ref[i] + b * s.u  # the plant at the chosen setting
+            ctl.measured(out[i], c[i] + b * s.u, reference=c[i])
+            u_prev = s.u
+        return out
+
+    act = Actuator(-100.0, 100.0)
+    learned = Combined(Feedforward(T, act), 0.01, weight=0.0, rho=rho, adaptive=True)
+    got = run(learned)
+    assert learned.weight == pytest.approx(expected, abs=0.03)
+    given = run(Combined(Feedforward(T, act), 0.01, weight=expected, rho=rho))
+    none = run(Combined(Feedforward(T, act), 0.01, weight=0.0, rho=rho))
+    assert np.std(got[1000:]) == pytest.approx(np.std(given[1000:]), rel=0.01)
+    assert np.std(got[1000:]) < 0.95 * np.std(none[1000:])  # the estimates pay

@@ -47,28 +47,36 @@ def test_control_study_on_the_analytic_stand_in(tmp_path: Path) -> None:
     # the trims bring the mean error near 0 where the open feedforward is biased (mu unknown)
     assert abs(s["feedforward"]["mean_error_deg"]) < 0.2 < s["feedforward_open"]["mean_error_deg"]
     assert s["r2r_lam"] in R2R_LAMS and s["full_lam"] in FF_RHOS[0.0]
-    assert s["ff_weight"] in FF_WEIGHTS and s["ff_lam"] in FF_RHOS[s["ff_rho"]]
-    # the service's triple is the best of the grid on all datasets; each dataset's the best
-    # on the others (leave one out), and the feedforward scored there is that one
-    # (fixed weights; the learned weight, ADAPTIVE in the grid, is chosen apart)
+    assert s["fffixed_weight"] in FF_WEIGHTS and s["ff_lam"] in FF_RHOS[s["ff_rho"]]
+    assert s["fffixed_lam"] in FF_RHOS[s["fffixed_rho"]]
+    # the service's weights are the best of the grid on all datasets by the mean ratio of
+    # the std to fixed u's within each dataset; each dataset's the best on the others (leave
+    # one out), and the controllers scored there are those: the feedforward (the learned
+    # weight, ADAPTIVE in the grid) and the fixed-weight one, chosen apart
     t = s["tuning_std_deg"]
     grid, sds = np.array(t["ff_grid"]), np.array(t["ff_per_dataset"])
+    ratio = sds / np.array(t["fixed_per_dataset"])[:, None]
+    assert np.array(t["fixed_per_dataset"]) == pytest.approx(
+        s["per_dataset_std_deg"]["fixed"], abs=1e-4)
     fixed, learned = grid[:, 1] != ADAPTIVE, grid[:, 1] == ADAPTIVE
     assert learned.sum() == sum(len(v) for v in FF_RHOS.values())
-    big = np.where(fixed, 0.0, np.inf)  # leaves out the learned rows
-    assert list(grid[int(np.argmin(sds.mean(0) + big))]) == [s["ff_lam"], s["ff_weight"],
-                                                             s["ff_rho"]]
+    only_fixed, only_learned = np.where(fixed, 0.0, np.inf), np.where(learned, 0.0, np.inf)
+    assert list(grid[int(np.argmin(ratio.mean(0) + only_fixed))]) == [
+        s["fffixed_lam"], s["fffixed_weight"], s["fffixed_rho"]]
+    assert list(grid[int(np.argmin(ratio.mean(0) + only_learned))]) == [
+        s["ff_lam"], ADAPTIVE, s["ff_rho"]]
     for k, w in enumerate(s["per_dataset_weights"]):
-        row = int(np.argmin(np.delete(sds, k, 0).mean(0) + big))
-        assert list(grid[row]) == [w["ff_lam"], w["ff_weight"], w["ff_rho"]]
+        others = np.delete(ratio, k, 0).mean(0)
+        row = int(np.argmin(others + only_fixed))
+        assert list(grid[row]) == [w["fffixed_lam"], w["fffixed_weight"], w["fffixed_rho"]]
+        assert s["per_dataset_std_deg"]["feedforward_fixed"][k] == pytest.approx(
+            sds[k, row], abs=1e-4)
+        row = int(np.argmin(others + only_learned))
+        assert list(grid[row]) == [w["ff_lam"], ADAPTIVE, w["ff_rho"]]
         assert s["per_dataset_std_deg"]["feedforward"][k] == pytest.approx(sds[k, row],
                                                                            abs=1e-4)
-        row = int(np.argmin(np.delete(sds, k, 0).mean(0) + np.where(learned, 0.0, np.inf)))
-        assert list(grid[row]) == [w["adaptive_lam"], ADAPTIVE, w["adaptive_rho"]]
-        assert s["per_dataset_std_deg"]["feedforward_adaptive"][k] == pytest.approx(
-            sds[k, row], abs=1e-4)
-        lam = int(np.argmin(np.delete(np.array(t["r2r_per_dataset"]), k, 0).mean(0)))
-        assert w["r2r_lam"] == R2R_LAMS[lam]
+        r2r = np.array(t["r2r_per_dataset"]) / np.array(t["fixed_per_dataset"])[:, None]
+        assert w["r2r_lam"] == R2R_LAMS[int(np.argmin(np.delete(r2r, k, 0).mean(0)))]
     # weight 0: the trim alone, the same (lam, rho)
     assert s["trim_only"]["products"] == s["feedforward"]["products"]
     r = s["within_dataset_std_ratio_ff_vs_fixed"]

@@ -12,7 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from formtwin.control import TUNED_LAM, TUNED_RHO, TUNED_WEIGHT
+from formtwin.control import (
+    TUNED_FIXED_LAM,
+    TUNED_FIXED_RHO,
+    TUNED_FIXED_WEIGHT,
+    TUNED_LAM,
+    TUNED_RHO,
+)
 from formtwin.service.control import ControlSettings, ServiceController
 from formtwin.service.messages import dumps
 from formtwin.service.processor import Processor
@@ -50,8 +56,8 @@ def test_estimates_carry_the_suggested_setting(tmp_path: Path, payloads: list[by
     step = 0.1 * (hi - lo)
     target = float(proc.handle(payloads[0]).message["angles_mean"][1]) + 0.5
     proc.controller = ServiceController(
-        proc.tracker, ControlSettings(target, 0.1, lam=0.5, weight=0.6, rho=0.5),
-        proc.store)
+        proc.tracker, ControlSettings(target, 0.1, lam=0.5, weight=0.6, rho=0.5,
+                                      adaptive=False), proc.store)
     ctl, refs, model, outs = [], [], [], []
     for p in payloads[1:20]:
         outs.append(proc.handle(p))
@@ -106,13 +112,41 @@ def test_estimates_carry_the_suggested_setting(tmp_path: Path, payloads: list[by
 
 
 def test_defaults_are_the_control_studys_tuning() -> None:
-    """One place for the weights: the service's defaults are what bench_control chose."""
+    """One place for the weights: the service's defaults are what bench_control chose: the
+    weight learned on the line (from 0, as in the study), its lam and rho; opted out, the
+    best fixed weight with its own lam and rho."""
     s = ControlSettings(72.7)
-    assert (s.lam, s.weight, s.rho) == (TUNED_LAM, TUNED_WEIGHT, TUNED_RHO)
+    assert (s.lam, s.weight, s.rho, s.adaptive) == (TUNED_LAM, 0.0, TUNED_RHO, True)
+    f = ControlSettings.fixed_weight(72.7)
+    assert (f.lam, f.weight, f.rho, f.adaptive) == (TUNED_FIXED_LAM, TUNED_FIXED_WEIGHT,
+                                                    TUNED_FIXED_RHO, False)
     res = json.loads((ROOT / "benchmarks" / "results" / "bench_control.json").read_text())
     figures = res.get("figures", res)
-    tuned = (figures["ff_lam"], figures["ff_weight"], figures.get("ff_rho", 0.0))
-    assert tuned == (TUNED_LAM, TUNED_WEIGHT, TUNED_RHO)
+    assert (figures["adaptive_lam"], figures["adaptive_rho"]) == (TUNED_LAM, TUNED_RHO)
+    assert (figures["ff_lam"], figures["ff_weight"], figures["ff_rho"]) == \
+        (TUNED_FIXED_LAM, TUNED_FIXED_WEIGHT, TUNED_FIXED_RHO)
+
+
+def test_serve_options_choose_the_controller() -> None:
+    """serve: the learned weight by default, --control-fixed-weight opts out; options given
+    replace the tuning, the others keep it."""
+    from formtwin.cli import build_parser
+    from formtwin.cli.serve import control_settings
+
+    def parse(*extra: str) -> ControlSettings:
+        args = build_parser().parse_args(["serve", "--analytic", *extra])
+        out: ControlSettings = control_settings(args)
+        return out
+
+    assert control_settings(build_parser().parse_args(["serve", "--analytic"])) is None
+    assert parse("--target-angle", "72.5") == ControlSettings(72.5)
+    assert parse("--target-angle", "72.5", "--control-fixed-weight") == \
+        ControlSettings.fixed_weight(72.5)
+    s = parse("--target-angle", "72.5", "--control-fixed-weight", "--control-weight", "0.3",
+              "--control-max-step", "0.1")
+    assert (s.weight, s.adaptive, s.lam, s.max_step) == (0.3, False, TUNED_FIXED_LAM, 0.1)
+    s = parse("--target-angle", "72.5", "--control-rho", "0.5", "--control-weight", "0.2")
+    assert (s.weight, s.adaptive, s.lam, s.rho) == (0.2, True, TUNED_LAM, 0.5)
 
 
 @pytest.mark.parametrize("adaptive", [False, True])

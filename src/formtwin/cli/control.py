@@ -34,7 +34,8 @@ def register(sub: Any) -> None:
     p.add_argument("--trim-lam", type=float, help="EWMA weight of the feedforward's trim "
                    "(default: tuned)")
     p.add_argument("--ff-weight", type=float, help="share of the posterior's "
-                   "product-to-product change the feedforward trusts, 0-1 (default: tuned)")
+                   "product-to-product change the fixed-weight feedforward trusts, 0-1 "
+                   "(default: tuned; the feedforward learns its share on the line)")
     p.add_argument("--ff-rho", type=float, help="persistence of the last product's deviation "
                    "in the feedforward's trim, 0-1 (default: tuned)")
     p.add_argument("--no-angle-filter", action="store_true",
@@ -68,8 +69,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"control study into {out}: {settings.datasets} datasets x {settings.products} "
           f"products, N = {tracker.n_particles}", flush=True)
     s = run_control_study(metamodel, physics, settings, out)
-    for c in ("fixed", "ewma", "feedforward", "feedforward_full", "feedforward_open",
-              "trim_only", "feedforward_angle", "oracle"):
+    for c in ("fixed", "ewma", "feedforward", "feedforward_fixed", "feedforward_full",
+              "feedforward_open", "trim_only", "feedforward_angle", "oracle"):
         if c not in s:
             continue
         v = s[c]
@@ -77,8 +78,8 @@ def run(args: argparse.Namespace) -> int:
               f"deg, within +-0.5 deg {v['within_band_share']:.1%}")
     print(f"  std ratio feedforward / fixed {s['angle2_std_ratio_ff_vs_fixed']}, "
           f"/ EWMA {s['angle2_std_ratio_ff_vs_ewma']}, / oracle "
-          f"{s['angle2_std_ratio_ff_vs_oracle']} (trim weight {s['ff_lam']}, feedforward "
-          f"weight {s['ff_weight']}, rho {s['ff_rho']}); within datasets (median) "
+          f"{s['angle2_std_ratio_ff_vs_oracle']} (weight learned on the line, trim weight "
+          f"{s['ff_lam']}, rho {s['ff_rho']}); within datasets (median) "
           f"{s['within_dataset_std_ratio_ff_vs_fixed']['median']}, "
           f"{s['within_dataset_std_ratio_ff_vs_ewma']['median']}, "
           f"{s['within_dataset_std_ratio_ff_vs_oracle']['median']}")

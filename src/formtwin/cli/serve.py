@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 from formtwin.cli.options import add_tracker_options, tracker_config
-from formtwin.control import TUNED_LAM, TUNED_RHO, TUNED_WEIGHT
 from formtwin.service.plausibility import CLIP_SAMPLES
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
@@ -66,17 +65,29 @@ def add_monitor_options(p: argparse.ArgumentParser) -> None:
                    "(default: %(default)g; EWMA, GLR and mismatch charts: 1e7, 1e5, 1e7)")
 
 
+def control_settings(args: argparse.Namespace) -> Any:
+    """The service's :class:`~formtwin.service.control.ControlSettings` from the serve
+    options (None without ``--target-angle``): the weight learned on the line unless
+    ``--control-fixed-weight``; options not given take the control study's tuning."""
+    if args.target_angle is None:
+        return None
+    from formtwin.service.control import ControlSettings
+
+    given = {k: v for k, v in (("lam", args.control_lam), ("weight", args.control_weight),
+                                ("rho", args.control_rho)) if v is not None}
+    if args.control_fixed_weight:
+        return ControlSettings.fixed_weight(args.target_angle, args.control_max_step, **given)
+    return ControlSettings(args.target_angle, args.control_max_step, **given)
+
+
 def _controller(args: argparse.Namespace, proc: Any) -> None:
     """Attach feedforward control to ``proc`` when ``--target-angle`` is given."""
-    if args.target_angle is None:
+    settings = control_settings(args)
+    if settings is None:
         return
-    from formtwin.service.control import ControlSettings, ServiceController
+    from formtwin.service.control import ServiceController
 
-    proc.controller = ServiceController(
-        proc.tracker, ControlSettings(args.target_angle, args.control_max_step,
-                                      args.control_lam, args.control_weight,
-                                      args.control_rho, args.control_adaptive),
-        proc.store)
+    proc.controller = ServiceController(proc.tracker, settings, proc.store)
 
 
 def _monitor(args: argparse.Namespace, proc: Any) -> Any:
@@ -218,18 +229,18 @@ def register(sub: Any) -> None:
     g.add_argument("--control-max-step", type=float, default=0.25, metavar="SHARE",
                    help="largest change of u per product, share of its range "
                    "(default: %(default)s)")
-    g.add_argument("--control-lam", type=float, default=TUNED_LAM, metavar="LAM",
+    g.add_argument("--control-lam", type=float, metavar="LAM",
                    help="EWMA weight of the trim on the measured final angles, 0-1 "
-                   "(default: the control study's tuning, %(default)s)")
-    g.add_argument("--control-weight", type=float, default=TUNED_WEIGHT, metavar="W",
-                   help="share of the estimates' product-to-product change trusted, 0-1 "
-                   "(default: the control study's tuning, %(default)s)")
-    g.add_argument("--control-rho", type=float, default=TUNED_RHO, metavar="RHO",
+                   "(default: the control study's tuning)")
+    g.add_argument("--control-rho", type=float, metavar="RHO",
                    help="persistence of the last product's deviation from the level, 0-1 "
-                   "(default: the control study's tuning, %(default)s)")
-    g.add_argument("--control-adaptive", action="store_true",
-                   help="learn the weight of the estimates' change on the line, starting "
-                   "at --control-weight (the control study's best controller)")
+                   "(default: the control study's tuning)")
+    g.add_argument("--control-fixed-weight", action="store_true",
+                   help="trust a fixed share of the estimates' product-to-product change "
+                   "(default: the share learned on the line, the control study's best)")
+    g.add_argument("--control-weight", type=float, metavar="W",
+                   help="that share, 0-1 (with --control-fixed-weight; default: the control "
+                   "study's best fixed weight), or the learned share's start (default 0)")
     p.add_argument("--status-every", type=float, default=60.0, metavar="S",
                    help="print a status line every S seconds (0: never)")
     p.add_argument("--connect-timeout", type=float, default=10.0,

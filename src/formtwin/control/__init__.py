@@ -13,9 +13,17 @@ Generic numerics: the process enters only as a function ``final_angle(u) -> (N, 
 the filters, below the tracker. See ``docs/control.md``.
 """
 
-from formtwin.control.combined import TUNED_LAM, TUNED_RHO, TUNED_WEIGHT, Combined
+from formtwin.control.combined import (
+    TUNED_FIXED_LAM,
+    TUNED_FIXED_RHO,
+    TUNED_FIXED_WEIGHT,
+    TUNED_LAM,
+    TUNED_RHO,
+    Combined,
+)
 from formtwin.control.feedforward import Actuator, Feedforward, Suggestion, weighted_quantile
 from formtwin.control.runtorun import EwmaRunToRun
 
-__all__ = ["TUNED_LAM", "TUNED_RHO", "TUNED_WEIGHT", "Actuator", "Combined", "EwmaRunToRun",
-           "Feedforward", "Suggestion", "weighted_quantile"]
+__all__ = ["TUNED_FIXED_LAM", "TUNED_FIXED_RHO", "TUNED_FIXED_WEIGHT", "TUNED_LAM", "TUNED_RHO",
+           "Actuator", "Combined", "EwmaRunToRun", "Feedforward", "Suggestion",
+           "weighted_quantile"]

@@ -72,12 +72,17 @@ import numpy as np
 
 from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray, Suggestion
 
-#: ``lam``, ``weight`` and ``rho`` the closed-loop study chose on all its datasets (least mean
-#: std; the last ``benchmarks/results/bench_control.json``'s ``ff_lam``, ``ff_weight`` and
-#: ``ff_rho``, docs/control.md): the service's defaults
+#: ``lam`` and ``rho`` of the closed-loop study's feedforward, the weight learned on the line
+#: (``adaptive``, starting at 0), chosen on all its datasets (least mean within-dataset std
+#: ratio; the last ``benchmarks/results/bench_control.json``'s ``ff_lam`` and ``ff_rho``,
+#: docs/control.md): the service's defaults
 TUNED_LAM = 0.02
-TUNED_WEIGHT = 0.75
 TUNED_RHO = 0.7
+#: ``lam``, ``weight`` and ``rho`` of the study's best fixed weight (``fffixed_lam``,
+#: ``fffixed_weight``, ``fffixed_rho``): the service's ``--control-fixed-weight``
+TUNED_FIXED_LAM = 0.02
+TUNED_FIXED_WEIGHT = 0.75
+TUNED_FIXED_RHO = 0.7
 
 
 @dataclass
@@ -198,4 +203,5 @@ class Combined:
             self.weight = min(max(self.sxy / self.sxx, 0.0), 1.0)
 
 
-__all__ = ["TUNED_LAM", "TUNED_RHO", "TUNED_WEIGHT", "Combined"]
+__all__ = ["TUNED_FIXED_LAM", "TUNED_FIXED_RHO", "TUNED_FIXED_WEIGHT", "TUNED_LAM", "TUNED_RHO",
+           "Combined"]

@@ -3,8 +3,10 @@ setting for its product.
 
 After the tracker has assimilated a product's stage-1 curve, :class:`ServiceController`
 asks :class:`formtwin.control.Combined` (feedforward plus feedback, the closed-loop study's
-controller with its tuned ``lam``, ``weight`` and ``rho``, :data:`formtwin.control.TUNED_LAM`,
-:data:`~formtwin.control.TUNED_WEIGHT`, :data:`~formtwin.control.TUNED_RHO`) for the setting
+controller: by default the weight of the posterior's change learned on the line, with the
+study's ``lam`` and ``rho``, :data:`formtwin.control.TUNED_LAM`,
+:data:`~formtwin.control.TUNED_RHO`; :meth:`ControlSettings.fixed_weight` the study's best
+fixed weight, :data:`~formtwin.control.TUNED_FIXED_WEIGHT`) for the setting
 ``u`` of the spec's one control that minimises the posterior expected squared error of the
 final angle over the particles against the target minus a trim, minus the untrusted share
 ``1 - weight`` of the posterior's product-to-product change and minus what persists (``rho``)
@@ -21,16 +23,19 @@ or no measured angles: the open feedforward). The estimate message gets::
                 "final_angle_deg": 89.98, "final_angle_std_deg": 0.11,
                 "interval_deg": [89.8, 90.2], "coverage": 0.9, "limited": false,
                 "trim_deg": -0.05, "level_deg": 90.02, "last_error_deg": 0.01,
-                "last_reference_deg": 90.03, "lam": 0.7, "weight": 0.75, "rho": 0.0}
+                "last_reference_deg": 90.03, "lam": 0.02, "weight": 0.41, "rho": 0.7,
+                "adaptive": true, "weight_sxy": 0.012, "weight_sxx": 0.029}
 
 ``final_angle_deg`` and the interval are the predicted final angle at ``u``, with the shift
 used for the suggestion; ``trim_deg``, ``level_deg``, ``last_error_deg`` and
 ``last_reference_deg`` are the controller's state after this product's measured angle (used
-for the next product; null before the first measured angle). The suggestion is made before
-the product's own measured angle is used. The previous suggestion (for the maximum step) and
-the controller's state are those stored with the last accepted product, so a restarted
-service continues from them bit for bit. The closed-loop study (``docs/control.md``)
-measured this controller against the open feedforward, the run-to-run EWMA and an oracle.
+for the next product; null before the first measured angle); with the learned weight
+(``adaptive``) so are ``weight`` and its least-squares sums ``weight_sxy``, ``weight_sxx``.
+The suggestion is made before the product's own measured angle is used. The previous
+suggestion (for the maximum step) and the controller's state are those stored with the last
+accepted product, so a restarted service continues from them bit for bit. The closed-loop
+study (``docs/control.md``) measured this controller against the open feedforward, the
+run-to-run EWMA and an oracle.
 """
 
 from __future__ import annotations
@@ -41,9 +46,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from formtwin.control import (
+    TUNED_FIXED_LAM,
+    TUNED_FIXED_RHO,
+    TUNED_FIXED_WEIGHT,
     TUNED_LAM,
     TUNED_RHO,
-    TUNED_WEIGHT,
     Actuator,
     Combined,
     Feedforward,
@@ -55,7 +62,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class ControlSettings:
-    """The service's feedforward settings.
+    """The service's feedforward settings (default: the weight learned on the line, the
+    control study's controller; :meth:`fixed_weight`: its best fixed weight).
 
     Attributes
     ----------
@@ -64,19 +72,20 @@ class ControlSettings:
     lam : EWMA weight of the trim (the newest measured prediction error) and of the level,
         in [0, 1]; default: the closed-loop study's tuning.
     weight : share of the posterior's product-to-product change trusted, in [0, 1] (1: all
-        of it); default: the closed-loop study's tuning.
+        of it); with ``adaptive`` the start of the learned weight (default 0, as in the
+        study).
     rho : persistence of the last product's deviation from the level, in [0, 1); default:
         the closed-loop study's tuning.
     adaptive : learn the weight on the line (``Combined(adaptive=True)``, starting at
-        ``weight``; the control study's best controller, docs/control.md).
+        ``weight``; the control study's feedforward, docs/control.md).
     """
 
     target_deg: float
     max_step: float = 0.25
     lam: float = TUNED_LAM
-    weight: float = TUNED_WEIGHT
+    weight: float = 0.0
     rho: float = TUNED_RHO
-    adaptive: bool = False
+    adaptive: bool = True
 
     def __post_init__(self) -> None:
         if not 0 < self.max_step <= 1:
@@ -87,6 +96,14 @@ class ControlSettings:
             raise ValueError(f"control weight = {self.weight}, expected in [0, 1]")
         if not 0 <= self.rho < 1:
             raise ValueError(f"control rho = {self.rho}, expected in [0, 1)")
+
+    @classmethod
+    def fixed_weight(cls, target_deg: float, max_step: float = 0.25,
+                     lam: float = TUNED_FIXED_LAM, weight: float = TUNED_FIXED_WEIGHT,
+                     rho: float = TUNED_FIXED_RHO) -> ControlSettings:
+        """The settings with a fixed weight (default: the control study's best fixed
+        weight and its ``lam`` and ``rho``)."""
+        return cls(target_deg, max_step, lam, weight, rho, adaptive=False)
 
 
 class ServiceController:

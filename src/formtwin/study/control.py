@@ -15,15 +15,15 @@ with the deviation estimated. Per dataset (``products`` products):
   each product's curve, :class:`~formtwin.control.Feedforward` over the tracker's
   particles (the metamodel's final angle at each candidate ``u``), aiming at the target
   minus a trim: an EWMA of its prediction error on the measured angles of earlier
-  products, trusting a share ``weight`` of the posterior's product-to-product change, with
-  the persistence ``rho`` of the last product's deviation (the EWMA's weight, the share and
-  ``rho`` the best of :data:`FF_RHOS` x :data:`FF_WEIGHTS` on the other datasets, each
-  ``rho`` with its ``lam`` values); ``feedforward_full`` the same with the whole change
-  trusted and no persistence (weight 1, rho 0, its EWMA weight tuned likewise: the earlier
-  sessions' controller); ``trim_only`` the tuned one with weight 0 (the estimates' change unused:
-  what the trim's time-series model alone gives); ``feedforward_adaptive`` the weight
-  learned on the line itself (``Combined(adaptive=True)``, its ``lam`` and ``rho`` chosen
-  likewise); ``feedforward_open`` the feedforward without the trim;
+  products, trusting a share of the posterior's product-to-product change learned on the
+  line itself (``Combined(adaptive=True)``, starting at 0), with the persistence ``rho`` of
+  the last product's deviation (the EWMA's weight and ``rho`` the best of :data:`FF_RHOS`
+  on the other datasets): the service's default; ``feedforward_fixed`` the same with a
+  fixed share (the best of :data:`FF_RHOS` x :data:`FF_WEIGHTS` on the other datasets);
+  ``feedforward_full`` the whole change trusted and no persistence (weight 1, rho 0, its
+  EWMA weight tuned likewise: the earlier sessions' controller); ``trim_only`` the
+  feedforward's trim with weight 0 (the estimates' change unused: what the trim's
+  time-series model alone gives); ``feedforward_open`` the feedforward without the trim;
 * ``feedforward_angle``: ``feedforward`` with each measured final angle also entering the
   filter as a second measurement of its product's state
   (:func:`formtwin.tracker.angle.update_angle`, likelihood sd the metamodel's held-out
@@ -38,14 +38,16 @@ setting to measure the interpolation error. Each controller respects the actuato
 and maximum step. The controllers' weights are chosen leave one dataset out: each dataset
 is scored with the weights that did best on the others (every weight of the grids runs on
 every dataset: one tracker pass each), so no dataset is scored with weights chosen on it;
-the weights reported for the service are those best on all of them. Scores: over the
+the weights reported for the service are those best on all of them. "Best" is the least
+mean over the datasets of the ratio of the final angle's std to that of fixed ``u`` on the
+same dataset (each line counts alike; a mean of the stds lets the line of largest spread
+choose). Scores: over the
 products after ``burn_in``, pooled over datasets and within each.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -68,8 +70,8 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 #: the controllers compared
-CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "feedforward_full",
-               "trim_only", "feedforward_adaptive", "feedforward_angle")
+CONTROLLERS = ("fixed", "ewma", "feedforward", "oracle", "feedforward_open", "feedforward_fixed",
+               "feedforward_full", "trim_only", "feedforward_angle")
 #: EWMA weights tried for the run-to-run controller and the feedforward's trim
 R2R_LAMS = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0)
 #: shares of the posterior's product-to-product change tried for the feedforward
@@ -105,8 +107,8 @@ class ControlStudySettings:
         :data:`FF_WEIGHTS`).
     ff_rho : persistence of the last product's deviation in the trim
         (:class:`~formtwin.control.Combined`'s ``rho``); None: tuned with ``ff_weight``.
-    angle_in_filter : also run the combined feedforward with the measured angles in the
-        filter (``feedforward_angle``; needs ``r2r_delay`` 1).
+    angle_in_filter : also run the feedforward (learned weight) with the measured angles in
+        the filter (``feedforward_angle``; needs ``r2r_delay`` 1).
     angle_sd : sd of that angle likelihood, degrees; None: the metamodel's held-out error
         of the final angle.
     seed : master seed.
@@ -241,36 +243,45 @@ def controller_grid(settings: ControlStudySettings) -> list[tuple[float, float, 
     return sorted(grid | learned | {(lm, 1.0, 0.0) for lm in full_lams})
 
 
-def choose_weights(ff_std: FloatArray, r2r_std: FloatArray,
+def choose_weights(ff_std: FloatArray, r2r_std: FloatArray, fixed_std: FloatArray,
                    grid: list[tuple[float, float, float]] | FloatArray) -> dict[str, float]:
-    """The weights with the least mean std over the datasets given: ``ff_std`` (K, m) of
-    the combined feedforward for each ``(lam, weight, rho)`` of ``grid`` (m, 3), ``r2r_std``
-    (K, len(:data:`R2R_LAMS`)) of the run-to-run EWMA; returns ``r2r_lam`` (EWMA),
-    ``ff_lam``, ``ff_weight`` and ``ff_rho`` (combined feedforward, a fixed weight),
-    ``full_lam`` (its trim's weight with the whole change trusted and rho 0), and
-    ``adaptive_lam``, ``adaptive_rho`` (the weight learned on the line; NaN: none in the
-    grid).
+    """The weights with the least mean within-dataset ratio over the datasets given (each
+    controller's std over that of fixed ``u`` on the same dataset, ``fixed_std`` (K,)):
+    ``ff_std`` (K, m) of the combined feedforward for each ``(lam, weight, rho)`` of
+    ``grid`` (m, 3), ``r2r_std`` (K, len(:data:`R2R_LAMS`)) of the run-to-run EWMA; returns
+    ``r2r_lam`` (EWMA), ``ff_lam`` and ``ff_rho`` (the feedforward: the weight learned on
+    the line), ``fffixed_lam``, ``fffixed_weight`` and ``fffixed_rho`` (a fixed weight),
+    ``full_lam`` (its trim's weight with the whole change trusted and rho 0).
 
     >>> g = [(0.1, -1.0, 0.7), (0.1, 0.0, 0.7), (0.1, 1.0, 0.0), (0.5, 1.0, 0.0)]
     >>> choose_weights(np.array([[0.1, 1.0, 2.0, 3.0], [0.1, 1.0, 0.5, 3.0]]),
-    ...                np.ones((2, 8)), g)  # doctest: +NORMALIZE_WHITESPACE
-    {'r2r_lam': 0.02, 'ff_lam': 0.1, 'ff_weight': 0.0, 'ff_rho': 0.7, 'full_lam': 0.1,
-     'adaptive_lam': 0.1, 'adaptive_rho': 0.7}
+    ...                np.ones((2, 8)), np.ones(2), g)  # doctest: +NORMALIZE_WHITESPACE
+    {'r2r_lam': 0.02, 'ff_lam': 0.1, 'ff_rho': 0.7, 'fffixed_lam': 0.1,
+     'fffixed_weight': 0.0, 'fffixed_rho': 0.7, 'full_lam': 0.1}
+
+    A dataset of ten times the spread does not choose alone: weight 0 gives stds 1 and 10
+    on two datasets, weight 0.5 gives 2 and 5; the mean std would choose 0.5, the mean
+    ratio to fixed ``u`` (stds 1 and 10) chooses 0:
+
+    >>> g = [(0.1, -1.0, 0.7), (0.1, 0.0, 0.7), (0.1, 0.5, 0.7), (0.1, 1.0, 0.0)]
+    >>> choose_weights(np.array([[1.0, 1.0, 2.0, 9.0], [1.0, 10.0, 5.0, 90.0]]),
+    ...                np.ones((2, 8)), np.array([1.0, 10.0]), g)["fffixed_weight"]
+    0.0
     """
     g = np.asarray(grid, dtype=np.float64)
-    ff = np.mean(ff_std, axis=0)
+    scale = np.asarray(fixed_std, dtype=np.float64)[:, None]
+    ff = np.mean(ff_std / scale, axis=0)
     full = np.flatnonzero((g[:, 1] == 1.0) & (g[:, 2] == 0.0))
     fixed, learned = np.flatnonzero(g[:, 1] != ADAPTIVE), np.flatnonzero(g[:, 1] == ADAPTIVE)
+    if not learned.size:
+        raise ValueError("choose_weights: no learned-weight controller in the grid")
+    a = int(learned[np.argmin(ff[learned])])
     best = int(fixed[np.argmin(ff[fixed])])
-    out = {"r2r_lam": float(R2R_LAMS[int(np.argmin(np.mean(r2r_std, axis=0)))]),
-           "ff_lam": float(g[best, 0]), "ff_weight": float(g[best, 1]),
-           "ff_rho": float(g[best, 2]),
-           "full_lam": float(g[full[int(np.argmin(ff[full]))], 0]),
-           "adaptive_lam": math.nan, "adaptive_rho": math.nan}
-    if learned.size:
-        a = int(learned[np.argmin(ff[learned])])
-        out.update(adaptive_lam=float(g[a, 0]), adaptive_rho=float(g[a, 2]))
-    return out
+    return {"r2r_lam": float(R2R_LAMS[int(np.argmin(np.mean(r2r_std / scale, axis=0)))]),
+            "ff_lam": float(g[a, 0]), "ff_rho": float(g[a, 2]),
+            "fffixed_lam": float(g[best, 0]), "fffixed_weight": float(g[best, 1]),
+            "fffixed_rho": float(g[best, 2]),
+            "full_lam": float(g[full[int(np.argmin(ff[full]))], 0])}
 
 
 def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlStudySettings,
@@ -335,7 +346,7 @@ def finish_dataset(metamodel: ProcessModel, physics: Simulator,
     out: dict[str, Any] = {}
     if settings.angle_in_filter:
         config = replace(settings.tracker, seed=settings.seed + k)
-        best = (tuned["ff_lam"], tuned["ff_weight"], tuned["ff_rho"])
+        best = (tuned["ff_lam"], ADAPTIVE, tuned["ff_rho"])
         q = track_and_choose(metamodel, config, curves, ok, plant, ff, [best], nominal,
                              settings.r2r_delay, angle_in_filter=True, sd=settings.angle_sd)
         out.update(u_feedforward_angle=q.u[0], pred_angle=q.pred[0], angle_sd=q.angle_sd,

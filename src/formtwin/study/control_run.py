@@ -40,12 +40,13 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 LABELS = {"fixed": "fixed u (no control)", "ewma": "run-to-run EWMA",
-          "feedforward": "feedforward (formtwin, with trim)", "oracle": "oracle (true state)",
+          "feedforward": "feedforward (formtwin: trim, weight learned on the line)",
+          "oracle": "oracle (true state)",
           "feedforward_open": "feedforward without trim",
+          "feedforward_fixed": "feedforward with trim, fixed weight",
           "feedforward_full": "feedforward with trim, whole change trusted",
           "feedforward_angle": "feedforward with trim, angles in the filter",
-          "trim_only": "the same trim, estimates' change unused (weight 0)",
-          "feedforward_adaptive": "feedforward with trim, weight learned on the line"}
+          "trim_only": "the same trim, estimates' change unused (weight 0)"}
 #: the cases of the figure (those the study ran)
 SHOWN = ("fixed", "ewma", "feedforward", "feedforward_angle", "oracle")
 
@@ -123,18 +124,17 @@ def _run_dataset(args: tuple[Any, ...]) -> dict[str, Any]:
 
 def _tuned_result(base: dict[str, Any], tuned: dict[str, float]) -> dict[str, Any]:
     """A dataset's result in the controllers' names with the weights ``tuned``: the grids'
-    rows of ``feedforward`` (the tuned ``(lam, weight, rho)``), ``feedforward_full``
-    (``full_lam``, 1, 0), ``trim_only`` (the tuned ``lam`` and ``rho``, weight 0),
-    ``feedforward_adaptive`` (``adaptive_lam``, learned, ``adaptive_rho``) and ``ewma``
+    rows of ``feedforward`` (``ff_lam``, learned, ``ff_rho``), ``feedforward_fixed`` (the
+    tuned fixed ``(lam, weight, rho)``), ``feedforward_full`` (``full_lam``, 1, 0),
+    ``trim_only`` (the feedforward's ``lam`` and ``rho``, weight 0) and ``ewma``
     (``r2r_lam``)."""
     grid = [tuple(g) for g in np.asarray(base["grid"]).tolist()]
-    rows = {"feedforward": grid.index((tuned["ff_lam"], tuned["ff_weight"], tuned["ff_rho"])),
+    rows = {"feedforward": grid.index((tuned["ff_lam"], ADAPTIVE, tuned["ff_rho"])),
+            "feedforward_fixed": grid.index((tuned["fffixed_lam"], tuned["fffixed_weight"],
+                                             tuned["fffixed_rho"])),
             "feedforward_full": grid.index((tuned["full_lam"], 1.0, 0.0))}
     if (tuned["ff_lam"], 0.0, tuned["ff_rho"]) in grid:
         rows["trim_only"] = grid.index((tuned["ff_lam"], 0.0, tuned["ff_rho"]))
-    if (tuned["adaptive_lam"], ADAPTIVE, tuned["adaptive_rho"]) in grid:
-        rows["feedforward_adaptive"] = grid.index(
-            (tuned["adaptive_lam"], ADAPTIVE, tuned["adaptive_rho"]))
     r = {n: v for n, v in base.items() if not n.endswith(("_grid", "_r2r")) and n != "grid"}
     for name, row in rows.items():
         r[f"u_{name}"], r[f"angle_{name}"] = base["u_grid"][row], base["angle_grid"][row]
@@ -160,9 +160,10 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     grid = bases[0]["grid"]
     ff_std = np.array([np.nanstd(r["angle_grid"][:, b:], axis=1) for r in bases])
     r2r_std = np.array([np.nanstd(r["angle_r2r"][:, b:], axis=1) for r in bases])
+    fixed_std = np.array([np.nanstd(r["angle_fixed"][b:]) for r in bases])
     K = len(bases)
-    chosen = [choose_weights(np.delete(ff_std, k, 0), np.delete(r2r_std, k, 0), grid)
-              for k in range(K)]
+    chosen = [choose_weights(np.delete(ff_std, k, 0), np.delete(r2r_std, k, 0),
+                             np.delete(fixed_std, k), grid) for k in range(K)]
     results = []
     for k, (base, tuned) in enumerate(zip(bases, chosen, strict=True)):
         r = _tuned_result(base, tuned)
@@ -181,9 +182,9 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     summary: dict[str, Any] = {c: scores(pooled[c], target, settings.band) for c in names}
     sd = {c: summary[c]["std_deg"] for c in names}
     per = {c: [float(np.nanstd(r[f"angle_{c}"][b:])) for r in results] for c in names}
-    for ff, tag in (("feedforward", "ff"), ("feedforward_angle", "ffangle"),
-                    ("feedforward_full", "fffull"), ("trim_only", "trim"),
-                    ("feedforward_adaptive", "ffadapt")):
+    for ff, tag in (("feedforward", "ff"), ("feedforward_fixed", "fffixed"),
+                    ("feedforward_angle", "ffangle"), ("feedforward_full", "fffull"),
+                    ("trim_only", "trim")):
         for other in ("fixed", "oracle", "ewma"):
             if ff not in sd:
                 continue
@@ -196,14 +197,16 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
                 "of_mean_std": round(float(np.mean(per[ff]) / np.mean(per[other])), 4)}
     summary.update({
         "target_deg": target, "r2r_gain_deg_per_unit": round(gain, 6),
-        **choose_weights(ff_std, r2r_std, grid),  # on every dataset: the service's
+        **choose_weights(ff_std, r2r_std, fixed_std, grid),  # on every dataset: the service's
         "tuning": "leave one dataset out: dataset k scored with the weights best on the "
-                  "others (per_dataset_weights); the top-level weights are the best on all",
+                  "others (per_dataset_weights); the top-level weights are the best on all; "
+                  "best: least mean within-dataset ratio of the std to fixed u's",
         "per_dataset_weights": chosen, "burn_in": b,
         "per_dataset_std_deg": {c: [round(v, 4) for v in per[c]] for c in names},
         "tuning_std_deg": {"ff_grid": np.asarray(grid).tolist(),
                            "ff_per_dataset": np.round(ff_std, 4).tolist(),
                            "ff": np.round(ff_std.mean(0), 4).tolist(),
+                           "fixed_per_dataset": np.round(fixed_std, 4).tolist(),
                            "r2r_lams": list(R2R_LAMS),
                            "r2r_per_dataset": np.round(r2r_std, 4).tolist(),
                            "r2r": np.round(r2r_std.mean(0), 4).tolist()},
