@@ -66,6 +66,9 @@ OPTIONS: dict[str, tuple[dict[str, Any], tuple[int, ...], str]] = {
                         "the particles' weighted std alone"),
     "intervals_calibrated": ({"intervals": "calibrated"}, (1, 3, 5, 6),
                              "floors learned offline on independent physics runs"),
+    "intervals_calibrated_fit": ({"intervals": "calibrated_fit"}, (1, 3, 4, 5, 6),
+                                 "the floors scaled by the running fit distance in excess "
+                                 "of its mean on the metamodel's own curves"),
     "intervals_sandwich": ({"intervals": "sandwich"}, (1, 3, 5, 6),
                            "+ B = G K_res G^T, the linearised response to a persistent "
                            "metamodel error"),

@@ -208,3 +208,89 @@ def test_shipped_calibration_is_complete_and_learned_off_the_study_data() -> Non
         assert floors.shape == (18,) and angles.shape == (2,)
         assert np.all(floors >= 0) and np.all(angles >= 0) and np.all(np.isfinite(floors))
     np.testing.assert_array_equal(cal["no_deviation"]["floors"][10:], 0.0)
+
+
+def _calibration_file(tmp_path: object, model: object, floors: np.ndarray) -> object:
+    """A calibration for ``model`` with constant floors and fit-gated ones (``d0`` = 1)."""
+    import json
+    from pathlib import Path
+
+    from formtwin.tracker import intervals
+
+    signature = intervals.residual_signature(model)
+    assert signature is not None
+    entry = {"floors": list(floors), "angle_floors": [0.2, 0.3],
+             "fit_floors": list(floors / 2), "fit_angle_floors": [0.1, 0.15], "fit_s_max": 50.0}
+    cal = {"k_res_diag": list(signature), "model_version": "test",
+           "fit_gate": {"d0": 1.0, "ewma": 0.3}, "no_deviation": entry, "deviation": entry}
+    path = Path(str(tmp_path)) / "cal_fit.json"
+    path.write_text(json.dumps(cal))
+    return path
+
+
+def test_fit_gated_floors_scale_with_the_excess_running_fit_distance(
+        tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``calibrated_fit``: std^2 = cloud std^2 + s_i b_fit^2 with s_i = clip(E_i - d0, 0,
+    s_max), E_i the running mean of the steps' fit distances (recomputed here by its
+    definition); particles, means, ESS, fit as with the cloud's intervals; a tracker
+    restored from its state continues with the same running mean."""
+    from formtwin.tracker import intervals
+
+    model = _ModelWithError()
+    floors = np.linspace(0.01, 0.18, 18)
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH",
+                        _calibration_file(tmp_path, model, floors))
+    cloud, ec = _run("cloud", True)
+    gated, eg = _run("calibrated_fit", True)
+    np.testing.assert_array_equal(gated.particles, cloud.particles)
+    num = den = 0.0
+    scales = []
+    for a, b in zip(ec, eg, strict=True):
+        np.testing.assert_array_equal(b.mean, a.mean)
+        assert (b.ess, b.loglik, b.fit) == (a.ess, a.loglik, a.fit)
+        num, den = 0.7 * num + 0.3 * a.fit.distance2, 0.7 * den + 0.3
+        s = min(max(num / den - 1.0, 0.0), 50.0)
+        scales.append(s)
+        np.testing.assert_allclose(b.std, np.sqrt(a.std**2 + s * (floors / 2) ** 2),
+                                   rtol=1e-12)
+        np.testing.assert_allclose(b.angles_std**2, a.angles_std**2 + s * np.array(
+            [0.01, 0.0225]), rtol=1e-12)
+    assert max(scales) > 0  # the test's curves are not the model's: the gate opens
+    back = Tracker.from_state_bytes(gated.state_bytes(), model, gated.measurement)  # type: ignore[arg-type]
+    for c in interior_curves(model._m, n=4, seed=2):
+        x, y = gated.step(c), back.step(c)
+        np.testing.assert_array_equal(x.std, y.std)
+
+
+def test_fit_gated_floors_without_a_gate_in_the_calibration_report_the_cloud(
+        tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A calibration file from before the gate: ``calibrated_fit`` reports the cloud's std."""
+    import json
+
+    from formtwin.tracker import intervals
+
+    model = _ModelWithError()
+    path = _calibration_file(tmp_path, model, np.full(18, 0.1))
+    cal = json.loads(path.read_text())  # type: ignore[attr-defined]
+    del cal["fit_gate"]
+    path.write_text(json.dumps(cal))  # type: ignore[attr-defined]
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)
+    _, ec = _run("cloud", True)
+    _, eg = _run("calibrated_fit", True)
+    np.testing.assert_array_equal(eg[-1].std, ec[-1].std)
+
+
+def test_gated_floors_give_the_target_coverage_on_their_data() -> None:
+    """Errors whose bias grows like sqrt(s): floors per unit of s hold 90 % of the errors;
+    rows with s = 0 need none (their errors are within the cloud's std)."""
+    from formtwin.study.calibrate import learn_floors
+    from formtwin.study.metrics import Z90
+
+    rng = np.random.default_rng(1)
+    s = np.r_[np.zeros(1000), rng.uniform(1.0, 9.0, 3000)]
+    std = np.ones((4000, 1))
+    err = (np.sqrt(s) * 2.0 * rng.standard_normal(4000) + 0.3 * rng.standard_normal(4000))[:, None]
+    b = learn_floors(err, std, scale=s)
+    inside = np.abs(err[:, 0]) <= Z90 * np.sqrt(1.0 + s * b[0] ** 2)
+    assert inside.mean() == pytest.approx(0.9, abs=1e-3)
+    assert inside[:1000].all()  # no floor needed where the gate is shut

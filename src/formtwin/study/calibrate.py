@@ -13,6 +13,12 @@ the study or the benchmarks), filtered as series 5 (no deviation model) and seri
 are stored with the diagonal of the metamodel's ``K_res``
 (:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
 
+The fit gate of ``intervals="calibrated_fit"`` (:class:`~formtwin.tracker.intervals.Floors`)
+is learned on the same runs: ``d0``, the mean running fit distance on the metamodel's own
+curves, from series 1 runs of the same realisations (metamodel data, mu known), and floors
+``b_fit`` per unit of the gate's factor ``s``: ``b_fit^2`` the ``target`` quantile of
+``need / s``, so they too hold 90 % on these runs.
+
 >>> import numpy as np
 >>> err = np.array([[0.0], [1.0], [2.0], [3.0]]); std = np.full((4, 1), 1.0)
 >>> b = learn_floors(err, std, target=0.75, z=1.0)   # needs b^2 = 0, 0, 3, 8: the 75 %
@@ -36,7 +42,7 @@ from formtwin.study.metrics import Z90
 from formtwin.study.run import StudyResult, StudySettings, run_study
 from formtwin.study.series import SERIES
 from formtwin.tracker import TrackerConfig
-from formtwin.tracker.intervals import CALIBRATION_PATH, residual_signature
+from formtwin.tracker.intervals import CALIBRATION_PATH, fit_ewma, gate_scale, residual_signature
 
 FloatArray = NDArray[np.float64]
 
@@ -44,30 +50,57 @@ FloatArray = NDArray[np.float64]
 SEED = 8101
 #: the series whose runs give the floors of a tracker without / with the deviation model
 SERIES_OF = {"no_deviation": 5, "deviation": 6}
+#: the series whose runs give the fit gate's ``d0`` (the metamodel's own curves)
+GATE_SERIES = 1
+#: weight of the newest product in the fit gate's running mean (a memory of ~20 products)
+FIT_EWMA = 0.05
 
 
 def learn_floors(err: FloatArray, std: FloatArray, target: float = 0.9,
-                 z: float = Z90) -> FloatArray:
-    """Floors ``b`` (d,) with ``mean(|err| <= z sqrt(std^2 + b^2)) = target`` per column
+                 z: float = Z90, scale: FloatArray | None = None) -> FloatArray:
+    """Floors ``b`` (d,) with ``mean(|err| <= z sqrt(std^2 + s b^2)) = target`` per column
     of the errors ``err`` and the cloud's ``std`` (n, d) (rows with NaN left out; 0 where
-    the cloud's intervals already hold ``target``): ``b^2`` is the ``target`` quantile of
-    ``max((err / z)^2 - std^2, 0)``."""
+    the cloud's intervals already hold ``target``), ``s`` the rows' ``scale`` (n,) >= 0
+    (default 1): ``b^2`` is the ``target`` quantile of ``max((err / z)^2 - std^2, 0) / s``
+    (a row that needs a floor where ``s = 0`` is not covered by any).
+
+    >>> b = learn_floors(np.array([[2.0], [2.0]]), np.zeros((2, 1)), 1.0, 1.0,
+    ...                  scale=np.array([4.0, 1.0]))
+    >>> float(b[0])   # needs b^2 >= 4 / 4 and 4 / 1: both covered from b = 2
+    2.0
+    """
+    s = np.ones(err.shape[0]) if scale is None else np.asarray(scale, dtype=np.float64)
     out = np.zeros(err.shape[1])
     for j in range(err.shape[1]):
         ok = np.isfinite(err[:, j]) & np.isfinite(std[:, j])
         if ok.any():
             need = np.maximum((err[ok, j] / z) ** 2 - std[ok, j] ** 2, 0.0)
-            out[j] = float(np.sqrt(np.quantile(need, target)))
+            per = np.divide(need, s[ok], out=np.where(need > 0, np.inf, 0.0),
+                            where=s[ok] > 0)
+            out[j] = float(np.sqrt(np.quantile(per, target)))
     return out
 
 
-def floors_from_study(result: StudyResult, series: int) -> dict[str, Any]:
+def gate_d0(result: StudyResult, a: float = FIT_EWMA) -> tuple[float, int]:
+    """The fit gate's ``d0``: the mean running fit distance (weight ``a``) over the last
+    ``window`` products of every :data:`GATE_SERIES` run in ``result``, and the runs."""
+    window, runs = result.settings.window, []
+    for (s, _i, _r), path in sorted(result.run_paths.items()):
+        if s == GATE_SERIES:
+            with np.load(path) as run:
+                runs.append(fit_ewma(run["fit_distance2"], a)[0][-window:])
+    return float(np.nanmean(np.concatenate(runs))), len(runs)
+
+
+def floors_from_study(result: StudyResult, series: int, d0: float,
+                      a: float = FIT_EWMA) -> dict[str, Any]:
     """Floors of the 18 augmented components and the 2 angles from every run of
-    ``series`` in ``result`` (last ``window`` products), with the coverage of the cloud's
-    and of the calibrated intervals on these runs."""
+    ``series`` in ``result`` (last ``window`` products), constant and fit-gated (``d0``,
+    weight ``a``), with the coverage of the cloud's and of both calibrated intervals on
+    these runs."""
     window = result.settings.window
     src = SERIES[series - 1].data
-    errs, stds = [], []
+    errs, stds, E = [], [], []
     for (s, i, _r), path in sorted(result.run_paths.items()):
         if s != series:
             continue
@@ -76,8 +109,15 @@ def floors_from_study(result: StudyResult, series: int) -> dict[str, Any]:
             errs.append(np.c_[run["mean"] - real.truth,
                               run["angles_mean"] - real.angles[src]][-window:])
             stds.append(np.c_[run["std"], run["angles_std"]][-window:])
-    err, std = np.concatenate(errs), np.concatenate(stds)
+            E.append(fit_ewma(run["fit_distance2"], a)[0][-window:])
+    err, std, e = np.concatenate(errs), np.concatenate(stds), np.concatenate(E)
     b = learn_floors(err, std)
+    s_max = float(np.nanmax(e)) - d0
+    gate = gate_scale(e, d0, s_max)[:, None]
+    b_fit = learn_floors(err, std, scale=gate[:, 0])
+    if s_max <= 0 or not np.all(np.isfinite(b_fit)):
+        raise ValueError(f"series {series}: the fit gate is 0 where floors are needed "
+                         f"(d0 = {d0:.3g}, largest running fit distance {s_max + d0:.3g})")
 
     def cover(s: FloatArray) -> list[float]:
         with np.errstate(invalid="ignore"):
@@ -87,14 +127,19 @@ def floors_from_study(result: StudyResult, series: int) -> dict[str, Any]:
     if not SERIES[series - 1].deviation:  # theta_d is not estimated (std 0): no floor
         real = result.realisations[0]
         b[real.x.shape[1] + real.theta.size:-2] = 0.0
+        b_fit[real.x.shape[1] + real.theta.size:-2] = 0.0
     return {"series": series, "runs": len(errs), "floors": [float(v) for v in b[:-2]],
             "angle_floors": [float(v) for v in b[-2:]],
+            "fit_floors": [float(v) for v in b_fit[:-2]],
+            "fit_angle_floors": [float(v) for v in b_fit[-2:]], "fit_s_max": s_max,
+            "fit_distance_mean": round(float(np.nanmean(e)), 3),
             "coverage_cloud": cover(std), "coverage_calibrated_in_sample":
-                cover(np.sqrt(std**2 + b**2))}
+                cover(np.sqrt(std**2 + b**2)), "coverage_calibrated_fit_in_sample":
+                cover(np.sqrt(std**2 + gate * b_fit**2))}
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Make the pseudo-data (physics runs: use the heavy-job lock), run series 5 and 6,
+    """Make the pseudo-data (physics runs: use the heavy-job lock), run series 1, 5 and 6,
     write the floors (default: the package's calibration file)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="benchmarks/.cache/calibration",
@@ -116,10 +161,11 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"{mm_path}: the metamodel has no held-out residual statistics")
     settings = StudySettings(n_realisations=args.datasets, n_repetitions=args.repetitions,
                              n_products=args.products, window=args.products // 2,
-                             seed=args.seed, series=tuple(SERIES_OF.values()),
+                             seed=args.seed, series=(GATE_SERIES, *SERIES_OF.values()),
                              paper_repetitions=0,
                              tracker=dataclasses.replace(TrackerConfig(), intervals="cloud"))
     result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
+    d0, n_gate = gate_d0(result)
     out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
                    "cloud's std by TrackerConfig(intervals='calibrated'), learned on "
                    "independent physics pseudo-data (formtwin.study.calibrate)",
@@ -130,9 +176,10 @@ def main(argv: list[str] | None = None) -> None:
                         "repetitions": args.repetitions, "products": settings.n_products,
                         "window": settings.window,
                         "tracker": settings.tracker.to_dict()},
-           **{key: floors_from_study(result, s) for key, s in SERIES_OF.items()}}
+           "fit_gate": {"d0": d0, "ewma": FIT_EWMA, "series": GATE_SERIES, "runs": n_gate},
+           **{key: floors_from_study(result, s, d0) for key, s in SERIES_OF.items()}}
     Path(args.write).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
-    print(json.dumps({k: out[k] for k in SERIES_OF}, indent=1))
+    print(json.dumps({k: out[k] for k in ("fit_gate", *SERIES_OF)}, indent=1))
 
 
 if __name__ == "__main__":

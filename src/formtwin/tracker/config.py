@@ -26,9 +26,11 @@ LIKELIHOODS = ("calibrated", "paper", "adaptive", "discrepancy")
 
 #: the reported intervals (:mod:`formtwin.tracker.intervals`): "cloud" the particles'
 #: weighted std; "calibrated" adds in quadrature floors learned offline on physics runs
-#: of the bundled metamodel; "sandwich" adds the covariance ``B`` of the error a persistent
+#: of the bundled metamodel; "calibrated_fit" scales their squares by the curves' running fit
+#: distance in excess of its value on the metamodel's own curves (learned in the same
+#: calibration); "sandwich" adds the covariance ``B`` of the error a persistent
 #: metamodel error ``N(0, K_res)`` puts in the estimate; "gated" adds ``P(kappa > 0) B``
-INTERVALS = ("cloud", "calibrated", "sandwich", "gated")
+INTERVALS = ("cloud", "calibrated", "calibrated_fit", "sandwich", "gated")
 
 #: priors of a learned mu (``learn_mu``): "uniform" is ``U(mu_min, mu_max)``, the law the
 #: paper's statistics are drawn from (posterior: a truncated Normal), "normal" the Normal
@@ -106,11 +108,13 @@ class TrackerConfig:
     intervals : the reported std of the estimates and angles, see :data:`INTERVALS`:
         ``"calibrated"`` (default) adds to the particles' weighted std, in quadrature,
         floors learned offline on physics runs of the bundled metamodel (not the study's
-        data: :mod:`formtwin.study.calibrate`; none for another metamodel); ``"cloud"`` the
-        particles' weighted std alone; ``"sandwich"`` adds the part of
+        data: :mod:`formtwin.study.calibrate`; none for another metamodel);
+        ``"calibrated_fit"`` scales their squares by the running fit distance in excess of
+        its mean on the metamodel's own curves (:class:`~formtwin.tracker.intervals.Floors`);
+        ``"cloud"`` the particles' weighted std alone; ``"sandwich"`` adds the part of
         the error that a persistent metamodel error puts in the estimate
         (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
-        particles, weights, means, ESS and evidence are the same for all four.
+        particles, weights, means, ESS and evidence are the same for all five.
     discrepancy_memory : with ``likelihood="discrepancy"``, the memory (products) of its
         statistics: ``1 - 1/memory`` is the forgetting factor; ``inf``: none.
     learn_scale : learn a factor ``c`` on the likelihood's covariance online: a posterior
@@ -163,7 +167,8 @@ class TrackerConfig:
         "memory of the learned discrepancy, products (inf: no forgetting)"))
     intervals: str = field(default="calibrated", metadata=_help(
         "reported std: cloud (the particles'), calibrated (+ floors learned offline on "
-        "physics runs), sandwich (+ the persistent metamodel error's part) or gated (that "
+        "physics runs), calibrated_fit (those scaled by the excess fit distance), "
+        "sandwich (+ the persistent metamodel error's part) or gated (that "
         "times P(kappa > 0))"))
 
     def __post_init__(self) -> None:

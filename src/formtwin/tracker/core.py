@@ -40,7 +40,7 @@ from formtwin.spec import ProcessSpec
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
-from formtwin.tracker.intervals import STATE_KEYS, Sandwich, calibration_floors
+from formtwin.tracker.intervals import STATE_KEYS, Floors, Sandwich
 from formtwin.tracker.ssm import BendingSSM
 
 FloatArray = NDArray[np.float64]
@@ -160,8 +160,9 @@ class Tracker:
                                        self.config.ess_threshold)
         self.sandwich = Sandwich(self.ssm, gated=self.config.intervals == "gated") \
             if self.config.intervals in ("sandwich", "gated") else None
-        self.floors = calibration_floors(model, self.config.estimate_deviation) \
-            if self.config.intervals == "calibrated" else None
+        self.floors = Floors(model, self.config.estimate_deviation, self.config.intervals
+                             == "calibrated_fit") if "calibrated" in self.config.intervals \
+            else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
@@ -209,6 +210,7 @@ class Tracker:
         scale = self.ssm.scale_logpost if self.config.learn_scale else None
         share = self.ssm.share_logpost
         sw = None if self.sandwich is None else self.sandwich.snapshot()
+        fl = None if self.floors is None else self.floors.state()
         try:
             logw_prev = f.logw
             s = f.step(y)
@@ -222,6 +224,8 @@ class Tracker:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
             if self.sandwich is not None and sw is not None:
                 self.sandwich.restore(sw)
+            if self.floors is not None and fl is not None:
+                self.floors.set_state(fl)
             self.rng.bit_generator.state = saved[3]
             if scale is not None:
                 self.ssm.set_scale_logpost(scale)
@@ -285,12 +289,11 @@ class Tracker:
             var, avar = self.sandwich.update(s.x, s.w, y, self.filter.t - 1, u)
             std = np.sqrt(std[:na] ** 2 + var)
             astd = np.sqrt(astd**2 + avar)
-        if self.floors is not None:  # calibrated offline: floors in quadrature
-            std = np.sqrt(std[:na] ** 2 + self.floors[0] ** 2)
-            astd = np.sqrt(astd**2 + self.floors[1] ** 2)
         mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None
         fit = assess(self.ssm.last_residuals(), v, s.ess, self.measurement, s.collapsed,
                      self.fit_rule, scale, self.ssm.last_covariance())
+        if self.floors is not None:  # calibrated offline: floors in quadrature
+            std, astd = self.floors.apply(std[:na], astd, fit.distance2)
         return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
                         std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
                         collapsed=s.collapsed, loglik=s.loglik,
@@ -330,8 +333,8 @@ class Tracker:
             if self.config.learn_scale else {}
         if self.ssm.share_logpost.size > 1:
             model["share_logpost"] = [float(v) for v in self.ssm.share_logpost]
-        if self.sandwich is not None:
-            model.update(self.sandwich.state())
+        for part in (self.sandwich, self.floors):
+            model.update({} if part is None else part.state())
         return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
                                    t=f.t, rng=dict(self.rng.bit_generator.state),
                                    config=self._config_dict, names=self.names,
@@ -354,6 +357,8 @@ class Tracker:
             self.ssm.set_share_logpost(np.array(s.model["share_logpost"], dtype=np.float64))
         if self.sandwich is not None:
             self.sandwich.set_state({k: s.model[k] for k in STATE_KEYS if k in s.model})
+        if self.floors is not None:
+            self.floors.set_state(s.model)
         self.filter.x = s.particles if s.t > 0 and s.particles.size else None
         self.filter.logw = s.logw
         self.filter.t = s.t
