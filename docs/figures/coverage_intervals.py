@@ -1,5 +1,6 @@
 """Make docs/figures/coverage_intervals.png: coverage of the 90 % intervals (7 states, 2
-angles) per series with the particles' std, the sandwich and the calibrated floors, from
+angles) per series with the particles' std, the sandwich, the calibrated floors and the
+fit-gated floors, from
 benchmarks/results/bench_model_error.json (repetition 0 of every dataset, same runs).
 
     python docs/figures/coverage_intervals.py [bench_model_error.json]
@@ -27,7 +28,7 @@ def main() -> None:
     fig_data = json.loads(path.read_text())["figures"]
     default = fig_data["intervals"]
     blocks = {default: None}
-    for name in ("cloud", "calibrated", "sandwich"):
+    for name in ("cloud", "calibrated", "calibrated_fit", "sandwich"):
         key = f"intervals_{name}_option"
         if key in fig_data:
             blocks[name] = fig_data[key]["coverage_states_angles"]
@@ -35,7 +36,7 @@ def main() -> None:
     plt = pyplot()
     fig, axes = plt.subplots(1, len(SERIES), figsize=(14, 3.6), sharey=True,
                              layout="constrained")
-    order = [n for n in ("cloud", "sandwich", "calibrated") if n in blocks]
+    order = [n for n in ("cloud", "sandwich", "calibrated", "calibrated_fit") if n in blocks]
     width = 0.8 / len(order)
     x = np.arange(len(LABELS))
     for ax, s in zip(axes, SERIES, strict=True):
