@@ -370,3 +370,74 @@ def test_in_control_runs_give_the_same_draws_with_their_true_states(
         assert without.glr[n].signature == level_signature(without.quantities[n].phi)
         assert len(with_x.glr[n].signature) > len(without.glr[n].signature)
         assert with_x.glr[n].signature != without.glr[n].signature
+
+
+def _health_line(per_line: bool, level: float, drop_at: int, n: int = 1500,
+                 seed: int = 3) -> tuple[list[Alarm], Monitor]:
+    """A line whose ESS is N(level, 1) (pooled calibration lines: N(10, 1)), 3 lower from
+    ``drop_at`` on, on a mismatch CUSUM (k 1, ARL0 1e7) with warm-up 20 and Phase I 100."""
+    rng = np.random.default_rng(seed)
+    pooled = Reference(tuple(10.0 + rng.standard_normal(5000)), "low")
+    config = MonitorConfig({}, {"ess": pooled}, warmup=20, phase1=100,
+                           mismatch=Cusum(1.0, cusum_h(1.0, 1e7, two_sided=False), "high"),
+                           health_per_line=per_line)
+    ess = level + rng.standard_normal(n) - 3.0 * (np.arange(n) >= drop_at)
+    mon = Monitor(config)
+    return [a for i, v in enumerate(ess) for a in mon.update_values({"ess": float(v)}, i)], mon
+
+
+def test_health_references_from_the_lines_own_phase1() -> None:
+    """A line whose filter health sits lower than every calibration line's (as the ESS with
+    the deviation estimated, docs/monitoring.md): against the pooled reference the mismatch
+    chart alarms as soon as it charts; against the line's own Phase-I values (frozen at its
+    end) it does not in 1500 products, and a drop of 3 after product 1000 is seen within 10
+    products, but not within 4: a reference of 100 values caps a score at
+    Phi^-1(1 - 1/200) = 2.58, so the CUSUM (k 1) climbs at most 1.58 per product to its
+    limit 7.24 (the pooled reference's 5000 values would allow 3.7). The other price: a
+    drop inside Phase I is learned as the line's normal and never signalled."""
+    pooled, _ = _health_line(False, 6.0, 10**9)
+    assert pooled and pooled[0].index <= 125
+    clean, mon = _health_line(True, 6.0, 10**9)
+    assert clean == []
+    assert len(mon.phase1_health["ess"]) == 100
+    assert mon.references["ess"].sample[0] < 6.0 < mon.references["ess"].sample[-1]
+    drop, _ = _health_line(True, 6.0, 1000)
+    h = cusum_h(1.0, 1e7, two_sided=False)
+    assert math.ceil(h / (2.5758 - 1.0)) == 5
+    assert drop and 1004 <= drop[0].index <= 1009 and drop[0].chart == "mismatch"
+    inside, _ = _health_line(True, 6.0, 60)  # from product 60: Phase I is products 20-119
+    assert [a for a in inside if a.index >= 120] == []
+
+
+def test_per_line_monitor_restored_mid_phase1_continues_identically() -> None:
+    """The line's Phase-I health values are in the monitor's state: a monitor restored in
+    Phase I or after it continues bit for bit (the references rebuilt from them)."""
+    _, whole = _health_line(True, 6.0, 1000)
+    rng = np.random.default_rng(3)
+    pooled = Reference(tuple(10.0 + rng.standard_normal(5000)), "low")
+    ess = 6.0 + rng.standard_normal(1500) - 3.0 * (np.arange(1500) >= 1000)
+    config = whole.config
+    assert MonitorConfig.from_json(config.to_json()).health_per_line
+    assert whole.config.health["ess"] == pooled
+    for cut in (80, 400):
+        first = Monitor(config)
+        a = [x for i, v in enumerate(ess[:cut]) for x in first.update_values({"ess": v}, i)]
+        second = Monitor(MonitorConfig.from_json(config.to_json()),
+                         json.loads(json.dumps(first.state())))
+        a += [x for i, v in enumerate(ess[cut:], cut)
+              for x in second.update_values({"ess": float(v)}, i)]
+        assert a == _health_line(True, 6.0, 1000)[0]
+        assert second.state() == whole.state()
+
+
+def test_per_line_health_needs_the_scores_level() -> None:
+    """With per-line references the health scores exist only after Phase I, so their AR
+    models cannot take their level from it."""
+    ref = Reference(tuple(np.linspace(0.0, 1.0, 50)), "low")
+    with pytest.raises(ValueError, match="health_per_line"):
+        MonitorConfig({}, {"ess": ref}, {"ess": InControl(None, 1.0, (0.5,))},
+                      health_per_line=True)
+    with pytest.raises(ValueError, match="health_per_line and health_phase1"):
+        from formtwin.monitoring.calibrate import calibrate_series
+        calibrate_series([{"ess": np.ones(300)}], [], np.zeros(0),
+                         ChartDesign(health_phase1=True, widen_margin=None, glr=False))

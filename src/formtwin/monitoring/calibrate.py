@@ -75,6 +75,10 @@ class ChartDesign:
     health_phase1 : the scores' level from Phase I (it depends on the machine parameters,
         but the first products are still the filter's transient) instead of the pooled
         in-control level.
+    health_per_line : each line's health statistics scored against its own Phase-I values
+        (frozen at its end) instead of the calibration lines' pooled sample; the scores' AR
+        models are fitted on the calibration lines scored the same way (each against its
+        own Phase I), about their pooled level.
     glr : a GLR chart for a level change on each state variable
         (:mod:`~formtwin.monitoring.glr`: matched to the spike-then-shift signature a step
         in the mean leaves in the AR residuals).
@@ -101,6 +105,7 @@ class ChartDesign:
     tails: bool = True
     health_ar: bool = True
     health_phase1: bool = False
+    health_per_line: bool = True
     angle_cusum: bool = False
     glr: bool = True
     arl0_glr: float = 1.0e5
@@ -212,10 +217,14 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
               if all(name in v for v in values)}
     health = {name: Reference(tuple(pooled[name]), bad) for name, bad in HEALTH.items()
               if name in pooled and np.isfinite(pooled[name]).sum() >= 20}
+    if d.health_per_line and d.health_phase1:
+        raise ValueError("health_per_line and health_phase1: the scores' level cannot come "
+                         "from Phase I when Phase I sets their reference")
     models = {}
     if d.health_ar:  # the scores' level depends on the run (machine parameters): Phase I
         for name, ref in health.items():
-            scores = [np.array([ref.normal_score(float(x)) for x in v[name]]) for v in values]
+            scores = [line_scores(v[name], ref, d.phase1) if d.health_per_line else
+                      np.array([ref.normal_score(float(x)) for x in v[name]]) for v in values]
             models[name] = fit_in_control(scores, d.order, mean=None,
                                           keep_mean=not d.health_phase1, tails=d.tails)
     ewma, cusum, mismatch = d.charts()
@@ -236,8 +245,26 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
             continue
         glr[n] = Glr(sig, h, d.glr_window, d.glr_clip)
     config = MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
-                           d.phase1, tuple(cusum_on), shewhart, glr=glr)
+                           d.phase1, tuple(cusum_on), shewhart, glr=glr,
+                           health_per_line=d.health_per_line)
     return config if d.widen_margin is None else widen(config, runs, d.widen_margin)
+
+
+def line_scores(values: FloatArray, pooled: Reference, phase1: int) -> FloatArray:
+    """Normal scores of a line's health statistic after its first ``phase1`` values
+    (after the warm-up), against those values as the reference (``pooled``'s orientation;
+    ``pooled`` itself where they have fewer than 20 finite values), as a monitor with
+    ``health_per_line`` scores them.
+
+    >>> pooled = Reference(tuple(range(100)), "low")
+    >>> z = line_scores(np.r_[np.arange(50.0), 10.0, -1.0], pooled, 50)
+    >>> [round(float(v), 2) for v in z]  # 10: 0.21 of its Phase I lower; -1: below all
+    [0.81, 2.33]
+    """
+    v = np.asarray(values, dtype=np.float64)
+    first = v[:phase1]
+    ref = (Reference(tuple(first), pooled.bad) if np.isfinite(first).sum() >= 20 else pooled)
+    return np.array([ref.normal_score(float(x)) for x in v[phase1:]])
 
 
 def widen(config: MonitorConfig, runs: Sequence[Mapping[str, FloatArray]], margin: float,
@@ -282,5 +309,5 @@ def widen(config: MonitorConfig, runs: Sequence[Mapping[str, FloatArray]], margi
     return config
 
 
-__all__ = ["ChartDesign", "calibrate", "calibrate_series", "in_control_runs", "measurement_noise",
-           "series", "simulate_in_control", "widen"]
+__all__ = ["ChartDesign", "calibrate", "calibrate_series", "in_control_runs", "line_scores",
+           "measurement_noise", "series", "simulate_in_control", "widen"]

@@ -14,7 +14,9 @@ Life of a monitor: the first ``warmup`` products are not charted (the filter is 
 converging from its prior); the next ``phase1`` products estimate the in-control mean of
 every quantity whose mean is not set (Phase I, Montgomery ch. 7.1: the angles' level
 depends on the machine parameters, known only once the line runs); charting starts after
-that. A chart that signals restarts from zero.
+that. With ``health_per_line`` the health statistics' references are the line's own
+Phase-I values, frozen at its end (the filter's health depends on the line: with the
+deviation estimated its ESS does on ``theta_d``). A chart that signals restarts from zero.
 
 The state is a JSON-safe dict (:meth:`Monitor.state`); ``Monitor(config, state)`` continues
 exactly where the saved one stopped.
@@ -24,7 +26,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -95,6 +97,10 @@ class MonitorConfig:
         signature follows from the quantity's AR model); empty: none.
     warmup : products not charted at the start.
     phase1 : products after the warm-up that estimate the means left ``None``.
+    health_per_line : the health references are the line's own Phase-I values (frozen at
+        its end; ``health``'s pooled samples give the orientation, and stand in if Phase I
+        has fewer than 20 finite values); the health models' means must be set (their
+        scores exist only after Phase I).
     """
 
     quantities: Mapping[str, InControl]
@@ -109,6 +115,7 @@ class MonitorConfig:
     shewhart: float | None = None
     widen: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     glr: Mapping[str, Glr] = field(default_factory=dict)
+    health_per_line: bool = False
 
     def __post_init__(self) -> None:
         bad_w = {f"{n}/{c}": f for n, d in self.widen.items() for c, f in d.items()
@@ -140,6 +147,9 @@ class MonitorConfig:
                              f"phase1 = {self.phase1}: expected phase1 >= 2")
         if self.mismatch.sides != "high":
             raise ValueError("the mismatch chart is one-sided: expected Cusum(sides='high')")
+        if self.health_per_line and any(q.mean is None for q in self.health_models.values()):
+            raise ValueError("health_per_line: the health models need their means (the "
+                             "scores exist only after Phase I)")
 
     def to_json(self) -> str:
         return json.dumps({
@@ -154,7 +164,8 @@ class MonitorConfig:
             "shewhart": self.shewhart,
             "widen": {n: dict(d) for n, d in self.widen.items()},
             "glr": {n: {"signature": list(g.signature), "h": g.h, "window": g.window,
-                        "clip": g.clip} for n, g in self.glr.items()}})
+                        "clip": g.clip} for n, g in self.glr.items()},
+            "health_per_line": self.health_per_line})
 
     @classmethod
     def from_json(cls, text: str) -> MonitorConfig:
@@ -173,7 +184,8 @@ class MonitorConfig:
                           for n, w in d.get("widen", {}).items()},
                    glr={n: Glr(tuple(g["signature"]), float(g["h"]), int(g["window"]),
                                None if g.get("clip") is None else float(g["clip"]))
-                        for n, g in d.get("glr", {}).items()})
+                        for n, g in d.get("glr", {}).items()},
+                   health_per_line=bool(d.get("health_per_line", False)))
 
 
 def observe(estimate: Estimate) -> dict[str, float]:
@@ -231,6 +243,10 @@ class Monitor:
         self.mismatch = {n: replace(config.mismatch,
                                     h=config.mismatch.h * w.get(n, {}).get("mismatch", 1.0))
                          for n in config.health}
+        #: the health statistics' Phase-I values on this line (``health_per_line``)
+        self.phase1_health: dict[str, list[float]] = {n: [] for n in config.health}
+        #: the references in force: the config's pooled ones, or this line's after Phase I
+        self.references: dict[str, Reference] = dict(config.health)
         if state is not None:
             self._load(state)
 
@@ -256,15 +272,24 @@ class Monitor:
         self.n += 1
         if self.n <= c.warmup:
             return ()
-        values = {**values, **{n: ref.normal_score(float(values[n]))
-                               for n, ref in c.health.items()}}  # health: normal scores
+        per_line = c.health_per_line and self.n <= c.warmup + c.phase1
+        if per_line:  # this line's health references: its Phase-I values, raw
+            for n, vals in self.phase1_health.items():
+                v = float(values[n])
+                if math.isfinite(v):
+                    vals.append(v)
+        else:  # health: normal scores
+            values = {**values, **{n: ref.normal_score(float(values[n]))
+                                   for n, ref in self.references.items()}}
         if self.n <= c.warmup + c.phase1:
             for n in self.phase1_sums:
                 self.phase1_sums[n] += float(values[n])
             if self.n == c.warmup + c.phase1:
                 for n, total in self.phase1_sums.items():
                     self.means[n] = total / c.phase1
-            self._remember(values)
+                if c.health_per_line:
+                    self._line_references()
+            self._remember(values, skip=c.health if per_line else ())
             return ()
         alarms: list[Alarm] = []
         self.last = {}
@@ -309,21 +334,33 @@ class Monitor:
         self._remember(values)
         return tuple(alarms)
 
-    def _remember(self, values: Mapping[str, float]) -> None:
+    def _line_references(self) -> None:
+        """Freeze this line's health references from its Phase-I values (the pooled one
+        where there are fewer than 20)."""
+        self.references = {n: Reference(tuple(self.phase1_health[n]), ref.bad)
+                           if len(self.phase1_health[n]) >= 20 else ref
+                           for n, ref in self.config.health.items()}
+
+    def _remember(self, values: Mapping[str, float], skip: Collection[str] = ()) -> None:
+        """Add each AR model's value to its history (those in ``skip`` not)."""
         for n, q in self.models.items():
+            if n in skip:
+                continue
             y = float(values[n])
             if q.order and math.isfinite(y):
                 self.history[n] = [*self.history[n], y][-q.order:]
 
     # ------------------------------------------------------------------ persistence
     def state(self) -> dict[str, Any]:
-        """JSON-safe state (products seen, Phase-I sums and means, AR history, charts)."""
+        """JSON-safe state (products seen, Phase-I sums and means, AR history, charts, the
+        health statistics' Phase-I values)."""
         return {"n": self.n, "means": dict(self.means), "phase1_sums": dict(self.phase1_sums),
                 "history": {n: list(h) for n, h in self.history.items()},
                 "ewma": {n: [s.z, s.i] for n, s in self.ewma.items()},
                 "cusum": {n: [s.hi, s.lo] for n, s in self.cusum.items()},
                 "health": {n: [s.hi, s.lo] for n, s in self.health.items()},
-                "glr": {n: [s.sums.tolist(), s.i] for n, s in self.glr.items()}}
+                "glr": {n: [s.sums.tolist(), s.i] for n, s in self.glr.items()},
+                "phase1_health": {n: list(v) for n, v in self.phase1_health.items()}}
 
     def _load(self, st: Mapping[str, Any]) -> None:
         names, health = set(self.models), set(self.config.health)
@@ -345,6 +382,10 @@ class Monitor:
                              f"{sorted(self.glr)}")
         self.glr.update({n: GlrState(np.asarray(v, dtype=np.float64), int(i))
                          for n, (v, i) in glr.items()})
+        self.phase1_health.update({n: [float(v) for v in vals] for n, vals in
+                                   st.get("phase1_health", {}).items() if n in health})
+        if self.config.health_per_line and self.charting:
+            self._line_references()
 
 
 __all__ = ["ANGLES", "HEALTH", "Alarm", "Monitor", "MonitorConfig", "observe"]
