@@ -320,6 +320,35 @@ def test_element_shear_of_a_cantilever_is_the_tip_load() -> None:
     np.testing.assert_allclose(np.abs(tshear), p / T, rtol=1e-6)
 
 
+def test_element_shear_under_a_pinching_punch_takes_the_spans_shear() -> None:
+    """With the punch's pressure in ``pface[:, 2]``: elements pressed by ``p1`` or more take
+    the signed largest ``|tau|`` of the elements within ``reach`` of their centre, elements
+    below ``p0`` keep their own, and in between the blend is linear in the pressure (a
+    reference implementation of the rule on random layer stresses)."""
+    from formtwin.physics.bending.kernels import element_shear
+
+    rng = np.random.default_rng(3)
+    sheet, _ = tip_load(1.0, 12, 1e-3)
+    sheet.sig[:] = rng.normal(0.0, 100.0, sheet.sig.shape)
+    tau0 = np.zeros(12)
+    element_shear(sheet.X, sheet.sig, T, sheet.ylay, sheet.wlay, sheet.xg, tau0)
+    n = sheet.X.shape[0]
+    pface = np.zeros((n, 3))
+    pface[3:6, 2] = 200.0  # elements 2..5 touch a node pressed in full
+    pface[9, 2] = 75.0  # elements 8 and 9: a quarter of the way from p0 = 50 to p1 = 150
+    reach = 0.2
+    tau = np.zeros(12)
+    element_shear(sheet.X, sheet.sig, T, sheet.ylay, sheet.wlay, sheet.xg, tau, pface, reach,
+                  50.0, 150.0)
+    xc = 0.5 * (sheet.X[1:, 0] + sheet.X[:-1, 0])
+    for e in range(12):
+        near = tau0[np.abs(xc - xc[e]) <= reach]
+        best = near[np.argmax(np.abs(near))]
+        w = np.clip((max(pface[e, 2], pface[e + 1, 2]) - 50.0) / 100.0, 0.0, 1.0)
+        assert tau[e] == pytest.approx(tau0[e] + w * (best - tau0[e]), rel=1e-12, abs=1e-12)
+    assert np.any(tau != tau0) and tau[0] == tau0[0]
+
+
 def test_face_pressure_spreads_forces_without_changing_their_sum() -> None:
     """Uniform normal forces ``f`` per node at spacing ``h``, spread by a hat of half-width
     ``3 h``: the pressure away from the ends is ``f / h`` (exactly: the hat's weights sum
@@ -339,6 +368,11 @@ def test_face_pressure_spreads_forces_without_changing_their_sum() -> None:
     face_pressure(X, X, fn, np.array([-1.0, 1.0]), 3 * h, p)
     assert np.sum(p[:, 1]) * h == pytest.approx(3.0, rel=1e-12)
     assert np.count_nonzero(p[:, 1] > 1e-9 * p[:, 1].max()) == 5 and np.all(p[:, 0] == 0.0)
+    p3 = np.zeros((n, 3))  # the punch's own pressure: the tools that move with it
+    fn[20, 0] = 1.0
+    face_pressure(X, X, fn, np.array([-1.0, 1.0]), 3 * h, p3, np.array([0, 1]))
+    np.testing.assert_allclose(p3[:, 2], p3[:, 1], rtol=1e-12, atol=1e-12)
+    assert np.sum(p3[:, 0]) * h == pytest.approx(1.0, rel=1e-12)
 
 
 def test_contact_points_lie_on_the_face_of_a_bent_sheet() -> None:

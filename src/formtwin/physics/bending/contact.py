@@ -140,7 +140,7 @@ def contact_node(gap, g0, nx, ny, rho, epn, ept, mu, tt_n, drx, dry, J):  # type
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def face_pressure(X, Xp, fn, tface, a, pface):  # type: ignore[no-untyped-def]
+def face_pressure(X, Xp, fn, tface, a, pface, towner=None):  # type: ignore[no-untyped-def]
     """Contact pressure (MPa) on the lower and upper face at each node, ``pface (n, 2)``.
 
     The normal contact forces of the contact points ``fn (n_points, n_tools)`` (N/mm, per
@@ -148,6 +148,8 @@ def face_pressure(X, Xp, fn, tface, a, pface):  # type: ignore[no-untyped-def]
     (n_tools,)`` (+1 upper, -1 lower), spread along the sheet by a hat of half-width ``a``
     (mm; a load on a face spreads through the thickness over about the thickness), so the
     pressure at the nodes ``X (n_nodes, 2)`` is independent of the point spacing.
+    With ``pface (n, 3)`` and ``towner (n_tools,)`` the third column takes the pressure of
+    the tools that move with the punch (``towner == 1``) alone (MPa, either face).
     """
     n = X.shape[0]
     pface[:, :] = 0.0
@@ -160,6 +162,8 @@ def face_pressure(X, Xp, fn, tface, a, pface):  # type: ignore[no-untyped-def]
                 d = math.hypot(X[i, 0] - Xp[j, 0], X[i, 1] - Xp[j, 1])
                 if d < a:
                     pface[i, side] += fn[j, k] * (1.0 - d / a) / a
+                    if towner is not None and pface.shape[1] > 2 and towner[k] == 1:
+                        pface[i, 2] += fn[j, k] * (1.0 - d / a) / a
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
 def hermite_face(xa, ya, pa, xb, yb, pb, s, h, L0, xi, d):  # type: ignore[no-untyped-def]

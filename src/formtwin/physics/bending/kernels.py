@@ -204,12 +204,22 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def element_shear(X, sig, thick, ylay, wlay, xg, tshear):  # type: ignore[no-untyped-def]
+def element_shear(X, sig, thick, ylay, wlay, xg, tshear,  # type: ignore[no-untyped-def]
+                  pface=None, reach=0.0, p0=0.0, p1=1.0):
     """Mean transverse shear stress ``V / t`` (MPa) of each element into ``tshear (n_el,)``.
 
     ``V = dM/ds`` from the bending moments ``M = -int sigma y dy`` (N mm/mm) of the layer
     stresses ``sig (n_el, n_g, n_layers)`` at the first and last Gauss point ``xg`` (moment
     linear along the element, as its curvature).
+
+    With ``reach > 0`` (mm) and the punch's face pressure ``pface[:, 2]`` (MPa,
+    :func:`.contact.face_pressure`): an element under the punch takes the largest ``|tau|``
+    of the elements within ``reach`` of its centre, in full where the punch presses it by
+    ``p1`` (MPa) or more, not at all below ``p0``, linearly in between. Where the punch
+    pinches the flap, the continuum's core shear of the span next to the contact runs on
+    into the contact patch (CalculiX at punch end distance 310 um: 165 MPa in the core at the
+    punch edge where ``V/t`` is 47 MPa), and the section there yields under the reverse
+    moment of the flap's tip.
     """
     n_g = xg.shape[0]
     for e in range(sig.shape[0]):
@@ -221,6 +231,19 @@ def element_shear(X, sig, thick, ylay, wlay, xg, tshear):  # type: ignore[no-unt
             m1 -= wy * sig[e, n_g - 1, k]
         l0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
         tshear[e] = (m1 - m0) / (l0 * (xg[n_g - 1] - xg[0]) * thick)
+    if pface is None or reach <= 0.0:
+        return
+    tau0 = tshear.copy()
+    for e in range(sig.shape[0]):
+        w = (max(pface[e, 2], pface[e + 1, 2]) - p0) / (p1 - p0)
+        if w <= 0.0:
+            continue
+        xc = 0.5 * (X[e, 0] + X[e + 1, 0])
+        best = tau0[e]
+        for f in range(sig.shape[0]):
+            if abs(0.5 * (X[f, 0] + X[f + 1, 0]) - xc) <= reach and abs(tau0[f]) > abs(best):
+                best = tau0[f]
+        tshear[e] = tau0[e] + min(w, 1.0) * (best - tau0[e])
 
 
 # ------------------------------------------------------------------------------ band LU

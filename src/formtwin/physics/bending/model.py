@@ -83,6 +83,12 @@ class Discretisation:
         Whether each element's mean transverse shear stress ``V/t`` (lagged one increment)
         lowers its layers' axial yield stress (von Mises, :mod:`.kernels`); False gives
         model 2.2.
+    pinch_reach, pinch_pressure
+        Where the punch presses the flap hard, its elements take the largest shear stress
+        within ``pinch_reach`` thicknesses (:func:`.kernels.element_shear`): in full where
+        the punch's face pressure exceeds ``pinch_pressure[1]`` times the plane-strain
+        yield stress ``(2/sqrt 3) sigma_y``, not below ``pinch_pressure[0]`` times it;
+        ``pinch_reach = 0`` gives model 2.3 (the candidate of branch physics-2.4: 0.5).
     """
 
     n_elements: int = 32
@@ -105,13 +111,16 @@ class Discretisation:
     pressure_spread: float = 1.0
     contact_points: int = 4
     transverse_shear: bool = True
+    pinch_reach: float = 0.0
+    pinch_pressure: tuple[float, float] = (0.25, 0.5)
 
     def opts(self, dt_max: float, rate_tau: float = 0.0) -> FloatArray:
         """Solver option array for :func:`~.solver.run_history` (``rate_tau`` in s)."""
         return np.array([dt_max, self.dt_min, self.max_iter, self.tol_force, self.tol_disp,
                          self.cap_disp, self.predict, self.line_search, self.ls_ratio,
                          self.easy_iter, self.easy_steps, rate_tau, self.pressure_spread,
-                         float(self.transverse_shear), float(self.ls_energy)])
+                         float(self.transverse_shear), float(self.ls_energy),
+                         self.pinch_reach, *self.pinch_pressure])
 
 
 @dataclass
@@ -236,7 +245,7 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     tool_arrays = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, el, xi,
                    pen, Xp)
     status = run_history(targets, lam, lam_fix, t0, mesh, state, tool_arrays,
-                         (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 2)), np.zeros(n_nodes - 1)),
+                         (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 3)), np.zeros(n_nodes - 1)),
                          (press, fref, fix, fix_ref),
                          disc.opts(dt_max, rate_tau), (rec_u, rec_f, rec_r, counters))
     return History(targets, rec_u, rec_f, rec_r, int(status), counters)

@@ -28,6 +28,7 @@ from numba import njit
 from formtwin.physics.bending.contact import contact_forces, face_pressure, point_face
 from formtwin.physics.bending.kernels import (
     BW,
+    SQ,
     band_lu,
     band_solve,
     beam_element,
@@ -38,7 +39,7 @@ from formtwin.physics.bending.kernels import (
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 (DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
- RATE_TAU, SPREAD, SHEAR, LS_ENERGY) = range(15)
+ RATE_TAU, SPREAD, SHEAR, LS_ENERGY, PINCH_REACH, PINCH_P0, PINCH_P1) = range(18)
 # status codes
 OK, FAIL_STEP = 0, 1
 
@@ -336,9 +337,12 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                         epb[e, g, k] = epb_t[e, g, k]
                         eps[e, g, k] = eps_t[e, g, k]
             if opts[SPREAD] > 0.0:  # face pressures for the next increment
-                face_pressure(X, Xp, ct_trial[2], tface, opts[SPREAD] * thick, pface)
+                face_pressure(X, Xp, ct_trial[2], tface, opts[SPREAD] * thick, pface, towner)
             if opts[SHEAR] > 0.0:  # the elements' shear stresses for the next increment
-                element_shear(X, sig, thick, mesh[3], mesh[4], mesh[5], tshear)
+                ys = SQ * mesh[7][1]  # plane-strain yield stress
+                element_shear(X, sig, thick, mesh[3], mesh[4], mesh[5], tshear, pface,
+                              opts[PINCH_REACH] * thick, opts[PINCH_P0] * ys,
+                              opts[PINCH_P1] * ys)
             for q in range(el.shape[0]):
                 for k in range(n_tools):
                     ct_act[q, k] = ct_act_t[q, k]
