@@ -62,8 +62,8 @@ QUANTITIES = ("peak", "plateau", "peak_time_ms", "angle1", "angle2")
 def beam_overrides(text: str) -> dict[str, Any]:
     """``"KEY=VALUE,..."`` -> Discretisation overrides (bool, int or float values).
 
-    >>> beam_overrides("n_elements=64, pressure_spread=0.5")
-    {'n_elements': 64, 'pressure_spread': 0.5}
+    >>> beam_overrides("n_elements=64, pressure_spread=0.5, pinch_pressure=0.2/0.4")
+    {'n_elements': 64, 'pressure_spread': 0.5, 'pinch_pressure': (0.2, 0.4)}
     """
     fields = {f.name: f.type for f in dataclasses.fields(Discretisation)}
     out: dict[str, Any] = {}
@@ -76,6 +76,11 @@ def beam_overrides(text: str) -> dict[str, Any]:
         v = value.strip()
         if v.lower() in ("true", "false"):
             out[key] = v.lower() == "true"
+        elif "/" in v:  # a pair, e.g. pinch_pressure=0.25/0.5
+            try:
+                out[key] = tuple(float(part) for part in v.split("/"))
+            except ValueError:
+                raise SystemExit(f"--beam: {key} needs numbers a/b, got {v!r}") from None
         else:
             try:
                 out[key] = int(v) if fields[key] in ("int", int) else float(v)

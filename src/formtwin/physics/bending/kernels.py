@@ -38,6 +38,13 @@ Transverse shear stress (2.3)
     capacity, and with it the moment, drops where the shear force is high. The uniform
     ``tau`` is the fully plastic shear distribution; the shear strain itself is not modelled.
 
+Shear under a pinching punch (2.4)
+    Where the punch presses the flap at or above a fraction of the plane-strain yield stress,
+    an element takes the largest ``|V/t|`` within one thickness (``pinch_reach``) of its
+    centre: in the continuum the core shear of the span next to the pinched contact runs on
+    into the contact patch, so the section at the punch edge yields under the reverse moment
+    of the flap's tip (:func:`element_shear`).
+
 Contact: :mod:`.contact`.
 """
 

@@ -29,7 +29,7 @@ from formtwin.spec import ProcessSpec, load_spec
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-VERSION = "bending-2.3"
+VERSION = "bending-2.4"
 
 #: the control input (spec ``[[control]]``) that sets the stage-2 depth, mm
 CONTROL = "stage2_depth"
@@ -88,7 +88,8 @@ class Discretisation:
         within ``pinch_reach`` thicknesses (:func:`.kernels.element_shear`): in full where
         the punch's face pressure exceeds ``pinch_pressure[1]`` times the plane-strain
         yield stress ``(2/sqrt 3) sigma_y``, not below ``pinch_pressure[0]`` times it;
-        ``pinch_reach = 0`` gives model 2.3 (the candidate of branch physics-2.4: 0.5).
+        ``pinch_reach = 0`` gives model 2.3; 1.0 (one thickness, the scale of the pressure
+        spread) is model 2.4.
     """
 
     n_elements: int = 32
@@ -111,7 +112,7 @@ class Discretisation:
     pressure_spread: float = 1.0
     contact_points: int = 4
     transverse_shear: bool = True
-    pinch_reach: float = 0.0
+    pinch_reach: float = 1.0
     pinch_pressure: tuple[float, float] = (0.25, 0.5)
 
     def opts(self, dt_max: float, rate_tau: float = 0.0) -> FloatArray:
