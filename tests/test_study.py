@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -116,6 +117,23 @@ def test_cli_quick_study_on_the_embedded_default(tmp_path: Path) -> None:
     assert len(lines) == 1 + 6 * 2 * 1
     s1 = np.array([[float(v) for v in line.split(",")[3:]] for line in lines[1:3]])
     assert np.all(s1[:, 6] < 0.5), s1[:, 6]  # punch end distance is observable in series 1
+    # the shipped interval calibration belongs to this metamodel (the bundled DOE's fit, as
+    # make demo fits it): the default intervals find its floors, no fallback to the cloud
+    from formtwin.metamodel import Metamodel
+    from formtwin.tracker import TrackerConfig
+    from formtwin.tracker import intervals as iv
+
+    mm = Metamodel.load(tmp_path / "model" / "metamodel_bending.npz")
+    signature = iv.residual_signature(mm)
+    assert signature is not None
+    cal = json.loads(iv.CALIBRATION_PATH.read_text())
+    assert iv.matches(signature, cal["k_res_diag"]), (
+        "interval_calibration.json was learned for another metamodel: run "
+        "python -m formtwin.study.calibrate")
+    assert cal["model_version"] == mm.model_version
+    for deviation in (False, True):
+        floors = iv.Floors(mm, deviation, TrackerConfig().intervals == "calibrated_fit")
+        assert floors.b[:7].max() > 0 and floors.b_angles.max() > 0
 
 
 def test_the_study_counts_its_filter_runs(tmp_path: Path) -> None:
