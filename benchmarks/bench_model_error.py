@@ -64,8 +64,8 @@ OPTIONS: dict[str, tuple[dict[str, Any], tuple[int, ...], str]] = {
                    "the guided proposal from the parents' curves, ~1.5x"),
     "intervals_cloud": ({"intervals": "cloud"}, (1, 3, 5, 6),
                         "the particles' weighted std alone"),
-    "intervals_calibrated": ({"intervals": "calibrated"}, (1, 3, 5, 6),
-                             "floors learned offline on independent physics runs"),
+    "intervals_calibrated": ({"intervals": "calibrated"}, (1, 3, 4, 5, 6),
+                             "constant floors learned offline on independent physics runs"),
     "intervals_calibrated_fit": ({"intervals": "calibrated_fit"}, (1, 3, 4, 5, 6),
                                  "the floors scaled by the running fit distance in excess "
                                  "of its mean on the metamodel's own curves"),

@@ -191,8 +191,9 @@ def test_learned_floors_give_the_target_coverage_on_their_data() -> None:
 
 
 def test_shipped_calibration_is_complete_and_learned_off_the_study_data() -> None:
-    """The package's floors: 18 + 2 non-negative numbers per tracker configuration, none for
-    theta_d without the deviation model, learned on pseudo-data of another study seed."""
+    """The package's floors: 18 + 2 non-negative numbers per tracker configuration, constant
+    and fit-gated, none for theta_d without the deviation model, learned on pseudo-data of
+    another study seed."""
     import json
 
     from formtwin.study.calibrate import SEED
@@ -208,6 +209,13 @@ def test_shipped_calibration_is_complete_and_learned_off_the_study_data() -> Non
         assert floors.shape == (18,) and angles.shape == (2,)
         assert np.all(floors >= 0) and np.all(angles >= 0) and np.all(np.isfinite(floors))
     np.testing.assert_array_equal(cal["no_deviation"]["floors"][10:], 0.0)
+    gate = cal["fit_gate"]  # the default's fit gate, learned in the same calibration
+    assert gate["d0"] > 0 and 0 < gate["ewma"] <= 1 and gate["runs"] > 0
+    for key in ("no_deviation", "deviation"):
+        floors = np.array(cal[key]["fit_floors"])
+        assert floors.shape == (18,) and np.all(np.isfinite(floors)) and np.all(floors >= 0)
+        assert cal[key]["fit_s_max"] > 0
+    np.testing.assert_array_equal(cal["no_deviation"]["fit_floors"][10:], 0.0)
 
 
 def _calibration_file(tmp_path: object, model: object, floors: np.ndarray) -> object:

@@ -106,11 +106,13 @@ class TrackerConfig:
         the shared discrepancy); ``None`` (default): learned over :data:`SHARES` by the
         evidence.
     intervals : the reported std of the estimates and angles, see :data:`INTERVALS`:
-        ``"calibrated"`` (default) adds to the particles' weighted std, in quadrature,
-        floors learned offline on physics runs of the bundled metamodel (not the study's
-        data: :mod:`formtwin.study.calibrate`; none for another metamodel);
-        ``"calibrated_fit"`` scales their squares by the running fit distance in excess of
-        its mean on the metamodel's own curves (:class:`~formtwin.tracker.intervals.Floors`);
+        ``"calibrated"`` adds to the particles' weighted std, in quadrature, floors learned
+        offline on physics runs of the bundled metamodel (not the study's data:
+        :mod:`formtwin.study.calibrate`; none for another metamodel);
+        ``"calibrated_fit"`` (default) scales their squares by the running fit distance in
+        excess of its mean on the metamodel's own curves (learned in the same calibration:
+        :class:`~formtwin.tracker.intervals.Floors`), so they shrink where the metamodel
+        explains the curves;
         ``"cloud"`` the particles' weighted std alone; ``"sandwich"`` adds the part of
         the error that a persistent metamodel error puts in the estimate
         (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
@@ -165,7 +167,7 @@ class TrackerConfig:
         "share of K_res in the adaptive/discrepancy likelihood (default: learned)"))
     discrepancy_memory: float = field(default=math.inf, metadata=_help(
         "memory of the learned discrepancy, products (inf: no forgetting)"))
-    intervals: str = field(default="calibrated", metadata=_help(
+    intervals: str = field(default="calibrated_fit", metadata=_help(
         "reported std: cloud (the particles'), calibrated (+ floors learned offline on "
         "physics runs), calibrated_fit (those scaled by the excess fit distance), "
         "sandwich (+ the persistent metamodel error's part) or gated (that "

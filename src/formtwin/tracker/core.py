@@ -7,7 +7,7 @@ metamodel's held-out angle error) are taken *before* resampling. With
 NaN-free statement of the filter's assumption); with ``learn_mu=True`` the estimate adds
 ``mu_mean``/``mu_std`` while ``names``/``mean``/``std`` stay the 18 augmented variables.
 The reported ``std`` and ``angles_std`` are the particles' plus what ``config.intervals``
-adds (:mod:`formtwin.tracker.intervals`: floors calibrated offline by default); nothing
+adds (:mod:`formtwin.tracker.intervals`: fit-gated floors calibrated offline by default); nothing
 else depends on them.
 
 Bad input: :meth:`Tracker.step` validates the curve first (1-D, numeric, length ``n_t``,
