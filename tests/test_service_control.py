@@ -122,8 +122,8 @@ def test_defaults_are_the_control_studys_tuning() -> None:
                                                     TUNED_FIXED_RHO, False)
     res = json.loads((ROOT / "benchmarks" / "results" / "bench_control.json").read_text())
     figures = res.get("figures", res)
-    assert (figures["adaptive_lam"], figures["adaptive_rho"]) == (TUNED_LAM, TUNED_RHO)
-    assert (figures["ff_lam"], figures["ff_weight"], figures["ff_rho"]) == \
+    assert (figures["ff_lam"], figures["ff_rho"]) == (TUNED_LAM, TUNED_RHO)
+    assert (figures["fffixed_lam"], figures["fffixed_weight"], figures["fffixed_rho"]) == \
         (TUNED_FIXED_LAM, TUNED_FIXED_WEIGHT, TUNED_FIXED_RHO)
 
 

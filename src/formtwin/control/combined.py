@@ -81,7 +81,7 @@ TUNED_RHO = 0.7
 #: ``lam``, ``weight`` and ``rho`` of the study's best fixed weight (``fffixed_lam``,
 #: ``fffixed_weight``, ``fffixed_rho``): the service's ``--control-fixed-weight``
 TUNED_FIXED_LAM = 0.02
-TUNED_FIXED_WEIGHT = 0.75
+TUNED_FIXED_WEIGHT = 0.5
 TUNED_FIXED_RHO = 0.7
 
 
