@@ -19,8 +19,8 @@ by their settings and a hash of the code that makes the estimates, so chart desi
 1. Calibration: :func:`~formtwin.monitoring.calibrate.calibrate_series` on ``--calib-runs``
    simulated in-control runs of ``--calib-products`` products (AR(2) models of the state
    posterior means about mu, of the predicted angles about a Phase-I level, health
-   references (each line's own Phase-I values; ``--health-pooled``: the calibration
-   lines' pooled values) and AR models of their normal scores; limits for the design's
+   references (the calibration lines' pooled values; ``--health-per-line``: each line's
+   own Phase-I values) and AR models of their normal scores; limits for the design's
    ARL0 per chart, widened where the calibration runs would have crossed them).
 2. False alarms: ``--ic-runs`` fresh in-control runs (other seeds, other machine
    parameters) of ``--ic-products`` products; every alarm counts.
@@ -195,9 +195,9 @@ def main() -> None:
     p.add_argument("--no-tails", action="store_true")
     p.add_argument("--no-health-ar", action="store_true")
     p.add_argument("--health-phase1", action="store_true")
-    p.add_argument("--health-pooled", action="store_true",
-                   help="health scored against the calibration lines' pooled values, not "
-                   "each line's own Phase I (the design until session 8)")
+    p.add_argument("--health-per-line", action="store_true",
+                   help="health scored against each line's own Phase-I values, not the "
+                   "calibration lines' pooled values")
     p.add_argument("--k-mismatch", type=float, default=d0.k_mismatch)
     p.add_argument("--no-glr", action="store_true")
     p.add_argument("--arl0-glr", type=float, default=d0.arl0_glr)
@@ -231,7 +231,7 @@ def main() -> None:
                          widen_margin=args.widen_margin or None, angle_cusum=args.angle_cusum,
                          tails=not args.no_tails, health_ar=not args.no_health_ar,
                          health_phase1=args.health_phase1,
-                         health_per_line=not args.health_pooled, glr=not args.no_glr,
+                         health_per_line=args.health_per_line, glr=not args.no_glr,
                          arl0_glr=args.arl0_glr, glr_window=args.glr_window,
                          glr_clip=args.glr_clip or None,
                          state_cusum=not args.no_state_cusum)

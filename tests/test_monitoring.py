@@ -440,4 +440,5 @@ def test_per_line_health_needs_the_scores_level() -> None:
     with pytest.raises(ValueError, match="health_per_line and health_phase1"):
         from formtwin.monitoring.calibrate import calibrate_series
         calibrate_series([{"ess": np.ones(300)}], [], np.zeros(0),
-                         ChartDesign(health_phase1=True, widen_margin=None, glr=False))
+                         ChartDesign(health_phase1=True, health_per_line=True,
+                                     widen_margin=None, glr=False))

@@ -78,7 +78,8 @@ class ChartDesign:
     health_per_line : each line's health statistics scored against its own Phase-I values
         (frozen at its end) instead of the calibration lines' pooled sample; the scores' AR
         models are fitted on the calibration lines scored the same way (each against its
-        own Phase I), about their pooled level.
+        own Phase I), about their pooled level. Off by default: on bending-2.4's held-out
+        runs it raised more false alarms than the pooled references (docs/monitoring.md).
     glr : a GLR chart for a level change on each state variable
         (:mod:`~formtwin.monitoring.glr`: matched to the spike-then-shift signature a step
         in the mean leaves in the AR residuals).
@@ -105,7 +106,7 @@ class ChartDesign:
     tails: bool = True
     health_ar: bool = True
     health_phase1: bool = False
-    health_per_line: bool = True
+    health_per_line: bool = False
     angle_cusum: bool = False
     glr: bool = True
     arl0_glr: float = 1.0e5
