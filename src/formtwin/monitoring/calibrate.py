@@ -262,10 +262,8 @@ def line_scores(values: FloatArray, pooled: Reference, phase1: int) -> FloatArra
     >>> [round(float(v), 2) for v in z]  # 10: 0.21 of its Phase I lower; -1: below all
     [0.81, 2.33]
     """
-    v = np.asarray(values, dtype=np.float64)
-    first = v[:phase1]
-    ref = (Reference(tuple(first), pooled.bad) if np.isfinite(first).sum() >= 20 else pooled)
-    return np.array([ref.normal_score(float(x)) for x in v[phase1:]])
+    ref = pooled.of_line(values[:phase1])
+    return np.array([ref.normal_score(float(x)) for x in values[phase1:]])
 
 
 def widen(config: MonitorConfig, runs: Sequence[Mapping[str, FloatArray]], margin: float,

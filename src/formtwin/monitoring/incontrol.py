@@ -216,5 +216,11 @@ class Reference:
             u = 1.0 - f if self.bad == "low" else f
         return float(ndtri(min(max(u, 0.5 / n), 1.0 - 0.5 / n)))
 
+    def of_line(self, values: Sequence[float] | FloatArray) -> Reference:
+        """A line's own reference: its (Phase-I) ``values`` with this reference's
+        orientation, or this reference where they have fewer than 20 finite values."""
+        v = np.asarray(values, dtype=np.float64)
+        return Reference(tuple(v), self.bad) if np.isfinite(v).sum() >= 20 else self
+
 
 __all__ = ["InControl", "Reference", "fit_in_control", "normal_score"]

@@ -337,8 +337,7 @@ class Monitor:
     def _line_references(self) -> None:
         """Freeze this line's health references from its Phase-I values (the pooled one
         where there are fewer than 20)."""
-        self.references = {n: Reference(tuple(self.phase1_health[n]), ref.bad)
-                           if len(self.phase1_health[n]) >= 20 else ref
+        self.references = {n: ref.of_line(self.phase1_health[n])
                            for n, ref in self.config.health.items()}
 
     def _remember(self, values: Mapping[str, float], skip: Collection[str] = ()) -> None:

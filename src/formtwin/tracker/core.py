@@ -161,8 +161,8 @@ class Tracker:
         self.sandwich = Sandwich(self.ssm, gated=self.config.intervals == "gated") \
             if self.config.intervals in ("sandwich", "gated") else None
         self.floors = Floors(model, self.config.estimate_deviation, self.config.intervals
-                             == "calibrated_fit") if "calibrated" in self.config.intervals \
-            else None
+                             == "calibrated_fit") \
+            if self.config.intervals in ("calibrated", "calibrated_fit") else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
