@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from formtwin._bench import write_result
+from formtwin._bench import study_metamodel_info, write_result
 from formtwin.defaults import default_metamodel, physics_model
 from formtwin.study.pseudodata import Realisation
 from formtwin.study.run import StudySettings, run_study
@@ -115,7 +115,7 @@ def main() -> None:
                 n: round(float(np.mean(np.abs(mid[j] - truth[:, j]) / sigma[j])), 4)
                 for j, n in enumerate(spec.state.names)}
         figures[f"series{s}"] = entry
-    write_result("improvements", figures)
+    write_result("improvements", figures, model=study_metamodel_info(metamodel, mm_path))
 
 
 if __name__ == "__main__":

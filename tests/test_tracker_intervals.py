@@ -288,6 +288,25 @@ def test_fit_gated_floors_without_a_gate_in_the_calibration_report_the_cloud(
     np.testing.assert_array_equal(eg[-1].std, ec[-1].std)
 
 
+def test_floors_for_another_deviation_layout_report_the_cloud_with_a_warning(
+        tmp_path: object, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A calibration learned for another number of deviation knots (floors for 14
+    estimated variables, this tracker has 18): the default tracker still runs, reports the
+    cloud's std and says why (it raised a ValueError before)."""
+    from formtwin.tracker import intervals
+
+    model = _ModelWithError()
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH",
+                        _calibration_file(tmp_path, model, np.full(14, 0.1)))
+    _, ec = _run("cloud", True)
+    with caplog.at_level("WARNING", logger=intervals.__name__):
+        for setting in ("calibrated", "calibrated_fit"):
+            _, eo = _run(setting, True)
+            np.testing.assert_array_equal(eo[-1].std, ec[-1].std)
+    assert "floors for 14 estimated variables, this tracker estimates 18" in caplog.text
+
+
 def test_gated_floors_give_the_target_coverage_on_their_data() -> None:
     """Errors whose bias grows like sqrt(s): floors per unit of s hold 90 % of the errors;
     rows with s = 0 need none (their errors are within the cloud's std)."""

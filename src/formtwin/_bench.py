@@ -117,6 +117,15 @@ def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
     return mm, path, info
 
 
+def study_metamodel_info(mm: Any, path: str | Path) -> dict[str, Any]:
+    """The ``model`` entry of a result measured on a study folder's metamodel ``mm``
+    (fitted by ``formtwin study`` on the bundled physics DOE, file ``path``)."""
+    return {"name": "metamodel of a study folder (formtwin study on the bundled physics DOE)",
+            "physics": "bending", "physics_version": mm.model_version,
+            "metamodel": repr(mm), "metamodel_file": str(path),
+            "metamodel_sha256_16": file_digest(path)}
+
+
 def write_result(name: str, figures: dict[str, Any], directory: str | Path | None = None,
                  model: dict[str, Any] | None = None) -> Path:
     """Print ``figures`` as a table and save them as ``bench_<name>.json``; return the path.

@@ -222,10 +222,19 @@ def _warn_other_model(version: str, path: Path) -> None:
                 "learned for another fit of %s); reporting the cloud's std", path.name, version)
 
 
+@functools.lru_cache(maxsize=4)
+def _warn_other_layout(n_cal: int, n: int, path: Path) -> None:
+    """Log once that the calibration at ``path`` has floors for ``n_cal`` estimated
+    variables where the tracker has ``n`` (another deviation model: the spec's knots)."""
+    log.warning("intervals='calibrated': %s has floors for %d estimated variables, this "
+                "tracker estimates %d (another [deviation] knots than the calibration's); "
+                "reporting the cloud's std", path.name, n_cal, n)
+
+
 def _entry(model: Any, deviation: bool) -> dict[str, Any] | None:
     """The calibration's entry for a tracker on ``model`` with (``deviation``) or without
     theta_d, ``None`` for a model without ``K_res`` and (logged once) for another
-    metamodel's calibration."""
+    metamodel's calibration or another layout of the estimated variables."""
     signature = residual_signature(model)
     cal = None if signature is None else _calibration(CALIBRATION_PATH)
     if cal is None or signature is None:
@@ -234,6 +243,10 @@ def _entry(model: Any, deviation: bool) -> dict[str, Any] | None:
         _warn_other_model(str(cal.get("model_version")), CALIBRATION_PATH)
         return None
     entry: dict[str, Any] = dict(cal["deviation" if deviation else "no_deviation"])
+    n, n_cal = len(model.spec.augmented), len(entry.get("floors", ()))
+    if n_cal != n:
+        _warn_other_layout(n_cal, n, CALIBRATION_PATH)
+        return None
     entry["fit_gate"] = cal.get("fit_gate")
     return entry
 
