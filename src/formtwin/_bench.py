@@ -145,8 +145,9 @@ def write_result(name: str, figures: dict[str, Any], directory: str | Path | Non
     width = max(len(k) for k in figures) if figures else 0
     lines = [f"bench_{name}"] + [f"  {k:<{width}}  {v}" for k, v in figures.items()]
     if model is not None:
-        lines.append(f"  model: {model.get('name')} ({model.get('physics_version')}, DOE "
-                     f"{model.get('doe_sha256_16')})")
+        doe = model.get("doe_sha256_16")
+        where = f"DOE {doe}" if doe else f"file {model.get('metamodel_file')}"
+        lines.append(f"  model: {model.get('name')} ({model.get('physics_version')}, {where})")
     print("\n".join(lines))  # benchmarks are run as scripts: printing is their job
     print(f"  -> {path}")
     return path
