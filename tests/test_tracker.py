@@ -301,7 +301,8 @@ def test_angles_skip_only_negligible_weight(
     from formtwin.tracker import core
 
     curves = series1["curves"][:30]
-    cfg = TrackerConfig(n_particles=400, mu=tuple(series1["mu"]), estimate_deviation=False)
+    cfg = TrackerConfig(n_particles=400, mu=tuple(series1["mu"]), mu_known=True,
+                        estimate_deviation=False)
     rows: list[int] = []
     predict = type(model).predict_angles
 

@@ -10,7 +10,7 @@ from filter_refs import interior_curves, kalman_filter
 
 from formtwin.defaults import analytic_model
 from formtwin.tracker import Tracker, TrackerConfig, build_tracker
-from formtwin.tracker.intervals import sandwich_step
+from formtwin.tracker.sandwich import mu_step, sandwich_step
 
 
 def _linear_model() -> dict[str, np.ndarray]:
@@ -73,6 +73,77 @@ def test_without_memory_one_step_is_the_classic_sandwich() -> None:
     Si = np.linalg.inv(S)
     np.testing.assert_allclose(G @ K_res @ G.T, P @ J.T @ Si @ K_res @ Si @ J @ P,
                                rtol=1e-9)
+
+
+def test_mu_term_is_the_kalman_estimates_error_under_a_wrong_prior_mean() -> None:
+    """The filter assumes mu = 0 for the two AR(1) states, the line's is d: without noise
+    the Kalman estimate's error is exactly -G_mu d; with noise and d ~ U(0.5, 1.5) per
+    line (the assumption off the range's middle) its mean squared error is
+    P + G_mu E[d d^T] G_mu^T (20000 simulated lines), not P."""
+    lm = _linear_model()
+    F, Q, J, S, P0 = (lm[k] for k in ("F", "Q", "J", "S", "P0"))
+    nx, n = 2, 40
+    d = np.array([0.7, -1.2])
+    x_true = np.r_[d, 0.0]  # the constant parameter has no mean: its prior is not off
+    kf = list(kalman_filter(np.diag(F), np.diag(Q), J, S, np.zeros(3), P0,
+                            [J @ x_true] * n))
+    G_mu, P_prev = np.eye(3, nx), P0
+    SiJ = np.linalg.solve(S, J)
+    for m, P, _ in kf:
+        G_mu = mu_step(G_mu, P_prev, J, SiJ, F, Q)
+        np.testing.assert_allclose(m - x_true, -G_mu @ d, rtol=1e-10, atol=1e-12)
+        P_prev = P
+    assert np.abs(G_mu @ d).max() > 0.05
+    lo, hi = 0.5, 1.5
+    second = np.eye(nx) * (hi - lo) ** 2 / 12.0 + np.full((nx, nx), 0.5 * (lo + hi)) ** 2
+    rng = np.random.default_rng(6)
+    r = 20_000
+    mu = np.c_[rng.uniform(lo, hi, (r, nx)), np.zeros(r)]
+    x = mu + rng.standard_normal((r, 3)) * np.sqrt(np.diag(P0))
+    est = np.zeros((r, 3))
+    cs = np.linalg.cholesky(S)
+    P_prev = P0
+    for _, P, _ in kf:
+        Pp = np.diag(F) @ P_prev @ np.diag(F) + np.diag(Q)
+        K = Pp @ J.T @ np.linalg.inv(J @ Pp @ J.T + S)
+        x = mu + F * (x - mu) + rng.standard_normal((r, 3)) * np.sqrt(Q)
+        y = x @ J.T + rng.standard_normal((r, 5)) @ cs.T
+        pred = F * est
+        est = pred + (y - pred @ J.T) @ K.T
+        P_prev = P
+    err = est - x
+    mse = err.T @ err / r
+    expected = P_prev + G_mu @ second @ G_mu.T
+    np.testing.assert_allclose(mse, expected, atol=0.04 * float(np.abs(expected).max()))
+    assert not np.allclose(mse, P_prev, atol=0.04 * float(np.abs(expected).max()))
+
+
+def test_assumed_mu_widens_only_the_reported_std() -> None:
+    """mu_known=False (the default) against True on the same seed: particles, means, ESS,
+    evidence and fit bit for bit; the std of the states and angles grow (theta's too,
+    through its correlation with the state); a learned mu has no term."""
+    model = analytic_model()
+    curves = interior_curves(model, n=8)
+
+    def run(**kw: object) -> tuple[Tracker, list]:
+        cfg = TrackerConfig(n_particles=200, estimate_deviation=False, n_mc=500, seed=3,
+                            intervals="cloud", **kw)  # type: ignore[arg-type]
+        tr = build_tracker(model, cfg)
+        return tr, [tr.step(c) for c in curves]
+
+    known, ek = run(mu_known=True)
+    assumed, ea = run()
+    assert known.sandwich is None and assumed.sandwich is not None
+    np.testing.assert_array_equal(assumed.particles, known.particles)
+    for a, b in zip(ek, ea, strict=True):
+        for key in ("mean", "angles_mean"):
+            np.testing.assert_array_equal(getattr(b, key), getattr(a, key))
+        assert (b.ess, b.loglik, b.fit, b.health) == (a.ess, a.loglik, a.fit, a.health)
+        assert np.all(b.std >= a.std) and np.all(b.angles_std >= a.angles_std)
+    assert np.all(ea[-1].std[:7] > ek[-1].std[:7]) and np.all(ea[-1].angles_std > ek[-1].angles_std)
+    np.testing.assert_array_equal(ea[-1].std[10:], 0.0)  # theta_d is not estimated
+    learned, _ = run(learn_mu=True)
+    assert learned.sandwich is None
 
 
 class _ModelWithError:

@@ -11,7 +11,7 @@ from typing import Any
 from formtwin.cli.options import add_tracker_options, tracker_config
 
 #: TrackerConfig fields the study sets itself (series 6: deviation estimated, mu mid-range)
-FIXED = ("estimate_deviation", "mu", "learn_mu", "seed")
+FIXED = ("estimate_deviation", "mu", "learn_mu", "seed", "mu_known")
 
 
 def register(sub: Any) -> None:

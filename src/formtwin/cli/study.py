@@ -14,7 +14,7 @@ QUICK = {"n_products": 120, "window": 60, "n_realisations": 2, "n_repetitions": 
 #: the tracker settings of --quick
 QUICK_TRACKER = {"n_particles": 200}
 #: TrackerConfig fields each series sets itself (no flags)
-SERIES_FIELDS = ("estimate_deviation", "mu", "seed", "learn_mu")
+SERIES_FIELDS = ("estimate_deviation", "mu", "seed", "learn_mu", "mu_known")
 
 
 def register(sub: Any) -> None:

@@ -9,7 +9,9 @@ to the cloud's std, makes the 90 % interval ``mean +- 1.645 sqrt(std^2 + b^2)`` 
 truth in 90 % of the products of independent physics pseudo-data: realisations drawn with
 the study seed :data:`SEED` (the study's default is 0, so they share no realisation with
 the study or the benchmarks), filtered as series 5 (no deviation model) and series 6
-(deviation estimated, mu assumed), the last ``window`` products of each run. The floors
+(deviation estimated, mu assumed), the last ``window`` products of each run. The runs'
+std are the cloud's plus, where mu is assumed (series 6), the linearised error of assuming
+it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not. The floors
 are stored with the diagonal of the metamodel's ``K_res``
 (:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
 
@@ -167,8 +169,9 @@ def main(argv: list[str] | None = None) -> None:
     result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
     d0, n_gate = gate_d0(result)
     out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
-                   "cloud's std by TrackerConfig(intervals='calibrated'), learned on "
-                   "independent physics pseudo-data (formtwin.study.calibrate)",
+                   "cloud's std (plus the assumed mu's term where mu is assumed) by "
+                   "TrackerConfig(intervals='calibrated'), learned on independent physics "
+                   "pseudo-data (formtwin.study.calibrate)",
            "model_version": mm.model_version,
            "k_res_diag": [float(v) for v in signature],
            "names": list(mm.spec.augmented.names) + ["angle1", "angle2"],

@@ -130,11 +130,12 @@ def measurement_file(folder: Path, realisation: int, mu_known: bool,
 
 def series_config(base: TrackerConfig, series: Series, mu: FloatArray,
                   seed: int) -> TrackerConfig:
-    """The filter settings of ``series``: ``base`` with the series' deviation switch and
-    learned-mu switch, the assumed state means ``mu`` (7,) and the tracker ``seed``."""
+    """The filter settings of ``series``: ``base`` with the series' deviation switch,
+    learned-mu switch and whether mu is known (else the intervals carry the assumed mu's
+    error), the assumed state means ``mu`` (7,) and the tracker ``seed``."""
     return dataclasses.replace(base, estimate_deviation=series.deviation,
                                mu=tuple(float(v) for v in mu), seed=seed,
-                               learn_mu=series.learn_mu)
+                               learn_mu=series.learn_mu, mu_known=series.mu_known)
 
 
 def make_measurement(model: Metamodel | ProcessModel, real: Realisation, mu_known: bool,

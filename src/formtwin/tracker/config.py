@@ -25,7 +25,8 @@ COMPARE = ("model", "measurement")
 LIKELIHOODS = ("calibrated", "paper", "adaptive", "discrepancy")
 
 #: the reported intervals (:mod:`formtwin.tracker.intervals`): "cloud" the particles'
-#: weighted std; "calibrated" adds in quadrature floors learned offline on physics runs
+#: weighted std (all five add an assumed mu's term unless ``mu_known``); "calibrated"
+#: adds in quadrature floors learned offline on physics runs
 #: of the bundled metamodel; "calibrated_fit" scales their squares by the curves' running fit
 #: distance in excess of its value on the metamodel's own curves (learned in the same
 #: calibration); "sandwich" adds the covariance ``B`` of the error a persistent
@@ -63,6 +64,11 @@ class TrackerConfig:
     mu, sigma, rho : (7,) assumed state statistics, internal units; ``None`` -> the spec's
         ``mu_mid`` (series 4, 6), ``sigma`` and ``rho``. ``mu`` is also the mean of the
         Monte-Carlo states behind ``K_MC`` (paper, "Simulation runs").
+    mu_known : ``mu`` is the line's true state mean (the study's series 1-3 and 5). False
+        (default: a live line does not know it): the reported std add the error of
+        assuming it, the line's mu drawn from ``U(mu_min, mu_max)`` (the linearised
+        filter's ``G_mu``, :mod:`formtwin.tracker.sandwich`), for every ``intervals``;
+        none with ``learn_mu``. Particles, means, ESS and evidence do not change.
     resampling : resampling scheme name (or callable, not checkpointable).
     seed : seed of the tracker's ``numpy.random.default_rng`` (and of the Monte-Carlo
         curves for ``K_MC`` when :func:`~formtwin.tracker.build_tracker` makes them).
@@ -113,7 +119,8 @@ class TrackerConfig:
         excess of its mean on the metamodel's own curves (learned in the same calibration:
         :class:`~formtwin.tracker.intervals.Floors`), so they shrink where the metamodel
         explains the curves;
-        ``"cloud"`` the particles' weighted std alone; ``"sandwich"`` adds the part of
+        ``"cloud"`` the particles' weighted std (with an assumed mu, ``mu_known=False``,
+        plus that term, as for the others); ``"sandwich"`` adds the part of
         the error that a persistent metamodel error puts in the estimate
         (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
         particles, weights, means, ESS and evidence are the same for all five.
@@ -137,6 +144,9 @@ class TrackerConfig:
         "state std, 7 values (default: the spec's)"))
     rho: tuple[float, ...] | None = field(default=None, metadata=_help(
         "state autocorrelation, 7 values (default: the spec's)"))
+    mu_known: bool = field(default=False, metadata=_help(
+        "mu is the line's true state mean (else the intervals add the error of assuming "
+        "it, the line's mu anywhere in the spec's range)"))
     resampling: Any = field(default="systematic", metadata=_help(
         "resampling scheme (systematic, multinomial, stratified, residual)"))
     seed: int = field(default=0, metadata=_help("tracker seed"))

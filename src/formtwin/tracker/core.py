@@ -40,7 +40,8 @@ from formtwin.spec import ProcessSpec
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
-from formtwin.tracker.intervals import STATE_KEYS, Floors, Sandwich
+from formtwin.tracker.intervals import Floors
+from formtwin.tracker.sandwich import STATE_KEYS, Sandwich
 from formtwin.tracker.ssm import BendingSSM
 
 FloatArray = NDArray[np.float64]
@@ -158,8 +159,10 @@ class Tracker:
         self.filter: SIR = make_filter(self.config.filter, self.ssm, self.config.n_particles,
                                        self.rng, self.config.resampling,
                                        self.config.ess_threshold)
-        self.sandwich = Sandwich(self.ssm, gated=self.config.intervals == "gated") \
-            if self.config.intervals in ("sandwich", "gated") else None
+        c = self.config
+        metamodel, assumed = c.intervals in ("sandwich", "gated"), not (c.mu_known or c.learn_mu)
+        self.sandwich = Sandwich(self.ssm, c.intervals == "gated", metamodel, assumed) \
+            if metamodel or assumed else None
         self.floors = Floors(model, self.config.estimate_deviation, self.config.intervals
                              == "calibrated_fit") \
             if self.config.intervals in ("calibrated", "calibrated_fit") else None

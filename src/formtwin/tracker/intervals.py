@@ -1,33 +1,8 @@
-"""Misspecification-robust intervals (``TrackerConfig(intervals="sandwich")``): the part of
-the estimate's error that a persistent metamodel error puts there and the particle cloud
-does not show.
-
-A metamodel error ``delta ~ N(0, K_res)`` (``K_res`` the k-fold held-out residual
-covariance) that stays the same from product to product is not averaged away: on the
-filter linearised about the cloud's mean (the curve's Jacobian ``J`` (n_t, m) in the m
-columns that vary, the likelihood's covariance ``S``, the transition factors ``F`` (rho
-for the state, 1 for the constant parameters) and the process noise ``Q`` (the AR(1)'s
-``(1 - rho^2) sigma^2``, the jitter's ``(alpha range)^2``)), one Kalman step is
-
-    P_pred = F P_prev F + Q,   P_lin = (P_pred^-1 + J^T S^-1 J)^-1,
-    K = P_lin J^T S^-1,        A = P_lin P_pred^-1 F,
-
-and the estimate's error from ``delta`` follows ``e_i = A e_(i-1) + K delta``: it is
-``G_i delta`` with the sensitivity ``G_i = A G_(i-1) + K`` (m, n_t), ``G_0 = 0``. Its
-covariance ``B = G K_res G^T`` is added to the cloud's covariance ``P`` in the reported
-std (:func:`sandwich_step`); the angles add ``a' B a'^T`` with ``a'`` the angle
-metamodel's gradient in ``[x, theta]`` at the cloud's mean. ``P_prev`` is the previous
-product's cloud covariance; one step with ``F = 0`` is the one-product sandwich
-``P J^T S^-1 K_res S^-1 J P``. For a linear-Gaussian model the recursion is exact: the
-Kalman estimate's mean error under a fixed offset ``delta`` is ``G delta`` and its mean
-squared error ``P + G delta delta^T G^T`` (tests/test_tracker_intervals.py).
-
-``"gated"`` multiplies ``B`` by the posterior probability that the metamodel's error is in
-the data (the adaptive likelihood's ``P(kappa > 0)``; 1 for the other likelihoods).
-``J`` and the angle gradient are refreshed every :data:`EVERY` products (``m + 1`` curve
-and ``n_in + 1`` angle evaluations); the particles, weights, means, ESS, evidence and
-health do not change (the intervals are computed after the step and draw no random
-numbers). What this does and does not explain on the physics data: docs/likelihood.md.
+"""Calibrated intervals (``TrackerConfig(intervals="calibrated")`` and ``"calibrated_fit"``):
+floors learned offline on physics runs of the bundled metamodel
+(:mod:`formtwin.study.calibrate`), added in quadrature to the reported std, constant or
+gated by the curves' running fit distance (:class:`Floors`). The linearised filter's
+terms (a persistent metamodel error's, an assumed mu's): :mod:`formtwin.tracker.sandwich`.
 """
 
 from __future__ import annotations
@@ -50,130 +25,9 @@ log = logging.getLogger(__name__)
 #: ``python -m formtwin.study.calibrate`` on physics runs of its own (not the study's data)
 CALIBRATION_PATH = Path(__file__).parents[1] / "data" / "interval_calibration.json"
 
-#: the curve's Jacobian and the angles' gradient are refreshed every this many products
-#: (the cloud's mean drifts slowly; each refresh costs m + 1 + n_in + 1 model rows)
-EVERY = 4
-
 #: relative tolerance on ``diag(K_res)`` for a calibration to belong to a metamodel
 SIGNATURE_RTOL = 1e-6
 
-#: keys of the sandwich's state in :attr:`formtwin.tracker.TrackerState.model`
-STATE_KEYS = ("sandwich_G", "sandwich_P", "sandwich_J", "sandwich_Ja")
-
-
-def sandwich_step(G: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray,
-                  F: FloatArray, Q: FloatArray) -> FloatArray:
-    """The next sensitivity ``G`` (m, n_t) of the estimate to a persistent curve error
-    (module doc) from the previous ``G`` (m, n_t), the previous posterior covariance
-    ``P_prev`` (m, m), the Jacobian ``J`` (n_t, m), ``S^-1 J`` (n_t, m), the transition
-    factors ``F`` (m,) and the process-noise variances ``Q`` (m,).
-
-    >>> import numpy as np   # scalar state, one sample: K = P_lin / s, A = P_lin / P_pred
-    >>> G = sandwich_step(np.zeros((1, 1)), np.eye(1), np.eye(1), np.eye(1) / 2.0,
-    ...                   np.ones(1), np.ones(1))
-    >>> round(float(G[0, 0]), 6)   # P_pred = 2, P_lin = 1 / (1/2 + 1/2) = 1, K = 1/2
-    0.5
-    """
-    P_pred = F[:, None] * P_prev * F[None, :] + np.diag(Q)
-    pred_inv = np.linalg.inv(P_pred)
-    P_lin = np.linalg.inv(pred_inv + J.T @ S_inv_J)
-    P_lin = 0.5 * (P_lin + P_lin.T)
-    out: FloatArray = (P_lin @ pred_inv * F[None, :]) @ G + P_lin @ S_inv_J.T
-    return out
-
-
-class Sandwich:
-    """The robust intervals of one tracker: ``update`` after each step gives the variance
-    to add to the reported std of the augmented state (18,) and of the angles (2,)."""
-
-    def __init__(self, ssm: Any, gated: bool = False) -> None:
-        """For the tracker's model ``ssm`` (:class:`~formtwin.tracker.BendingSSM`);
-        ``gated``: ``B`` times the posterior probability of ``kappa > 0``."""
-        self.ssm = ssm
-        self.gated = gated
-        nx, self.m = ssm.n_x, ssm.n_varying
-        lo, hi = ssm._lo[:self.m], ssm._hi[:self.m]
-        self.F = np.r_[ssm._rho, np.ones(self.m - nx)]
-        self.Q = np.r_[(1.0 - ssm._rho**2) * ssm._sigma**2,
-                       (ssm.config.alpha * (hi[nx:] - lo[nx:])) ** 2]
-        k_res = residual_covariance(ssm.model)
-        n_t = ssm.spec.n_t
-        k_res = np.zeros((n_t, n_t)) if k_res is None else k_res
-        lam, vec = np.linalg.eigh(0.5 * (k_res + k_res.T))
-        self.k_half: FloatArray = vec * np.sqrt(np.maximum(lam, 0.0))  # K_res = R R^T
-        self.G = np.zeros((self.m, n_t))
-        self.P = self.P0 = np.diag(np.r_[ssm._sigma**2, (hi[nx:] - lo[nx:]) ** 2 / 12.0])
-        self.J: FloatArray | None = None
-        self.Ja: FloatArray | None = None
-
-    def weight(self) -> float:
-        """The factor on ``B``: 1, or (gated, adaptive likelihood) ``P(kappa > 0)``."""
-        d = self.ssm.discrepancy
-        if not self.gated or d is None or d.shared:
-            return 1.0
-        return float(np.exp(self.ssm.share_logpost) @ (d.shares > 0))
-
-    def update(self, x: FloatArray, w: FloatArray, y: FloatArray, t: int,
-               u: FloatArray | None) -> tuple[FloatArray, FloatArray]:
-        """After product ``t`` (0-based) with particles ``x`` (N, d), weights ``w`` (N,)
-        and curve ``y`` (n_t,): the variances (n_aug,) and (2,) to add to the cloud's
-        for the state and the angles at setting ``u``."""
-        ssm, m = self.ssm, self.m
-        n_in, na = ssm.n_in, ssm.n_aug
-        mean = w @ x
-        dev = x[:, :m] - mean[:m]
-        P = (dev * w[:, None]).T @ dev
-        if self.J is None or t % EVERY == 0:
-            self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
-        assert self.J is not None and self.Ja is not None
-        S = np.asarray(ssm._lik_cov())
-        if np.all(np.isfinite(self.J)) and np.all(np.isfinite(P)):
-            self.G = sandwich_step(self.G, self.P, self.J, np.linalg.solve(S, self.J),
-                                   self.F, self.Q)
-            self.P = P
-        H = self.G @ self.k_half  # B = H H^T
-        c = self.weight()
-        var = np.zeros(na)
-        var[:m] = c * np.sum(H * H, axis=1)
-        Ha = self.Ja @ H[:n_in]
-        return var, c * np.sum(Ha * Ha, axis=1)
-
-    def _refresh(self, mean: FloatArray, spread: FloatArray, y: FloatArray,
-                 u: FloatArray | None) -> None:
-        """The curve's Jacobian (n_t, m) and the angles' gradient (2, n_in) at ``mean``."""
-        ssm, n_in = self.ssm, self.ssm.n_in
-        self.J, step = ssm._cloud_jacobian(mean, spread[ssm.n_x:], y)
-        base = np.repeat(mean[None, :n_in], n_in + 1, axis=0)
-        base[1:] += np.diag(step[:n_in])
-        a = ssm.model.predict_angles(base, u)
-        self.Ja = (a[1:] - a[0]).T / step[:n_in]
-
-    def snapshot(self) -> tuple[Any, ...]:
-        """The recursion's arrays, for :meth:`restore` (they are replaced, never changed in
-        place, so references suffice)."""
-        return self.G, self.P, self.J, self.Ja
-
-    def restore(self, snap: tuple[Any, ...]) -> None:
-        """Back to a :meth:`snapshot`."""
-        self.G, self.P, self.J, self.Ja = snap
-
-    def state(self) -> dict[str, list[float]]:
-        """The recursion's state as JSON numbers (for the tracker's checkpoint)."""
-        if self.J is None or self.Ja is None:
-            return {}
-        return {k: [float(v) for v in a.ravel()]
-                for k, a in zip(STATE_KEYS, (self.G, self.P, self.J, self.Ja), strict=True)}
-
-    def set_state(self, d: dict[str, list[float]]) -> None:
-        """Continue from :meth:`state` (an empty dict: the start)."""
-        n_t, m, n_in = self.G.shape[1], self.m, self.ssm.n_in
-        if not d:
-            self.G, self.P, self.J, self.Ja = np.zeros((m, n_t)), self.P0, None, None
-            return
-        self.G = np.array(d["sandwich_G"], dtype=np.float64).reshape(m, n_t)
-        self.P = np.array(d["sandwich_P"], dtype=np.float64).reshape(m, m)
-        self.J = np.array(d["sandwich_J"], dtype=np.float64).reshape(n_t, m)
-        self.Ja = np.array(d["sandwich_Ja"], dtype=np.float64).reshape(2, n_in)
 
 
 def residual_signature(model: Any) -> FloatArray | None:

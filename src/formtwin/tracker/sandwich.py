@@ -1,0 +1,238 @@
+"""The linearised filter's error terms of the reported intervals, which the particle cloud
+does not show: a persistent metamodel error's (``TrackerConfig(intervals="sandwich")``)
+and an assumed mu's (``mu_known=False``, every ``intervals``).
+
+A metamodel error ``delta ~ N(0, K_res)`` (``K_res`` the k-fold held-out residual
+covariance) that stays the same from product to product is not averaged away: on the
+filter linearised about the cloud's mean (the curve's Jacobian ``J`` (n_t, m) in the m
+columns that vary, the likelihood's covariance ``S``, the transition factors ``F`` (rho
+for the state, 1 for the constant parameters) and the process noise ``Q`` (the AR(1)'s
+``(1 - rho^2) sigma^2``, the jitter's ``(alpha range)^2``)), one Kalman step is
+
+    P_pred = F P_prev F + Q,   P_lin = (P_pred^-1 + J^T S^-1 J)^-1,
+    K = P_lin J^T S^-1,        A = P_lin P_pred^-1 F,
+
+and the estimate's error from ``delta`` follows ``e_i = A e_(i-1) + K delta``: it is
+``G_i delta`` with the sensitivity ``G_i = A G_(i-1) + K`` (m, n_t), ``G_0 = 0``. Its
+covariance ``B = G K_res G^T`` is added to the cloud's covariance ``P`` in the reported
+std (:func:`sandwich_step`); the angles add ``a' B a'^T`` with ``a'`` the angle
+metamodel's gradient in ``[x, theta]`` at the cloud's mean. ``P_prev`` is the previous
+product's cloud covariance; one step with ``F = 0`` is the one-product sandwich
+``P J^T S^-1 K_res S^-1 J P``. For a linear-Gaussian model the recursion is exact: the
+Kalman estimate's mean error under a fixed offset ``delta`` is ``G delta`` and its mean
+squared error ``P + G delta delta^T G^T`` (tests/test_tracker_intervals.py).
+
+An assumed mu: the line's state means are ``mu + d``, not the filter's ``mu``. The state's
+prediction error then gains ``(1 - rho) d`` each product (the constant parameters' random
+walk has no mean: nothing), and the update keeps ``(I - K J) = P_lin P_pred^-1`` of the
+prediction error, so the estimate's error from ``d`` is ``G_mu d`` with
+
+    G_mu,i = P_lin P_pred^-1 (F G_mu,(i-1) + [diag(1 - rho); 0]),   G_mu,0 = [I; 0]
+
+(:func:`mu_step`; the initial law is centred on ``mu``). With ``d``'s second moment
+``E[d d^T]`` from the paper's law of the line's statistics, ``mu ~ U(mu_min, mu_max)``
+(``diag(range^2 / 12) + (mid - mu)(mid - mu)^T``), the reported covariance adds
+``G_mu E[d d^T] G_mu^T`` (the law of total variance over mu, to first order; the data's
+information on mu is not used: ``learn_mu`` learns it, and then there is no term). Exact
+for a linear-Gaussian model (tests/test_tracker_intervals.py). Without data (``J = 0``)
+``G_mu`` stays ``[I; 0]``: the estimate keeps the whole offset.
+
+``"gated"`` multiplies ``B`` by the posterior probability that the metamodel's error is in
+the data (the adaptive likelihood's ``P(kappa > 0)``; 1 for the other likelihoods).
+``J`` and the angle gradient are refreshed every :data:`EVERY` products (``m + 1`` curve
+and ``n_in + 1`` angle evaluations); the particles, weights, means, ESS, evidence and
+health do not change (the intervals are computed after the step and draw no random
+numbers). What this does and does not explain on the physics data: docs/likelihood.md.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.tracker.discrepancy import residual_covariance
+
+FloatArray = NDArray[np.float64]
+
+#: the curve's Jacobian and the angles' gradient are refreshed every this many products
+#: (the cloud's mean drifts slowly; each refresh costs m + 1 + n_in + 1 model rows)
+EVERY = 4
+
+#: keys of the sandwich's state in :attr:`formtwin.tracker.TrackerState.model`
+STATE_KEYS = ("sandwich_G", "sandwich_P", "sandwich_J", "sandwich_Ja", "sandwich_Gmu")
+
+
+def _gains(P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray, F: FloatArray,
+           Q: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``(I - K J) = P_lin P_pred^-1`` (m, m) and the gain ``K = P_lin J^T S^-1`` (m, n_t)
+    of the linearised step (module doc)."""
+    P_pred = F[:, None] * P_prev * F[None, :] + np.diag(Q)
+    pred_inv = np.linalg.inv(P_pred)
+    P_lin = np.linalg.inv(pred_inv + J.T @ S_inv_J)
+    P_lin = 0.5 * (P_lin + P_lin.T)
+    return P_lin @ pred_inv, P_lin @ S_inv_J.T
+
+
+def sandwich_step(G: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray,
+                  F: FloatArray, Q: FloatArray) -> FloatArray:
+    """The next sensitivity ``G`` (m, n_t) of the estimate to a persistent curve error
+    (module doc) from the previous ``G`` (m, n_t), the previous posterior covariance
+    ``P_prev`` (m, m), the Jacobian ``J`` (n_t, m), ``S^-1 J`` (n_t, m), the transition
+    factors ``F`` (m,) and the process-noise variances ``Q`` (m,).
+
+    >>> import numpy as np   # scalar state, one sample: K = P_lin / s, A = P_lin / P_pred
+    >>> G = sandwich_step(np.zeros((1, 1)), np.eye(1), np.eye(1), np.eye(1) / 2.0,
+    ...                   np.ones(1), np.ones(1))
+    >>> round(float(G[0, 0]), 6)   # P_pred = 2, P_lin = 1 / (1/2 + 1/2) = 1, K = 1/2
+    0.5
+    """
+    return _next_G(*_gains(P_prev, J, S_inv_J, F, Q), F, G)
+
+
+def _next_G(M: FloatArray, K: FloatArray, F: FloatArray, G: FloatArray) -> FloatArray:
+    """``G = A G' + K`` with ``A = M F`` (:func:`sandwich_step`)."""
+    out: FloatArray = (M * F[None, :]) @ G + K
+    return out
+
+
+def _next_G_mu(M: FloatArray, F: FloatArray, G_mu: FloatArray) -> FloatArray:
+    """``G_mu = M (F G_mu' + [diag(1 - rho); 0])`` (:func:`mu_step`)."""
+    nx = G_mu.shape[1]
+    out: FloatArray = M @ (F[:, None] * G_mu + np.eye(F.size, nx) * (1.0 - F[:nx]))
+    return out
+
+
+def mu_step(G_mu: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray,
+            F: FloatArray, Q: FloatArray) -> FloatArray:
+    """The next sensitivity ``G_mu`` (m, n_x) of the estimate's error to an offset ``d``
+    (n_x,) of the assumed mu from the line's (module doc): the state's prediction error
+    gains ``(1 - rho) d``, the update keeps ``I - K J`` of it,
+    ``G_mu = (I - K J) (F G_mu' + [diag(1 - rho); 0])`` (arguments as
+    :func:`sandwich_step`; the first ``n_x`` of ``F`` are rho).
+
+    >>> import numpy as np   # no data (J = 0): the estimate keeps the whole offset
+    >>> G = np.eye(2, 1)
+    >>> for _ in range(3):
+    ...     G = mu_step(G, np.eye(2), np.zeros((1, 2)), np.zeros((1, 2)),
+    ...                 np.array([0.5, 1.0]), np.ones(2))
+    >>> G.ravel().tolist()
+    [1.0, 0.0]
+    """
+    return _next_G_mu(_gains(P_prev, J, S_inv_J, F, Q)[0], F, G_mu)
+
+
+class Sandwich:
+    """The linearised filter's error terms of one tracker: ``update`` after each step gives
+    the variance to add to the reported std of the augmented state (18,) and of the angles
+    (2,): ``G K_res G^T`` of a persistent metamodel error (``metamodel``) and
+    ``G_mu E[d d^T] G_mu^T`` of an assumed mu (``mu_assumed``)."""
+
+    def __init__(self, ssm: Any, gated: bool = False, metamodel: bool = True,
+                 mu_assumed: bool = False) -> None:
+        """For the tracker's model ``ssm`` (:class:`~formtwin.tracker.BendingSSM`);
+        ``gated``: ``B`` times the posterior probability of ``kappa > 0``; ``metamodel``:
+        the metamodel error's term; ``mu_assumed``: the assumed mu's term, with the offset
+        ``d = mu_line - mu`` of the line's mu drawn from ``U(mu_min, mu_max)``:
+        ``E[d d^T] = diag(range^2 / 12) + (mid - mu)(mid - mu)^T``."""
+        self.ssm = ssm
+        self.gated = gated
+        nx, self.m = ssm.n_x, ssm.n_varying
+        lo, hi = ssm._lo[:self.m], ssm._hi[:self.m]
+        self.F = np.r_[ssm._rho, np.ones(self.m - nx)]
+        self.Q = np.r_[(1.0 - ssm._rho**2) * ssm._sigma**2,
+                       (ssm.config.alpha * (hi[nx:] - lo[nx:])) ** 2]
+        k_res = residual_covariance(ssm.model) if metamodel else None
+        n_t = ssm.spec.n_t
+        self.k_half: FloatArray = np.zeros((n_t, 0))  # K_res = R R^T; none: no term
+        if k_res is not None:
+            lam, vec = np.linalg.eigh(0.5 * (k_res + k_res.T))
+            self.k_half = vec * np.sqrt(np.maximum(lam, 0.0))
+        mid, var = ssm.mu_prior
+        #: E[d d^T] = R_mu R_mu^T (n_x, n_x + 1); zeros when mu is known or learned
+        self.mu_half: FloatArray = np.c_[np.diag(np.sqrt(var)), mid - ssm._mu] \
+            if mu_assumed else np.zeros((nx, 0))
+        self.G = np.zeros((self.m, n_t))
+        self.G_mu = self.G_mu0 = np.eye(self.m, nx)  # the initial law's mean is mu
+        self.P = self.P0 = np.diag(np.r_[ssm._sigma**2, (hi[nx:] - lo[nx:]) ** 2 / 12.0])
+        self.J: FloatArray | None = None
+        self.Ja: FloatArray | None = None
+
+    def weight(self) -> float:
+        """The factor on ``B``: 1, or (gated, adaptive likelihood) ``P(kappa > 0)``."""
+        d = self.ssm.discrepancy
+        if not self.gated or d is None or d.shared:
+            return 1.0
+        return float(np.exp(self.ssm.share_logpost) @ (d.shares > 0))
+
+    def update(self, x: FloatArray, w: FloatArray, y: FloatArray, t: int,
+               u: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+        """After product ``t`` (0-based) with particles ``x`` (N, d), weights ``w`` (N,)
+        and curve ``y`` (n_t,): the variances (n_aug,) and (2,) to add to the cloud's
+        for the state and the angles at setting ``u``."""
+        ssm, m = self.ssm, self.m
+        n_in, na = ssm.n_in, ssm.n_aug
+        mean = w @ x
+        dev = x[:, :m] - mean[:m]
+        P = (dev * w[:, None]).T @ dev
+        if self.J is None or t % EVERY == 0:
+            self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
+        assert self.J is not None and self.Ja is not None
+        S = np.asarray(ssm._lik_cov())
+        if np.all(np.isfinite(self.J)) and np.all(np.isfinite(P)):
+            M, K = _gains(self.P, self.J, np.linalg.solve(S, self.J), self.F, self.Q)
+            if self.k_half.size:
+                self.G = _next_G(M, K, self.F, self.G)
+            if self.mu_half.size:
+                self.G_mu = _next_G_mu(M, self.F, self.G_mu)
+            self.P = P
+        c = self.weight()
+        H = self.G @ self.k_half  # B = H H^T
+        H_mu = self.G_mu @ self.mu_half
+        var = np.zeros(na)
+        var[:m] = c * np.sum(H * H, axis=1) + np.sum(H_mu * H_mu, axis=1)
+        Ha, Ha_mu = self.Ja @ H[:n_in], self.Ja @ H_mu[:n_in]
+        return var, c * np.sum(Ha * Ha, axis=1) + np.sum(Ha_mu * Ha_mu, axis=1)
+
+    def _refresh(self, mean: FloatArray, spread: FloatArray, y: FloatArray,
+                 u: FloatArray | None) -> None:
+        """The curve's Jacobian (n_t, m) and the angles' gradient (2, n_in) at ``mean``."""
+        ssm, n_in = self.ssm, self.ssm.n_in
+        J, step = ssm._cloud_jacobian(mean, spread[ssm.n_x:], y)
+        base = np.repeat(mean[None, :n_in], n_in + 1, axis=0)
+        base[1:] += np.diag(step[:n_in])
+        a = ssm.model.predict_angles(base, u)
+        # C order, as restored from a checkpoint: the same BLAS path, the same last bits
+        self.J = np.ascontiguousarray(J)
+        self.Ja = np.ascontiguousarray((a[1:] - a[0]).T / step[:n_in])
+
+    def snapshot(self) -> tuple[Any, ...]:
+        """The recursion's arrays, for :meth:`restore` (they are replaced, never changed in
+        place, so references suffice)."""
+        return self.G, self.P, self.J, self.Ja, self.G_mu
+
+    def restore(self, snap: tuple[Any, ...]) -> None:
+        """Back to a :meth:`snapshot`."""
+        self.G, self.P, self.J, self.Ja, self.G_mu = snap
+
+    def state(self) -> dict[str, list[float]]:
+        """The recursion's state as JSON numbers (for the tracker's checkpoint)."""
+        if self.J is None or self.Ja is None:
+            return {}
+        return {k: [float(v) for v in a.ravel()] for k, a in zip(
+            STATE_KEYS, (self.G, self.P, self.J, self.Ja, self.G_mu), strict=True)}
+
+    def set_state(self, d: dict[str, list[float]]) -> None:
+        """Continue from :meth:`state` (an empty dict: the start)."""
+        n_t, m, n_in, nx = self.G.shape[1], self.m, self.ssm.n_in, self.ssm.n_x
+        if not d:
+            self.G, self.P, self.J, self.Ja = np.zeros((m, n_t)), self.P0, None, None
+            self.G_mu = self.G_mu0
+            return
+        self.G = np.array(d["sandwich_G"], dtype=np.float64).reshape(m, n_t)
+        self.P = np.array(d["sandwich_P"], dtype=np.float64).reshape(m, m)
+        self.J = np.array(d["sandwich_J"], dtype=np.float64).reshape(n_t, m)
+        self.Ja = np.array(d["sandwich_Ja"], dtype=np.float64).reshape(2, n_in)
+        self.G_mu = np.array(d["sandwich_Gmu"], dtype=np.float64).reshape(m, nx) \
+            if "sandwich_Gmu" in d else self.G_mu0
