@@ -22,7 +22,8 @@ identical data for both likelihoods):
 * ``min_skill``: smallest skill over the 7 states and series 1, 3, 4, 5, 6 (all 5
   repetitions);
 * ``coverage90_min/max``: extremes of the coverage of the 90 % intervals over the 7 states
-  and 2 angles, series 1, 3, 5, 6 (mean over datasets and repetitions);
+  and 2 angles, series 1, 3, 5, 6 (mean over datasets and repetitions; series 4's is
+  reported too, ``coverage_states_angles``);
 * ``s8_vs_s6``: state nRMSE of series 8 (learned mu) / series 6 (assumed mu).
 
 Targets (issue 11): s5 <= 0.7, s6 <= 0.8, s1 <= 1.05, min_skill >= 0, 0.80 <= coverage90_min,
@@ -72,6 +73,9 @@ OPTIONS: dict[str, tuple[dict[str, Any], tuple[int, ...], str]] = {
     "intervals_sandwich": ({"intervals": "sandwich"}, (1, 3, 5, 6),
                            "+ B = G K_res G^T, the linearised response to a persistent "
                            "metamodel error"),
+    "mu_known": ({"mu_known": True}, (4, 6),
+                 "the intervals without the assumed mu's term G_mu E[d d^T] G_mu^T (as "
+                 "before session 10)"),
 }
 
 
@@ -171,8 +175,9 @@ def main() -> None:
             "runs_s": round(runs_s, 1)}
 
     skill = {s: _mean(full.skill[s - 1], axis=(0, 1)) for s in (1, 3, 4, 5, 6)}
-    cov = {s: _mean(full.coverage[s - 1], axis=(0, 1)) for s in (1, 3, 5, 6)}
-    cov_sel = np.concatenate([np.r_[c[:nx], c[n_aug:n_aug + 2]] for c in cov.values()])
+    cov = {s: _mean(full.coverage[s - 1], axis=(0, 1)) for s in (1, 3, 4, 5, 6)}
+    cov_sel = np.concatenate([np.r_[c[:nx], c[n_aug:n_aug + 2]] for s, c in cov.items()
+                              if s != 4])  # the issue's series 1, 3, 5, 6
     paper_cov = {s: _mean(paper.paper["coverage"][s - 1], axis=(0, 1)) for s in (1, 5, 6)}
     figures: dict[str, Any] = {
         "s1_state_ratio": round(state(paper, 1) / state(paper, 1, True), 4),

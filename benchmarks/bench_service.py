@@ -181,7 +181,7 @@ def main() -> int:
     mu = None if args.unknown_means else line_mu
     model = ["--metamodel", metamodel] if metamodel else ["--analytic"]
     if mu is not None:
-        model += ["--mu", ",".join(repr(v) for v in mu), "--mu-known"]  # the stream's own
+        model += ["--mu", ",".join(repr(v) for v in mu)]
     procs: list[subprocess.Popen[bytes]] = []
     try:
         procs.append(subprocess.Popen([mosq, "-c", str(tmp / "m.conf")],

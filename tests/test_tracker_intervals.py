@@ -119,7 +119,8 @@ def test_mu_term_is_the_kalman_estimates_error_under_a_wrong_prior_mean() -> Non
 
 
 def test_assumed_mu_widens_only_the_reported_std() -> None:
-    """mu_known=False (the default) against True on the same seed: particles, means, ESS,
+    """intervals="cloud_mu", mu_known=False (the default) against True on the same seed:
+    particles, means, ESS,
     evidence and fit bit for bit; the std of the states and angles grow (theta's too,
     through its correlation with the state); a learned mu has no term."""
     model = analytic_model()
@@ -127,7 +128,7 @@ def test_assumed_mu_widens_only_the_reported_std() -> None:
 
     def run(**kw: object) -> tuple[Tracker, list]:
         cfg = TrackerConfig(n_particles=200, estimate_deviation=False, n_mc=500, seed=3,
-                            intervals="cloud", **kw)  # type: ignore[arg-type]
+                            intervals="cloud_mu", **kw)  # type: ignore[arg-type]
         tr = build_tracker(model, cfg)
         return tr, [tr.step(c) for c in curves]
 
@@ -144,6 +145,8 @@ def test_assumed_mu_widens_only_the_reported_std() -> None:
     np.testing.assert_array_equal(ea[-1].std[10:], 0.0)  # theta_d is not estimated
     learned, _ = run(learn_mu=True)
     assert learned.sandwich is None
+    pure = build_tracker(model, TrackerConfig(n_particles=200, intervals="cloud"))
+    assert pure.sandwich is None  # "cloud" is the particles' own std (eq. 14)
 
 
 class _ModelWithError:
@@ -162,10 +165,11 @@ class _ModelWithError:
         return getattr(self._m, name)
 
 
-def _run(intervals: str, deviation: bool = False) -> tuple[Tracker, list]:
+def _run(intervals: str, deviation: bool = False, mu_known: bool = True
+         ) -> tuple[Tracker, list]:
     model = _ModelWithError()
     cfg = TrackerConfig(n_particles=200, estimate_deviation=deviation, n_mc=500, seed=3,
-                        intervals=intervals)
+                        intervals=intervals, mu_known=mu_known)
     tr = build_tracker(model, cfg)  # type: ignore[arg-type]
     return tr, [tr.step(c) for c in interior_curves(model._m, n=8)]
 
@@ -198,7 +202,7 @@ def test_sandwich_tracker_continues_bit_for_bit() -> None:
     """Restored from its state bytes (the sensitivity G and the last Jacobians in the
     model state) a tracker reports the same std as the original."""
     model = _ModelWithError()
-    tr, _ = _run("sandwich")
+    tr, _ = _run("sandwich", mu_known=False)  # G and G_mu
     back = Tracker.from_state_bytes(tr.state_bytes(), model, tr.measurement)  # type: ignore[arg-type]
     curves = interior_curves(model._m, n=6, seed=2)
     for c in curves:

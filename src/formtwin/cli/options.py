@@ -26,5 +26,10 @@ def add_tracker_options(p: argparse.ArgumentParser, exclude: tuple[str, ...] = (
 
 def tracker_config(args: argparse.Namespace, base: Mapping[str, Any] | None = None
                    ) -> TrackerConfig:
-    """The :class:`TrackerConfig` of defaults < ``base`` < ``--config`` < flags."""
-    return resolve(TrackerConfig, args, getattr(args, "config", None), "tracker", base)
+    """The :class:`TrackerConfig` of defaults < ``base`` < ``--config`` < flags; given the
+    line's means (``mu``), ``mu_known`` defaults to True (``--no-mu-known``: a guess)."""
+    config = resolve(TrackerConfig, args, getattr(args, "config", None), "tracker", base)
+    if config.mu is None or config.mu_known:
+        return config
+    known = {**(base or {}), "mu_known": True}
+    return resolve(TrackerConfig, args, getattr(args, "config", None), "tracker", known)

@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> None:
                              n_products=args.products, window=args.products // 2,
                              seed=args.seed, series=(GATE_SERIES, *SERIES_OF.values()),
                              paper_repetitions=0,
-                             tracker=dataclasses.replace(TrackerConfig(), intervals="cloud"))
+                             tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu"))
     result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
     d0, n_gate = gate_d0(result)
     out = {"what": "floors (internal units; angles degrees) added in quadrature to the "

@@ -132,10 +132,12 @@ def series_config(base: TrackerConfig, series: Series, mu: FloatArray,
                   seed: int) -> TrackerConfig:
     """The filter settings of ``series``: ``base`` with the series' deviation switch,
     learned-mu switch and whether mu is known (else the intervals carry the assumed mu's
-    error), the assumed state means ``mu`` (7,) and the tracker ``seed``."""
+    error; ``base.mu_known`` drops that term in every series, the intervals before
+    session 10), the assumed state means ``mu`` (7,) and the tracker ``seed``."""
     return dataclasses.replace(base, estimate_deviation=series.deviation,
                                mu=tuple(float(v) for v in mu), seed=seed,
-                               learn_mu=series.learn_mu, mu_known=series.mu_known)
+                               learn_mu=series.learn_mu,
+                               mu_known=series.mu_known or base.mu_known)
 
 
 def make_measurement(model: Metamodel | ProcessModel, real: Realisation, mu_known: bool,

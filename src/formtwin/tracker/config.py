@@ -25,13 +25,14 @@ COMPARE = ("model", "measurement")
 LIKELIHOODS = ("calibrated", "paper", "adaptive", "discrepancy")
 
 #: the reported intervals (:mod:`formtwin.tracker.intervals`): "cloud" the particles'
-#: weighted std (all five add an assumed mu's term unless ``mu_known``); "calibrated"
+#: weighted std (eq. 14); the others add the assumed mu's term unless ``mu_known``
+#: (:mod:`formtwin.tracker.sandwich`), "cloud_mu" that alone; "calibrated"
 #: adds in quadrature floors learned offline on physics runs
 #: of the bundled metamodel; "calibrated_fit" scales their squares by the curves' running fit
 #: distance in excess of its value on the metamodel's own curves (learned in the same
 #: calibration); "sandwich" adds the covariance ``B`` of the error a persistent
 #: metamodel error ``N(0, K_res)`` puts in the estimate; "gated" adds ``P(kappa > 0) B``
-INTERVALS = ("cloud", "calibrated", "calibrated_fit", "sandwich", "gated")
+INTERVALS = ("cloud", "cloud_mu", "calibrated", "calibrated_fit", "sandwich", "gated")
 
 #: priors of a learned mu (``learn_mu``): "uniform" is ``U(mu_min, mu_max)``, the law the
 #: paper's statistics are drawn from (posterior: a truncated Normal), "normal" the Normal
@@ -67,8 +68,10 @@ class TrackerConfig:
     mu_known : ``mu`` is the line's true state mean (the study's series 1-3 and 5). False
         (default: a live line does not know it): the reported std add the error of
         assuming it, the line's mu drawn from ``U(mu_min, mu_max)`` (the linearised
-        filter's ``G_mu``, :mod:`formtwin.tracker.sandwich`), for every ``intervals``;
-        none with ``learn_mu``. Particles, means, ESS and evidence do not change.
+        filter's ``G_mu``, :mod:`formtwin.tracker.sandwich`), for every ``intervals`` but
+        ``"cloud"``; none with ``learn_mu``. The command line sets it when ``--mu`` is
+        given (the line's means; ``--no-mu-known`` for a guess). Particles, means, ESS and
+        evidence do not change.
     resampling : resampling scheme name (or callable, not checkpointable).
     seed : seed of the tracker's ``numpy.random.default_rng`` (and of the Monte-Carlo
         curves for ``K_MC`` when :func:`~formtwin.tracker.build_tracker` makes them).
@@ -119,8 +122,9 @@ class TrackerConfig:
         excess of its mean on the metamodel's own curves (learned in the same calibration:
         :class:`~formtwin.tracker.intervals.Floors`), so they shrink where the metamodel
         explains the curves;
-        ``"cloud"`` the particles' weighted std (with an assumed mu, ``mu_known=False``,
-        plus that term, as for the others); ``"sandwich"`` adds the part of
+        ``"cloud"`` the particles' weighted std alone (eq. 14; no assumed-mu term);
+        ``"cloud_mu"`` that plus the assumed mu's term (see ``mu_known``; the
+        calibration's runs); ``"sandwich"`` adds the part of
         the error that a persistent metamodel error puts in the estimate
         (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
         particles, weights, means, ESS and evidence are the same for all five.
@@ -178,7 +182,8 @@ class TrackerConfig:
     discrepancy_memory: float = field(default=math.inf, metadata=_help(
         "memory of the learned discrepancy, products (inf: no forgetting)"))
     intervals: str = field(default="calibrated_fit", metadata=_help(
-        "reported std: cloud (the particles'), calibrated (+ floors learned offline on "
+        "reported std: cloud (the particles'), cloud_mu (+ the assumed mu's term, which "
+        "all but cloud add), calibrated (+ floors learned offline on "
         "physics runs), calibrated_fit (those scaled by the excess fit distance), "
         "sandwich (+ the persistent metamodel error's part) or gated (that "
         "times P(kappa > 0))"))

@@ -160,7 +160,8 @@ class Tracker:
                                        self.rng, self.config.resampling,
                                        self.config.ess_threshold)
         c = self.config
-        metamodel, assumed = c.intervals in ("sandwich", "gated"), not (c.mu_known or c.learn_mu)
+        metamodel = c.intervals in ("sandwich", "gated")
+        assumed = c.intervals != "cloud" and not (c.mu_known or c.learn_mu)
         self.sandwich = Sandwich(self.ssm, c.intervals == "gated", metamodel, assumed) \
             if metamodel or assumed else None
         self.floors = Floors(model, self.config.estimate_deviation, self.config.intervals

@@ -1,6 +1,6 @@
 """The linearised filter's error terms of the reported intervals, which the particle cloud
 does not show: a persistent metamodel error's (``TrackerConfig(intervals="sandwich")``)
-and an assumed mu's (``mu_known=False``, every ``intervals``).
+and an assumed mu's (``mu_known=False``, every ``intervals`` but ``"cloud"``).
 
 A metamodel error ``delta ~ N(0, K_res)`` (``K_res`` the k-fold held-out residual
 covariance) that stays the same from product to product is not averaged away: on the
