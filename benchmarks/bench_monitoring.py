@@ -20,7 +20,8 @@ by their settings and a hash of the code that makes the estimates, so chart desi
    simulated in-control runs of ``--calib-products`` products (AR(2) models of the state
    posterior means about mu, of the predicted angles about a Phase-I level, health
    references (the calibration lines' pooled values; ``--health-per-line``: each line's
-   own Phase-I values) and AR models of their normal scores; limits for the design's
+   own Phase-I values) and AR models of their normal scores, whose levels follow the line
+   once charting (``--health-level``, 0: fixed); limits for the design's
    ARL0 per chart, widened where the calibration runs would have crossed them).
 2. False alarms: ``--ic-runs`` fresh in-control runs (other seeds, other machine
    parameters) of ``--ic-products`` products; every alarm counts.
@@ -198,6 +199,9 @@ def main() -> None:
     p.add_argument("--health-per-line", action="store_true",
                    help="health scored against each line's own Phase-I values, not the "
                    "calibration lines' pooled values")
+    p.add_argument("--health-level", type=float, default=d0.health_level or 0.0,
+                   help="weight of the EWMA the health scores' levels follow (0: the "
+                        "calibration lines' level throughout)")
     p.add_argument("--k-mismatch", type=float, default=d0.k_mismatch)
     p.add_argument("--no-glr", action="store_true")
     p.add_argument("--arl0-glr", type=float, default=d0.arl0_glr)
@@ -231,7 +235,8 @@ def main() -> None:
                          widen_margin=args.widen_margin or None, angle_cusum=args.angle_cusum,
                          tails=not args.no_tails, health_ar=not args.no_health_ar,
                          health_phase1=args.health_phase1,
-                         health_per_line=args.health_per_line, glr=not args.no_glr,
+                         health_per_line=args.health_per_line,
+                         health_level=args.health_level or None, glr=not args.no_glr,
                          arl0_glr=args.arl0_glr, glr_window=args.glr_window,
                          glr_clip=args.glr_clip or None,
                          state_cusum=not args.no_state_cusum)

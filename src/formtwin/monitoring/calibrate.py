@@ -80,6 +80,10 @@ class ChartDesign:
         models are fitted on the calibration lines scored the same way (each against its
         own Phase I), about their pooled level. Off by default: on bending-2.4's held-out
         runs it raised more false alarms than the pooled references (docs/monitoring.md).
+    health_level : the health scores' levels follow the line once charting (an EWMA with
+        this weight, :attr:`~formtwin.monitoring.monitor.MonitorConfig.health_level`: 0.01,
+        a time constant of 100 products; chosen on bench_monitoring's seed-2026 runs,
+        docs/monitoring.md); ``None``: the calibration lines' level throughout.
     glr : a GLR chart for a level change on each state variable
         (:mod:`~formtwin.monitoring.glr`: matched to the spike-then-shift signature a step
         in the mean leaves in the AR residuals).
@@ -107,6 +111,7 @@ class ChartDesign:
     health_ar: bool = True
     health_phase1: bool = False
     health_per_line: bool = False
+    health_level: float | None = 0.01
     angle_cusum: bool = False
     glr: bool = True
     arl0_glr: float = 1.0e5
@@ -247,7 +252,7 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
         glr[n] = Glr(sig, h, d.glr_window, d.glr_clip)
     config = MonitorConfig(quantities, health, models, ewma, cusum, mismatch, d.warmup,
                            d.phase1, tuple(cusum_on), shewhart, glr=glr,
-                           health_per_line=d.health_per_line)
+                           health_per_line=d.health_per_line, health_level=d.health_level)
     return config if d.widen_margin is None else widen(config, runs, d.widen_margin)
 
 

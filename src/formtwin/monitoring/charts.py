@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import brentq
@@ -42,6 +43,35 @@ CHARTS = ("ewma", "cusum")
 def ewma_limit(i: int, lam: float, L: float) -> float:
     """Exact EWMA control limit after ``i`` >= 1 observations, in sigma units of ``z``."""
     return L * math.sqrt(lam / (2.0 - lam) * (1.0 - (1.0 - lam) ** (2 * i)))
+
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """One alarm.
+
+    Attributes
+    ----------
+    variable : the quantity (a state variable, an angle, or a health statistic).
+    chart : ``"ewma"``, ``"cusum"``, ``"glr"``, ``"shewhart"`` or ``"mismatch"``.
+    index : the estimate's product index (0-based, the tracker's step).
+    statistic : the chart statistic when it crossed (sigma units of the residual;
+        ``shewhart``: the residual's score ``z`` itself; ``glr``: a log-likelihood ratio).
+    limit : the limit it crossed (same units).
+    side : ``"high"`` (above the in-control level) or ``"low"``.
+    """
+
+    variable: str
+    chart: str
+    index: int
+    statistic: float
+    limit: float
+    side: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"variable": self.variable, "chart": self.chart, "index": int(self.index),
+                "statistic": float(self.statistic), "limit": float(self.limit),
+                "side": self.side}
 
 
 @dataclass(frozen=True)
@@ -164,6 +194,6 @@ def ewma_L(lam: float, arl0: float, states: int = 201) -> float:
                         0.5, 8.0))
 
 
-__all__ = ["CHARTS", "Cusum", "CusumState", "Ewma", "EwmaState", "Signal",
+__all__ = ["CHARTS", "Alarm", "Cusum", "CusumState", "Ewma", "EwmaState", "Signal",
            "cusum_arl_siegmund", "cusum_arl_two_sided", "cusum_h", "ewma_L", "ewma_arl",
            "ewma_limit"]

@@ -1,6 +1,6 @@
 """Control charts on a stream of estimates: an EWMA chart per quantity, a CUSUM and a GLR
 chart for a level change (:mod:`~formtwin.monitoring.glr`) on those configured, and a
-model-mismatch chart on the filter's health; alarms as small immutable values.
+model-mismatch chart on the filter's health; alarms: :class:`~formtwin.monitoring.charts.Alarm`.
 
 Quantities: the posterior means of the state variables (``spec.state.names``) and the
 predicted angles (``angle_stage1``, ``angle_stage2``), each standardised by its in-control
@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from formtwin.estimates import Estimate
-from formtwin.monitoring.charts import Cusum, CusumState, Ewma, EwmaState
+from formtwin.monitoring.charts import Alarm, Cusum, CusumState, Ewma, EwmaState
 from formtwin.monitoring.glr import Glr, GlrState
 from formtwin.monitoring.incontrol import InControl, Reference
 
@@ -43,34 +43,6 @@ ANGLES = ("angle_stage1", "angle_stage2")
 #: the log-evidence increment, the ESS, and the absolute fit's log10 p-value
 #: (:mod:`formtwin.tracker.fit`; NaN where an estimate has none)
 HEALTH = {"loglik": "low", "ess": "low", "fit": "low"}
-
-
-@dataclass(frozen=True)
-class Alarm:
-    """One alarm.
-
-    Attributes
-    ----------
-    variable : the quantity (a state variable, an angle, or a health statistic).
-    chart : ``"ewma"``, ``"cusum"``, ``"glr"``, ``"shewhart"`` or ``"mismatch"``.
-    index : the estimate's product index (0-based, the tracker's step).
-    statistic : the chart statistic when it crossed (sigma units of the residual;
-        ``shewhart``: the residual's score ``z`` itself; ``glr``: a log-likelihood ratio).
-    limit : the limit it crossed (same units).
-    side : ``"high"`` (above the in-control level) or ``"low"``.
-    """
-
-    variable: str
-    chart: str
-    index: int
-    statistic: float
-    limit: float
-    side: str
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"variable": self.variable, "chart": self.chart, "index": int(self.index),
-                "statistic": float(self.statistic), "limit": float(self.limit),
-                "side": self.side}
 
 
 @dataclass(frozen=True)
@@ -101,6 +73,11 @@ class MonitorConfig:
         its end; ``health``'s pooled samples give the orientation, and stand in if Phase I
         has fewer than 20 finite values); the health models' means must be set (their
         scores exist only after Phase I).
+    health_level : the health models' levels follow the line: once charting, each product
+        moves a level by this share of its score's deviation from it (clipped to +-3), an
+        EWMA whose time constant (1 / share products) is long against a mismatch's
+        detection and short against the filter's health transient (docs/monitoring.md);
+        ``None``: the levels stay at the calibration lines' (or Phase I's).
     """
 
     quantities: Mapping[str, InControl]
@@ -116,6 +93,7 @@ class MonitorConfig:
     widen: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     glr: Mapping[str, Glr] = field(default_factory=dict)
     health_per_line: bool = False
+    health_level: float | None = None
 
     def __post_init__(self) -> None:
         bad_w = {f"{n}/{c}": f for n, d in self.widen.items() for c, f in d.items()
@@ -150,6 +128,8 @@ class MonitorConfig:
         if self.health_per_line and any(q.mean is None for q in self.health_models.values()):
             raise ValueError("health_per_line: the health models need their means (the "
                              "scores exist only after Phase I)")
+        if self.health_level is not None and not 0.0 < self.health_level < 1.0:
+            raise ValueError(f"health_level = {self.health_level}: expected in (0, 1)")
 
     def to_json(self) -> str:
         return json.dumps({
@@ -165,7 +145,7 @@ class MonitorConfig:
             "widen": {n: dict(d) for n, d in self.widen.items()},
             "glr": {n: {"signature": list(g.signature), "h": g.h, "window": g.window,
                         "clip": g.clip} for n, g in self.glr.items()},
-            "health_per_line": self.health_per_line})
+            "health_per_line": self.health_per_line, "health_level": self.health_level})
 
     @classmethod
     def from_json(cls, text: str) -> MonitorConfig:
@@ -185,7 +165,8 @@ class MonitorConfig:
                    glr={n: Glr(tuple(g["signature"]), float(g["h"]), int(g["window"]),
                                None if g.get("clip") is None else float(g["clip"]))
                         for n, g in d.get("glr", {}).items()},
-                   health_per_line=bool(d.get("health_per_line", False)))
+                   health_per_line=bool(d.get("health_per_line", False)),
+                   health_level=d.get("health_level"))
 
 
 def observe(estimate: Estimate) -> dict[str, float]:
@@ -332,7 +313,18 @@ class Monitor:
             if s.side:
                 alarms.append(Alarm(n, "mismatch", idx, s.statistic, s.limit, s.side))
         self._remember(values)
+        self._follow(values)
         return tuple(alarms)
+
+    def _follow(self, values: Mapping[str, float]) -> None:
+        """Move each health model's level towards this product's score (``health_level``)."""
+        lam = self.config.health_level
+        if lam is None:
+            return
+        for n in self.config.health_models:
+            m, y = self.means[n], float(values[n])
+            if m is not None and math.isfinite(y):
+                self.means[n] = m + lam * min(max(y - m, -3.0), 3.0)
 
     def _line_references(self) -> None:
         """Freeze this line's health references from its Phase-I values (the pooled one
