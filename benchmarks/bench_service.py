@@ -225,7 +225,8 @@ def main() -> int:
     threadpool_limits(limits=1, user_api="blas")
     settings = ServiceSettings(model=metamodel or "analytic",
                                tracker=TrackerConfig(n_particles=args.particles,
-                                                     sensor_noise=NOISE_N, mu=mu))
+                                                     sensor_noise=NOISE_N, mu=mu,
+                                                     mu_known=mu is not None))  # as serve --mu
     proc = open_processor(tmp / "peer.sqlite", settings)
     proc.monitor = ServiceMonitor(proc.store, monitor_config(  # as serve sets them up
         proc.store, proc.tracker, MonitorSource(seed=settings.tracker.seed)))
