@@ -126,8 +126,8 @@ class TrackerConfig:
         ``"cloud_mu"`` that plus the assumed mu's term (see ``mu_known``; the
         calibration's runs); ``"sandwich"`` adds the part of
         the error that a persistent metamodel error puts in the estimate
-        (:mod:`formtwin.tracker.intervals`); ``"gated"`` that times ``P(kappa > 0)``. The
-        particles, weights, means, ESS and evidence are the same for all five.
+        (:mod:`formtwin.tracker.sandwich`); ``"gated"`` that times ``P(kappa > 0)``. The
+        particles, weights, means, ESS and evidence are the same for all six.
     discrepancy_memory : with ``likelihood="discrepancy"``, the memory (products) of its
         statistics: ``1 - 1/memory`` is the forgetting factor; ``inf``: none.
     learn_scale : learn a factor ``c`` on the likelihood's covariance online: a posterior
