@@ -36,7 +36,10 @@ Independent check: ``--independent N`` adds N points the pinch rule was not set 
 hypercube rows of the bundled DOE, 2/3 at punch end distance 310-340 um, 1/3 at 340-410 um,
 seeded by ``--independent-seed``; :mod:`fe_independent`), each with a stage-1 FE run on the
 fine mesh and a two-stage run on the final-angle mesh, and writes both beam models' errors
-(2.4 and 2.3 = ``pinch_reach=0``) there under ``independent``.
+(2.4 and 2.3 = ``pinch_reach=0``) there under ``independent``. Several seeds
+(``--independent-seed 2026,2027``): the first under ``independent``, each other under
+``independent_seed<seed>``, and the figures over all their points under
+``independent_combined``.
 """
 
 from __future__ import annotations
@@ -55,7 +58,7 @@ from typing import Any
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-from fe_independent import independent_points, summarise, table  # noqa: E402
+from fe_independent import independent_points, parse_seeds, summarise, table  # noqa: E402
 
 from formtwin._bench import CACHE, write_result  # noqa: E402
 from formtwin.physics.bending import BendingModel  # noqa: E402
@@ -224,9 +227,14 @@ def main() -> None:
                         "under `flock` (default: %(default)s)")
     parser.add_argument("--independent", type=int, default=0, metavar="N",
                         help="add N independent DOE points (see the module docstring)")
-    parser.add_argument("--independent-seed", type=int, default=2026,
-                        help="seed of the independent points (default: %(default)s)")
+    parser.add_argument("--independent-seed", default="2026",
+                        help="seed(s) of the independent points, e.g. 2026,2027 (default: "
+                        "%(default)s)")
     args = parser.parse_args()
+    try:
+        seeds = parse_seeds(args.independent_seed)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     overrides = beam_overrides(args.beam)
     beam = BendingModel(**overrides)
     points = design(beam, args.corners)
@@ -244,9 +252,16 @@ def main() -> None:
         print(point_table(rows, figures.get("points_final")))
     if args.independent:
         final_mesh = int((args.final_meshes or "2").split(",")[0])
-        figures["independent"] = _independent(beam, args.independent, args.independent_seed,
-                                              meshes[1], final_mesh, cache, args.lock,
-                                              args.table)
+        merged: dict[str, dict[str, Any]] = {}
+        for k, seed in enumerate(seeds):
+            res = _independent(beam, args.independent, seed, meshes[1], final_mesh, cache,
+                               args.lock, args.table)
+            figures["independent" if k == 0 else f"independent_seed{seed}"] = res
+            merged.update(res["points"])
+        if len(seeds) > 1:
+            figures["independent_combined"] = {
+                "seeds": seeds, "points": len(merged),
+                "figures": summarise(merged, tuple(res["models"]))}
     figures["ccx_version"] = ccx_version()
     figures["fe_model"] = fine["stage1"].version
     figures["fe_mesh_fine"] = _mesh(fine["stage1"], beam)

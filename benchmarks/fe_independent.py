@@ -68,6 +68,35 @@ def independent_points(inputs: np.ndarray, names: tuple[str, ...], n_corners: in
     return out
 
 
+def parse_seeds(text: str) -> list[int]:
+    """``--independent-seed`` as a list of distinct seeds (``"2026,2027"``).
+
+    >>> parse_seeds("2026, 2027")
+    [2026, 2027]
+    >>> parse_seeds("2026,x")
+    Traceback (most recent call last):
+    ...
+    ValueError: --independent-seed: 'x' is not an integer (give seeds as 2026,2027)
+    >>> parse_seeds("7,7")
+    Traceback (most recent call last):
+    ...
+    ValueError: --independent-seed: seed 7 given twice
+    """
+    seeds = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        try:
+            seed = int(part)
+        except ValueError:
+            raise ValueError(f"--independent-seed: {part!r} is not an integer (give seeds as "
+                             "2026,2027)") from None
+        if seed in seeds:
+            raise ValueError(f"--independent-seed: seed {seed} given twice")
+        seeds.append(seed)
+    if not seeds:
+        raise ValueError("--independent-seed: no seed given")
+    return seeds
+
+
 def summarise(points: dict[str, dict[str, Any]], models: tuple[str, ...]
               ) -> dict[str, dict[str, Any]]:
     """Errors of each beam model against CalculiX, per group and over all points.

@@ -90,6 +90,12 @@ class Discretisation:
         yield stress ``(2/sqrt 3) sigma_y``, not below ``pinch_pressure[0]`` times it;
         ``pinch_reach = 0`` gives model 2.3; 1.0 (one thickness, the scale of the pressure
         spread) is model 2.4.
+    rate_per_speed
+        0 (the default): each layer point's Cowper-Symonds factor takes its own equivalent
+        strain rate. A positive value (1/mm) replaces every layer's rate by the uniform
+        ``rate_per_speed * |c'(t)|`` of the ram speed ``c'`` (mm/s), smoothed over the same
+        window: the CalculiX reference's rate law (:mod:`formtwin.physics.calculix`,
+        ``FeSettings.rate_per_speed = 0.1``), for like-with-like comparisons with it.
     """
 
     n_elements: int = 32
@@ -114,6 +120,7 @@ class Discretisation:
     transverse_shear: bool = True
     pinch_reach: float = 1.0
     pinch_pressure: tuple[float, float] = (0.25, 0.5)
+    rate_per_speed: float = 0.0
 
     def opts(self, dt_max: float, rate_tau: float = 0.0) -> FloatArray:
         """Solver option array for :func:`~.solver.run_history` (``rate_tau`` in s)."""
@@ -121,7 +128,7 @@ class Discretisation:
                          self.cap_disp, self.predict, self.line_search, self.ls_ratio,
                          self.easy_iter, self.easy_steps, rate_tau, self.pressure_spread,
                          float(self.transverse_shear), float(self.ls_energy),
-                         self.pinch_reach, *self.pinch_pressure])
+                         self.pinch_reach, *self.pinch_pressure, self.rate_per_speed])
 
 
 @dataclass

@@ -39,7 +39,7 @@ from formtwin.physics.bending.kernels import (
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 (DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
- RATE_TAU, SPREAD, SHEAR, LS_ENERGY, PINCH_REACH, PINCH_P0, PINCH_P1) = range(18)
+ RATE_TAU, SPREAD, SHEAR, LS_ENERGY, PINCH_REACH, PINCH_P0, PINCH_P1, RATE_SPEED) = range(19)
 # status codes
 OK, FAIL_STEP = 0, 1
 
@@ -327,12 +327,16 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
             # commit
             # equivalent strain rate of each layer point: the increment's rate, smoothed
             # over the time constant opts[RATE_TAU] (0: the last increment's rate)
+            # (opts[RATE_SPEED] > 0: the uniform rate of the ram speed, CalculiX's rate law)
             wr = h / (h + opts[RATE_TAU])
+            r_ram = opts[RATE_SPEED] * abs(crank(tn, press)[1])
             for e in range(n_el):
                 for g in range(sig.shape[1]):
                     for k in range(sig.shape[2]):
-                        de = abs(eps_t[e, g, k] - eps[e, g, k])
-                        rate[e, g, k] += wr * (2.0 / math.sqrt(3.0) * de / h - rate[e, g, k])
+                        r_new = r_ram
+                        if opts[RATE_SPEED] <= 0.0:
+                            r_new = 2.0 / math.sqrt(3.0) * abs(eps_t[e, g, k] - eps[e, g, k]) / h
+                        rate[e, g, k] += wr * (r_new - rate[e, g, k])
                         sig[e, g, k] = sig_t[e, g, k]
                         epb[e, g, k] = epb_t[e, g, k]
                         eps[e, g, k] = eps_t[e, g, k]
