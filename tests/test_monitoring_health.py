@@ -1,6 +1,7 @@
 """The mismatch chart's health level that follows the line (``health_level``): on a synthetic
 health series with a known transient, the level lags a ramp by the EWMA's closed-form lag,
-the transient raises no alarm, and a sudden drop after it is still seen at once."""
+the transient raises no alarm, a sudden drop after it is still seen at once, and a drop
+that persists stays signalled (the level pauses while its chart is in alarm)."""
 
 from __future__ import annotations
 
@@ -37,6 +38,13 @@ def _ess(drop_at: int | None = None, seed: int = 4) -> np.ndarray:
     return ess - (DROP * (i >= drop_at) if drop_at is not None else 0.0)
 
 
+def _excursion() -> np.ndarray:
+    """:func:`_ess` with a drop of ``DROP`` for products 1000-1029 only."""
+    ess = _ess()
+    ess[1000:1030] -= DROP
+    return ess
+
+
 def _run(config: MonitorConfig, ess: np.ndarray) -> tuple[list[Alarm], list[float], Monitor]:
     mon, levels, alarms = Monitor(config), [], []
     for i, v in enumerate(ess):
@@ -70,6 +78,31 @@ def test_health_level_follows_a_transient_and_still_sees_a_drop(lam: float) -> N
     assert drop and drop[0].chart == "mismatch" and 1500 <= drop[0].index <= 1506
 
 
+def test_a_persistent_mismatch_stays_signalled() -> None:
+    """ESS 3 lower from product 1000 to the end. A level that kept following would move up
+    to 0.03 per product towards the dropped score and, within ~100 products, leave less
+    than the CUSUM's ``k`` between them: the alarms would stop. The level pauses from each
+    alarm until the chart has been quiet for 1 / 0.01 = 100 products, which a persistent
+    mismatch never is: the level stays where it was at the first alarm and the chart
+    signals in every 50-product window to the end."""
+    alarms, levels, _ = _run(_config(0.01), _ess(drop_at=1000))
+    first = min(a.index for a in alarms if a.index >= 1000)
+    assert 1000 <= first <= 1006
+    assert levels[-1] == levels[first - 1]
+    hit = {a.index // 50 for a in alarms if a.index >= 1000}
+    assert hit == set(range(1000 // 50, N // 50))
+
+
+def test_health_level_resumes_after_a_short_excursion() -> None:
+    """A drop of 3 for 30 products only: alarmed, then the level is held for the 100
+    products after the last alarm (exactly), then follows the line again."""
+    alarms, levels, _ = _run(_config(0.01), _excursion())
+    last = max(a.index for a in alarms)
+    assert 1000 <= min(a.index for a in alarms) and last < 1040
+    assert len(set(levels[last - 1:last + 100])) == 1
+    assert levels[last + 100] != levels[last + 99]
+
+
 def test_health_level_starts_from_the_calibration_lines_level() -> None:
     """A line that fits worse than the calibration lines from its first product (a wrong
     model: ESS 3 lower throughout) is signalled in the first products charted: the level
@@ -80,17 +113,19 @@ def test_health_level_starts_from_the_calibration_lines_level() -> None:
     assert alarms and 120 <= alarms[0].index <= 127  # h / (3 - k) = 3.6 products on average
 
 
-def test_health_level_is_restored_with_the_monitor_state() -> None:
-    """The followed level is part of the monitor's state and the config's JSON: a monitor
-    restored mid-line continues bit for bit."""
-    config, ess = _config(0.01), _ess(drop_at=1500)
+@pytest.mark.parametrize("split", [900, 1060])
+def test_health_level_is_restored_with_the_monitor_state(split: int) -> None:
+    """The followed level and its pause are part of the monitor's state and the config's
+    JSON: a monitor restored mid-line (before an excursion, or while its level is held
+    after it) continues bit for bit."""
+    config, ess = _config(0.01), _excursion()
     whole, _, mon = _run(config, ess)
     assert MonitorConfig.from_json(config.to_json()).health_level == 0.01
     first = Monitor(config)
-    alarms = [a for i, v in enumerate(ess[:900]) for a in first.update_values({"ess": v}, i)]
+    alarms = [a for i, v in enumerate(ess[:split]) for a in first.update_values({"ess": v}, i)]
     second = Monitor(MonitorConfig.from_json(config.to_json()),
                      json.loads(json.dumps(first.state())))
-    alarms += [a for i, v in enumerate(ess[900:], 900)
+    alarms += [a for i, v in enumerate(ess[split:], split)
                for a in second.update_values({"ess": float(v)}, i)]
     assert alarms == whole and second.state() == mon.state()
 

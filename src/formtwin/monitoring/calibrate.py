@@ -83,7 +83,9 @@ class ChartDesign:
     health_level : the health scores' levels follow the line once charting (an EWMA with
         this weight, :attr:`~formtwin.monitoring.monitor.MonitorConfig.health_level`: 0.01,
         a time constant of 100 products; chosen on bench_monitoring's seed-2026 runs,
-        docs/monitoring.md); ``None``: the calibration lines' level throughout.
+        docs/monitoring.md), paused from a mismatch alarm until its chart has been quiet
+        for 100 products (a persistent mismatch stays signalled); ``None``: the
+        calibration lines' level throughout.
     glr : a GLR chart for a level change on each state variable
         (:mod:`~formtwin.monitoring.glr`: matched to the spike-then-shift signature a step
         in the mean leaves in the AR residuals).

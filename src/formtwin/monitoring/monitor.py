@@ -77,7 +77,10 @@ class MonitorConfig:
         moves a level by this share of its score's deviation from it (clipped to +-3), an
         EWMA whose time constant (1 / share products) is long against a mismatch's
         detection and short against the filter's health transient (docs/monitoring.md);
-        ``None``: the levels stay at the calibration lines' (or Phase I's).
+        not re-estimated from out-of-control data: a level pauses from its mismatch
+        chart's alarm until that chart has been quiet for one time constant, so a
+        mismatch that persists stays signalled; ``None``: the levels stay at the
+        calibration lines' (or Phase I's).
     """
 
     quantities: Mapping[str, InControl]
@@ -212,6 +215,8 @@ class Monitor:
                       if config.cusum_on is None or n in config.cusum_on}
         self.health = {n: CusumState() for n in config.health}
         self.glr = {n: GlrState() for n in config.glr}
+        #: products seen (:attr:`n`) at each health statistic's last mismatch alarm
+        self.alarmed_at: dict[str, int] = {}
         w = config.widen
         #: each quantity's charts with its limits (the design's times its ``widen``)
         self.charts = {n: (replace(config.ewma, L=config.ewma.L * w.get(n, {}).get("ewma", 1.0)),
@@ -312,16 +317,20 @@ class Monitor:
             self.last[n] = {"mismatch": (s.statistic, s.limit)}
             if s.side:
                 alarms.append(Alarm(n, "mismatch", idx, s.statistic, s.limit, s.side))
+                self.alarmed_at[n] = self.n
         self._remember(values)
         self._follow(values)
         return tuple(alarms)
 
     def _follow(self, values: Mapping[str, float]) -> None:
-        """Move each health model's level towards this product's score (``health_level``)."""
+        """Move each health model's level towards this product's score (``health_level``),
+        except within 1 / ``health_level`` products of its mismatch chart's last alarm."""
         lam = self.config.health_level
         if lam is None:
             return
         for n in self.config.health_models:
+            if self.n - self.alarmed_at.get(n, -(10**9)) < round(1.0 / lam):
+                continue  # out of control: the level is not re-estimated from it
             m, y = self.means[n], float(values[n])
             if m is not None and math.isfinite(y):
                 self.means[n] = m + lam * min(max(y - m, -3.0), 3.0)
@@ -344,14 +353,15 @@ class Monitor:
     # ------------------------------------------------------------------ persistence
     def state(self) -> dict[str, Any]:
         """JSON-safe state (products seen, Phase-I sums and means, AR history, charts, the
-        health statistics' Phase-I values)."""
+        health statistics' Phase-I values and last mismatch alarms)."""
         return {"n": self.n, "means": dict(self.means), "phase1_sums": dict(self.phase1_sums),
                 "history": {n: list(h) for n, h in self.history.items()},
                 "ewma": {n: [s.z, s.i] for n, s in self.ewma.items()},
                 "cusum": {n: [s.hi, s.lo] for n, s in self.cusum.items()},
                 "health": {n: [s.hi, s.lo] for n, s in self.health.items()},
                 "glr": {n: [s.sums.tolist(), s.i] for n, s in self.glr.items()},
-                "phase1_health": {n: list(v) for n, v in self.phase1_health.items()}}
+                "phase1_health": {n: list(v) for n, v in self.phase1_health.items()},
+                "alarmed_at": dict(self.alarmed_at)}
 
     def _load(self, st: Mapping[str, Any]) -> None:
         names, health = set(self.models), set(self.config.health)
@@ -375,6 +385,7 @@ class Monitor:
                          for n, (v, i) in glr.items()})
         self.phase1_health.update({n: [float(v) for v in vals] for n, vals in
                                    st.get("phase1_health", {}).items() if n in health})
+        self.alarmed_at = {n: int(v) for n, v in st.get("alarmed_at", {}).items() if n in health}
         if self.config.health_per_line and self.charting:
             self._line_references()
 
