@@ -40,6 +40,11 @@ by their settings and a hash of the code that makes the estimates, so chart desi
      (``--drift-reps`` runs per variable);
    * ``batch``: a new material batch, the four material means each stepping by
      ``--batch`` sigma with random signs (2 x ``--drift-reps`` runs).
+4. A mismatch that persists (:class:`~formtwin.monitoring.scenarios.Fault`): a force-sensor
+   fault from product ``--at`` to the run's end ``--fault-products`` later (gain +-10 %,
+   zero offset +-2 N; ``--fault-reps`` runs each, in control otherwise): the delay to the
+   first alarm and to the first mismatch alarm, and ``signalled_share``: the share of the
+   50-product windows after the fault with a mismatch alarm (1: signalled throughout).
 """
 
 from __future__ import annotations
@@ -70,13 +75,17 @@ from formtwin.monitoring.calibrate import (
 )
 from formtwin.monitoring.glr import residual_response, step_response
 from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
-from formtwin.monitoring.scenarios import Change, changed_run
+from formtwin.monitoring.scenarios import Change, Fault, changed_run
 from formtwin.tracker import Tracker, TrackerConfig
 from formtwin.tracker.build import build_measurement
 
 Series = dict[str, np.ndarray]
 #: prefix of the true states in a cached run
 TRUE = "true_"
+#: the persistent mismatches: force-sensor (gain, offset N)
+FAULTS = ((0.1, 0.0), (-0.1, 0.0), (0.0, 2.0), (0.0, -2.0))
+#: window (products) of the share of a fault's run that is signalled
+WINDOW = 50
 
 
 class Runs:
@@ -113,10 +122,11 @@ def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
 
 
 def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, change: Change,
-            n: int, seed: int, noise: bool = True) -> tuple[np.ndarray, Estimates]:
+            n: int, seed: int, noise: bool = True, fault: Fault | None = None
+            ) -> tuple[np.ndarray, Estimates]:
     """Track one production run with ``change``, its curves with measurement noise (and,
-    when the tracker estimates the deviation, distorted by it, theta_d drawn): its true
-    states (n, 7) and estimates."""
+    when the tracker estimates the deviation, distorted by it, theta_d drawn) and then
+    ``fault``: its true states (n, 7) and estimates."""
     rng = np.random.default_rng(seed)
     tracker = Tracker(model, mm, replace(tcfg, seed=seed))
     dev = tcfg.estimate_deviation
@@ -126,6 +136,8 @@ def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, chan
         curves = tracker.ssm.deviation.apply(curves, np.tile(run.theta_d, (n, 1)))
     if noise:
         curves = curves + measurement_noise(mm, n, rng)
+    if fault is not None:
+        curves = fault.apply(curves)
     return run.x, tracker.run(curves)
 
 
@@ -148,6 +160,20 @@ def delay(alarms: list[Alarm], at: int, n: int) -> tuple[int, int, str]:
     first = after[0] if after else None
     return (first.index - at + 1 if first else n - at + 1, sum(a.index < at for a in alarms),
             first.variable if first else "")
+
+
+def persistence(alarms: list[Alarm], at: int, n: int) -> dict[str, Any]:
+    """Of one fault's run: products to the first alarm and to the first mismatch alarm
+    (``None``: none) and the share of the :data:`WINDOW`-product windows from ``at`` to
+    ``n`` with a mismatch alarm."""
+    mis = [a.index for a in alarms if a.chart == "mismatch" and a.index >= at]
+    first = [a.index for a in alarms if a.index >= at]
+    wins = range(at, n, WINDOW)
+    return {"first_alarm": first[0] - at + 1 if first else None,
+            "first_mismatch": mis[0] - at + 1 if mis else None,
+            "signalled_share": round(sum(any(w <= i < w + WINDOW for i in mis) for w in wins)
+                                     / len(wins), 3),
+            "alarms_before": sum(a.index < at for a in alarms)}
 
 
 def summary(d: list[int], horizon: int, target: int = 30) -> dict[str, Any]:
@@ -183,6 +209,9 @@ def main() -> None:
     p.add_argument("--after", type=int, default=150)
     p.add_argument("--drift", type=float, default=0.02)
     p.add_argument("--batch", type=float, default=1.0)
+    p.add_argument("--fault-reps", type=int, default=2, help="runs per sensor fault")
+    p.add_argument("--fault-products", type=int, default=750,
+                   help="products after a sensor fault")
     d0 = ChartDesign()
     p.add_argument("--arl0", type=float, default=d0.arl0_per_chart, help="CUSUM ARL0")
     p.add_argument("--arl0-ewma", type=float, default=d0.arl0_ewma)
@@ -282,6 +311,14 @@ def main() -> None:
             scenarios["batch"].append((ch, *runs.get(
                 f"batch_{args.batch}_{r}", lambda ch=ch, r=r: changed(
                     model, mm, tcfg, ch, n, args.seed + 200_000 + r, noise))))
+        n_fault = args.at + args.fault_products
+        faults: dict[str, list[Series]] = {}
+        for k, (g, o) in enumerate(FAULTS):
+            fault = Fault(args.at, g, o)
+            faults[f"gain{g:+g}_offset{o:+g}"] = [runs.get(
+                f"fault_{g:+g}_{o:+g}_{r}_{n_fault}", lambda f=fault, s=args.seed + 300_000
+                + 100 * k + r: changed(model, mm, tcfg, Change("none"), n_fault, s, noise, f))[0]
+                for r in range(args.fault_reps)]
     if args.track_only:
         print(f"tracked into {runs.folder} in {time.perf_counter() - t0:.0f} s")
         return
@@ -301,12 +338,22 @@ def main() -> None:
                                       float(mu[j]), float(spec.state.sigma[j]), n, design)
                 for j, n in enumerate(names)}
     steps = figures.pop("step_2sigma")
+    per_fault = {k: [persistence(chart(config, s), args.at, args.at + args.fault_products)
+                     for s in v] for k, v in faults.items()}
+    flat = [r for v in per_fault.values() for r in v]
     figures = {
         "detection_delay_median_products": steps["median"],
         "detection_delay_target": 30,
         **figures,
         "false_alarms_target": 1,
         "step_2sigma": steps,
+        "persistent_mismatch": {
+            "signalled_share_mean": round(float(np.mean([r["signalled_share"] for r in flat])), 3),
+            "signalled_share_mean_detected": round(float(np.mean(
+                [r["signalled_share"] for r in flat if r["first_mismatch"] is not None]
+                or [np.nan])), 3),
+            "detected": sum(r["first_mismatch"] is not None for r in flat), "runs": len(flat),
+            "window": WINDOW, "products_after": args.fault_products, "per_fault": per_fault},
         "step_2sigma_in_the_estimates": response,
         "linearised_bound": bound,
         "oracle_true_states": {
@@ -318,6 +365,7 @@ def main() -> None:
                      "calib_runs": args.calib_runs, "calib_products": args.calib_products,
                      "ic_runs": args.ic_runs, "ic_products": args.ic_products,
                      "reps": args.reps, "drift_reps": args.drift_reps, "at": args.at,
+                     "fault_reps": args.fault_reps,
                      "after": args.after,
                      "design": asdict(design), **figures.pop("charts"),
                      "oracle_charts": oracle["charts"]},

@@ -35,7 +35,7 @@ from formtwin.monitoring.charts import (
 from formtwin.monitoring.glr import level_signature
 from formtwin.monitoring.incontrol import InControl, Reference, fit_in_control
 from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
-from formtwin.monitoring.scenarios import Change, changed_run
+from formtwin.monitoring.scenarios import Change, Fault, changed_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker import Tracker, TrackerConfig
 
@@ -320,6 +320,18 @@ def test_changed_run_draws_the_deviation_only_when_asked(spec: ProcessSpec) -> N
     j = spec.state.names.index("thickness")
     for run in (plain, dev):  # the step is there in both
         assert run.x[5:, j].mean() - run.x[:5, j].mean() > spec.state.sigma[j]
+
+
+def test_fault_changes_the_measured_curves_from_its_product_on() -> None:
+    """A sensor fault leaves the curves before ``at`` alone and maps them exactly to
+    ``(1 + gain) y + offset`` after; an impossible gain or a negative ``at`` is refused."""
+    y = np.random.default_rng(1).normal(100.0, 10.0, (6, 4))
+    out = Fault(at=2, gain=-0.1, offset=2.0).apply(y)
+    np.testing.assert_array_equal(out[:2], y[:2])
+    np.testing.assert_allclose(out[2:], 0.9 * y[2:] + 2.0)
+    for bad in ({"at": -1}, {"at": 0, "gain": -1.0}):
+        with pytest.raises(ValueError, match="fault"):
+            Fault(**bad)  # type: ignore[arg-type]
 
 
 def test_model_mismatch_raises_the_mismatch_alarm(spec: ProcessSpec, line: tuple[

@@ -16,6 +16,10 @@ to some state variables from product ``at`` on:
 
 Values that leave the design box are reflected into it, as the in-control state is.
 
+A :class:`Fault` is a change of the measurement, not of the process: from product ``at``
+on, the force sensor's gain and zero change (the measured curves ``(1 + gain) y + offset``),
+a model mismatch that persists (for the mismatch charts, which should keep signalling it).
+
 >>> import numpy as np
 >>> from formtwin.spec import load_spec
 >>> spec = load_spec()
@@ -97,6 +101,33 @@ class Change:
         return reflect(x + self.offset(x.shape[0], spec), s.lo, s.hi)
 
 
+@dataclass(frozen=True)
+class Fault:
+    """A persistent force-sensor fault from product ``at`` on: relative ``gain`` error and
+    zero ``offset`` (N).
+
+    >>> Fault(at=1, gain=0.1, offset=-2.0).apply(np.full((3, 2), 100.0))
+    array([[100., 100.],
+           [108., 108.],
+           [108., 108.]])
+    """
+
+    at: int
+    gain: float = 0.0
+    offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.at < 0 or not self.gain > -1.0:
+            raise ValueError(f"fault at = {self.at}, gain = {self.gain}: expected at >= 0 "
+                             "and gain > -1")
+
+    def apply(self, curves: FloatArray) -> FloatArray:
+        """The measured curves (n, n_t) N with the fault from row ``at`` on."""
+        out = np.array(curves, dtype=np.float64)
+        out[self.at:] = (1.0 + self.gain) * out[self.at:] + self.offset
+        return out
+
+
 def changed_run(spec: ProcessSpec, n: int, mu: FloatArray, rng: np.random.Generator,
                 change: Change, deviation: bool = False) -> ProductionRun:
     """A production run of ``n`` products of a line with state means ``mu`` (7,), drawn by
@@ -107,4 +138,4 @@ def changed_run(spec: ProcessSpec, n: int, mu: FloatArray, rng: np.random.Genera
     return replace(run, x=change.apply(run.x, spec))
 
 
-__all__ = ["KINDS", "MATERIAL", "Change", "changed_run"]
+__all__ = ["KINDS", "MATERIAL", "Change", "Fault", "changed_run"]
