@@ -396,3 +396,87 @@ def test_gated_floors_give_the_target_coverage_on_their_data() -> None:
     inside = np.abs(err[:, 0]) <= Z90 * np.sqrt(1.0 + s * b[0] ** 2)
     assert inside.mean() == pytest.approx(0.9, abs=1e-3)
     assert inside[:1000].all()  # no floor needed where the gate is shut
+
+
+def test_mu_share_one_is_the_linear_term_zero_the_whole_offset(
+        tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The calibration's shares of the assumed mu's term (mu assumed, theta_d estimated):
+    s = 1 reports the linearised term's std; s = 0 adds the whole offset's second moment
+    ``diag(E[d d^T])`` to the states' cloud variance; the angles keep the linearised term;
+    means bit for bit. A tracker without theta_d has no shares (the linearised term)."""
+    import json
+    from pathlib import Path
+
+    from formtwin.tracker import intervals
+
+    model = _ModelWithError()
+    sig = intervals.residual_signature(model)
+    assert sig is not None
+    zero = {"floors": [0.0] * 18, "angle_floors": [0.0, 0.0]}
+
+    def run(share: list[float] | None, mu_known: bool = False) -> tuple[Tracker, list]:
+        cal = {"k_res_diag": list(sig), "model_version": "test", "no_deviation": zero,
+               "deviation": zero if share is None else {**zero, "mu_share": share}}
+        path = Path(str(tmp_path)) / f"cal_{share}.json"
+        path.write_text(json.dumps(cal))
+        monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)
+        return _run("calibrated", True, mu_known=mu_known)
+
+    lin_tr, lin = run(None)
+    one_tr, one = run([1.0] * 7)
+    zero_tr, none = run([0.0] * 7)
+    _, known = run(None, mu_known=True)  # the cloud's std (the floors are 0)
+    np.testing.assert_array_equal(one_tr.sandwich.mu_share, np.ones(7))
+    E_dd = np.diag(zero_tr.sandwich.mu_half @ zero_tr.sandwich.mu_half.T)
+    for a, b, c, k in zip(lin, one, none, known, strict=True):
+        for e in (b, c, k):
+            np.testing.assert_array_equal(e.mean, a.mean)
+        np.testing.assert_allclose(b.std, a.std, rtol=1e-12)
+        np.testing.assert_allclose(c.std[:7] ** 2 - k.std[:7] ** 2, E_dd, rtol=1e-9)
+        np.testing.assert_allclose(c.std[7:], a.std[7:], rtol=1e-12)  # theta's rows
+        np.testing.assert_allclose(c.angles_std, a.angles_std, rtol=1e-12)
+    assert np.all(none[-1].std[:7] > lin[-1].std[:7])
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH",
+                        Path(str(tmp_path)) / "cal_[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0].json")
+    no_dev, _ = _run("calibrated", False, mu_known=False)
+    assert no_dev.sandwich is not None and no_dev.sandwich.mu_share is None
+    bad = {"k_res_diag": list(sig), "no_deviation": zero, "deviation": {**zero, "mu_share": [-1.0]}}
+    path = Path(str(tmp_path)) / "bad.json"
+    path.write_text(json.dumps(bad))
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)
+    with pytest.raises(ValueError, match="mu_share"):
+        _run("calibrated", True, mu_known=False)
+
+
+def test_learned_share_is_one_for_the_kalman_filter_and_zero_for_no_removal() -> None:
+    """On the linear-Gaussian model, noise-free lines with offsets d: the Kalman filter's
+    error is -G_mu d, its removal of the offset the linearised one, so the learned share
+    is 1; a filter that keeps the whole offset (error -d) has share 0; half the removal, 1/2."""
+    from formtwin.study.mu_share import learn_share, removals
+
+    lm = _linear_model()
+    F, Q, J, S, P0 = (lm[k] for k in ("F", "Q", "J", "S", "P0"))
+    SiJ = np.linalg.solve(S, J)
+    rng = np.random.default_rng(2)
+    pf, lin, keep = [], [], []
+    for _ in range(5):
+        d = rng.uniform(-1.0, 1.0, 2)
+        x_true = np.r_[d, 0.0]
+        G_mu, P_prev, G, err = np.eye(3, 2), P0, [], []
+        for m, P, _ in kalman_filter(np.diag(F), np.diag(Q), J, S, np.zeros(3), P0,
+                                     [J @ x_true] * 30):
+            G_mu = mu_step(G_mu, P_prev, J, SiJ, F, Q)
+            G.append(G_mu)
+            err.append(m - x_true)
+            P_prev = P
+        rep = {"d": d, "G": np.array(G)}
+        a, b = removals(rep, np.array(err), 10)
+        pf.append(a)
+        lin.append(b)
+        keep.append(removals(rep, np.tile(np.r_[-d, 0.0], (30, 1)), 10)[0])
+    np.testing.assert_allclose(np.array(pf), np.array(lin), atol=1e-9)
+    np.testing.assert_allclose(learn_share(np.array(pf), np.array(lin)), 1.0, rtol=1e-9)
+    np.testing.assert_allclose(learn_share(np.zeros((5, 2)), np.array(lin)), 0.0)
+    np.testing.assert_allclose(np.array(keep), 0.0, atol=1e-15)
+    np.testing.assert_allclose(learn_share(np.array(keep), np.array(lin)), 0.0, atol=1e-12)
+    np.testing.assert_allclose(learn_share(0.5 * np.array(lin), np.array(lin)), 0.5)

@@ -11,7 +11,10 @@ the study seed :data:`SEED` (the study's default is 0, so they share no realisat
 the study or the benchmarks), filtered as series 5 (no deviation model) and series 6
 (deviation estimated, mu assumed), the last ``window`` products of each run. The runs'
 std are the cloud's plus, where mu is assumed (series 6), the linearised error of assuming
-it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not. The floors
+it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not; the
+particle filter keeps more of the offset than the linearised term says, so first the series-6
+runs are replayed and the term's shares learned (:mod:`formtwin.study.mu_share`, stored as
+``deviation.mu_share``), and the floors are learned on the runs' std with them. The floors
 are stored with the diagonal of the metamodel's ``K_res``
 (:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
 
@@ -41,6 +44,7 @@ from numpy.typing import NDArray
 
 from formtwin.defaults import default_metamodel, physics_model
 from formtwin.study.metrics import Z90
+from formtwin.study.mu_share import replay_runs, share_from_study
 from formtwin.study.run import StudyResult, StudySettings, run_study
 from formtwin.study.series import SERIES
 from formtwin.tracker import TrackerConfig
@@ -95,24 +99,28 @@ def gate_d0(result: StudyResult, a: float = FIT_EWMA) -> tuple[float, int]:
 
 
 def floors_from_study(result: StudyResult, series: int, d0: float,
-                      a: float = FIT_EWMA) -> dict[str, Any]:
+                      a: float = FIT_EWMA,
+                      stds: dict[tuple[int, int, int], FloatArray] | None = None
+                      ) -> dict[str, Any]:
     """Floors of the 18 augmented components and the 2 angles from every run of
     ``series`` in ``result`` (last ``window`` products), constant and fit-gated (``d0``,
     weight ``a``), with the coverage of the cloud's and of both calibrated intervals on
-    these runs."""
+    these runs; ``stds``: the runs' reported std (n, 20) by (series, realisation,
+    repetition) instead of the stored (the assumed mu's term with the learned shares)."""
     window = result.settings.window
     src = SERIES[series - 1].data
-    errs, stds, E = [], [], []
-    for (s, i, _r), path in sorted(result.run_paths.items()):
+    errs, sds, E = [], [], []
+    for (s, i, r), path in sorted(result.run_paths.items()):
         if s != series:
             continue
         real = result.realisations[i]
         with np.load(path) as run:
             errs.append(np.c_[run["mean"] - real.truth,
                               run["angles_mean"] - real.angles[src]][-window:])
-            stds.append(np.c_[run["std"], run["angles_std"]][-window:])
+            sds.append((np.c_[run["std"], run["angles_std"]] if stds is None
+                        else stds[(s, i, r)])[-window:])
             E.append(fit_ewma(run["fit_distance2"], a)[0][-window:])
-    err, std, e = np.concatenate(errs), np.concatenate(stds), np.concatenate(E)
+    err, std, e = np.concatenate(errs), np.concatenate(sds), np.concatenate(E)
     b = learn_floors(err, std)
     s_max = float(np.nanmax(e)) - d0
     gate = gate_scale(e, d0, s_max)[:, None]
@@ -168,6 +176,8 @@ def main(argv: list[str] | None = None) -> None:
                              tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu"))
     result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
     d0, n_gate = gate_d0(result)
+    dev = SERIES_OF["deviation"]  # mu assumed: the shares of the term, then its std
+    share, stds = share_from_study(result, replay_runs(result, Path(args.out), mm_path, dev))
     out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
                    "cloud's std (plus the assumed mu's term where mu is assumed) by "
                    "TrackerConfig(intervals='calibrated'), learned on independent physics "
@@ -180,7 +190,9 @@ def main(argv: list[str] | None = None) -> None:
                         "window": settings.window,
                         "tracker": settings.tracker.to_dict()},
            "fit_gate": {"d0": d0, "ewma": FIT_EWMA, "series": GATE_SERIES, "runs": n_gate},
-           **{key: floors_from_study(result, s, d0) for key, s in SERIES_OF.items()}}
+           "no_deviation": floors_from_study(result, SERIES_OF["no_deviation"], d0),
+           "deviation": {**floors_from_study(result, dev, d0, stds=stds),
+                         "mu_share": [round(float(v), 4) for v in share]}}
     Path(args.write).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     print(json.dumps({k: out[k] for k in ("fit_gate", *SERIES_OF)}, indent=1))
 

@@ -42,7 +42,7 @@ from formtwin.estimates import HEALTH
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.metamodel import Metamodel
 from formtwin.study.pseudodata import Realisation
-from formtwin.tracker import TrackerConfig, build_measurement, build_tracker
+from formtwin.tracker import Tracker, TrackerConfig, build_measurement, build_tracker
 
 FloatArray = NDArray[np.float64]
 
@@ -178,20 +178,29 @@ def run_task(task: Task) -> str:
     return str(out)
 
 
-def _run(task: Task, out: Path) -> None:
+def prepare(task: Task) -> tuple[Tracker, Realisation, FloatArray, FloatArray | None]:
+    """The tracker of a filter run as :func:`run_task` builds it, its realisation, the
+    curves it assimilates (n_ok, n_t) and their settings (n_ok, n_controls) or ``None``."""
     series = SERIES[task.series - 1]
     model = _metamodel(task.metamodel_path)
     real = _realisation(task.realisation_path)
     spec = model.spec
-    measurement = _measurement(task.measurement_path)
     ss = np.random.SeedSequence([task.seed, task.series, task.realisation, task.repetition])
     config = series_config(task.tracker, series,
                            real.mu if series.mu_known else spec.state.mu_mid,
                            int(ss.generate_state(1)[0]))
-    tracker = build_tracker(model, config, measurement)
+    tracker = build_tracker(model, config, _measurement(task.measurement_path))
     ok = real.ok[series.data]
     u = real.u[ok] if real.u.shape[1] == len(spec.controls) and len(spec.controls) else None
-    est = tracker.run(real.curves[series.data][ok], u=u)
+    return tracker, real, real.curves[series.data][ok], u
+
+
+def _run(task: Task, out: Path) -> None:
+    series = SERIES[task.series - 1]
+    tracker, real, curves, u = prepare(task)
+    spec = tracker.spec
+    ok = real.ok[series.data]
+    est = tracker.run(curves, u=u)
     n, d = real.n, len(spec.augmented)
     mean, std = np.full((n, d), np.nan), np.full((n, d), np.nan)
     ang_mean, ang_std = np.full((n, 2), np.nan), np.full((n, 2), np.nan)

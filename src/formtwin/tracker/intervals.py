@@ -105,6 +105,23 @@ def _entry(model: Any, deviation: bool) -> dict[str, Any] | None:
     return entry
 
 
+def mu_share(model: Any, deviation: bool) -> FloatArray | None:
+    """The particle filter's shares ``s`` (n_x,) of the linearised filter's removal of an
+    assumed mu's offset (:func:`formtwin.tracker.sandwich.shared_removal`) that the
+    bundled calibration learned for a tracker on ``model`` with (``deviation``) or without
+    theta_d; ``None`` (the linearised term) where it learned none (without theta_d; a
+    calibration made before session 11) and for another metamodel."""
+    entry = _entry(model, deviation)
+    if entry is None or "mu_share" not in entry:
+        return None
+    share = np.array(entry["mu_share"], dtype=np.float64)
+    n_x = len(model.spec.state)
+    if share.shape != (n_x,) or not np.all(np.isfinite(share)) or np.any(share < 0):
+        raise ValueError(f"{CALIBRATION_PATH.name}: mu_share of shape {share.shape}, "
+                         f"expected ({n_x},) finite shares >= 0")
+    return share
+
+
 def _floor_arrays(entry: dict[str, Any], prefix: str, n: int) -> tuple[FloatArray, FloatArray]:
     """The floors ``<prefix>floors`` (n,) and ``<prefix>angle_floors`` (2,) of ``entry``."""
     floors = np.array(entry[f"{prefix}floors"], dtype=np.float64)
