@@ -403,7 +403,8 @@ def test_mu_share_one_is_the_linear_term_zero_the_whole_offset(
     """The calibration's shares of the assumed mu's term (mu assumed, theta_d estimated):
     s = 1 reports the linearised term's std; s = 0 adds the whole offset's second moment
     ``diag(E[d d^T])`` to the states' cloud variance; the angles keep the linearised term;
-    means bit for bit. A tracker without theta_d has no shares (the linearised term)."""
+    means bit for bit. A tracker without theta_d has no shares (the linearised term); the
+    floors of theta_d with mu assumed are the calibration's ``mu_assumed`` ones."""
     import json
     from pathlib import Path
 
@@ -416,7 +417,8 @@ def test_mu_share_one_is_the_linear_term_zero_the_whole_offset(
 
     def run(share: list[float] | None, mu_known: bool = False) -> tuple[Tracker, list]:
         cal = {"k_res_diag": list(sig), "model_version": "test", "no_deviation": zero,
-               "deviation": zero if share is None else {**zero, "mu_share": share}}
+               "deviation": zero if share is None else
+               {**zero, "mu_assumed": {**zero, "mu_share": share}}}
         path = Path(str(tmp_path)) / f"cal_{share}.json"
         path.write_text(json.dumps(cal))
         monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)
@@ -440,7 +442,18 @@ def test_mu_share_one_is_the_linear_term_zero_the_whole_offset(
                         Path(str(tmp_path)) / "cal_[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0].json")
     no_dev, _ = _run("calibrated", False, mu_known=False)
     assert no_dev.sandwich is not None and no_dev.sandwich.mu_share is None
-    bad = {"k_res_diag": list(sig), "no_deviation": zero, "deviation": {**zero, "mu_share": [-1.0]}}
+    floors = {"floors": [0.1] * 18, "angle_floors": [0.2, 0.3]}  # mu known / assumed
+    two = {"k_res_diag": list(sig), "no_deviation": zero,
+           "deviation": {**zero, "mu_assumed": {**floors, "mu_share": [0.5] * 7}}}
+    path = Path(str(tmp_path)) / "two.json"
+    path.write_text(json.dumps(two))
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)
+    np.testing.assert_array_equal(intervals.Floors(model, True, False).b, 0.0)
+    np.testing.assert_array_equal(intervals.Floors(model, True, False, mu_assumed=True).b, 0.1)
+    np.testing.assert_array_equal(intervals.Floors(model, False, False, mu_assumed=True).b, 0.0)
+    np.testing.assert_array_equal(intervals.mu_share(model, True), 0.5)
+    bad = {"k_res_diag": list(sig), "no_deviation": zero,
+           "deviation": {**zero, "mu_assumed": {"mu_share": [-1.0]}}}
     path = Path(str(tmp_path)) / "bad.json"
     path.write_text(json.dumps(bad))
     monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)

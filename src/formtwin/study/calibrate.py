@@ -13,8 +13,10 @@ the study or the benchmarks), filtered as series 5 (no deviation model) and seri
 std are the cloud's plus, where mu is assumed (series 6), the linearised error of assuming
 it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not; the
 particle filter keeps more of the offset than the linearised term says, so first the series-6
-runs are replayed and the term's shares learned (:mod:`formtwin.study.mu_share`, stored as
-``deviation.mu_share``), and the floors are learned on the runs' std with them. The floors
+runs are replayed and the term's shares learned (:mod:`formtwin.study.mu_share`), and
+floors for trackers with theta_d and mu assumed are learned on the runs' std with them
+(``deviation.mu_assumed``: floors and ``mu_share``; ``deviation``'s own, learned with the
+linearised term, serve theta_d with mu known). The floors
 are stored with the diagonal of the metamodel's ``K_res``
 (:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
 
@@ -191,8 +193,9 @@ def main(argv: list[str] | None = None) -> None:
                         "tracker": settings.tracker.to_dict()},
            "fit_gate": {"d0": d0, "ewma": FIT_EWMA, "series": GATE_SERIES, "runs": n_gate},
            "no_deviation": floors_from_study(result, SERIES_OF["no_deviation"], d0),
-           "deviation": {**floors_from_study(result, dev, d0, stds=stds),
-                         "mu_share": [round(float(v), 4) for v in share]}}
+           "deviation": {**floors_from_study(result, dev, d0),  # mu known (series 3)
+                         "mu_assumed": {**floors_from_study(result, dev, d0, stds=stds),
+                                        "mu_share": [round(float(v), 4) for v in share]}}}
     Path(args.write).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     print(json.dumps({k: out[k] for k in ("fit_gate", *SERIES_OF)}, indent=1))
 

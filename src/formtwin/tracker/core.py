@@ -165,8 +165,8 @@ class Tracker:
         share = mu_share(model, c.estimate_deviation) if calibrated and assumed else None
         self.sandwich = Sandwich(self.ssm, c.intervals == "gated", metamodel, assumed, share) \
             if metamodel or assumed else None
-        self.floors = Floors(model, c.estimate_deviation, c.intervals == "calibrated_fit") \
-            if calibrated else None
+        self.floors = Floors(model, c.estimate_deviation, c.intervals == "calibrated_fit",
+                             assumed) if calibrated else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
