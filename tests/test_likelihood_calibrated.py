@@ -16,7 +16,15 @@ from scipy import stats
 from formtwin.defaults import analytic_dataset
 from formtwin.filters import SIR
 from formtwin.measurement import MeasurementModel
-from formtwin.metamodel import POD, RBF, Metamodel, ResidualModel, calibrate, cross_validate
+from formtwin.metamodel import (
+    POD,
+    RBF,
+    RESIDUAL_RULE,
+    Metamodel,
+    ResidualModel,
+    calibrate,
+    cross_validate,
+)
 from formtwin.tracker import TrackerConfig, build_measurement, build_tracker
 
 
@@ -117,6 +125,7 @@ def test_calibrate_stores_the_second_moment_of_held_out_residuals(
     assert back.residuals is not None
     np.testing.assert_array_equal(back.residuals.curve_cov, res.curve_cov)
     np.testing.assert_array_equal(back.residuals.angle_cov, res.angle_cov)
+    assert back.residuals.rows == res.rows == RESIDUAL_RULE
     with np.load(tmp_path / "mm.npz", allow_pickle=False) as f:  # no pickles
         assert "residuals.curve_cov" in f.files
 
@@ -154,3 +163,20 @@ def test_unknown_likelihood_is_refused() -> None:
     with pytest.raises(ValueError, match="fraction"):
         TrackerConfig(fraction=0.0)
     assert math.isinf(TrackerConfig().nu)
+
+
+def test_default_metamodel_recomputes_residuals_of_another_rule(
+        small_metamodel: tuple[Metamodel, object], tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A cached metamodel whose residual statistics were made by another rule (or before
+    the rule was stored) is refitted with the default rule's, and saved with them."""
+    import formtwin.defaults as defaults
+
+    mm, data = small_metamodel
+    monkeypatch.setattr(defaults, "default_doe", lambda name, cache: data)
+    calibrate(mm, data, k=4, seed=1, line=False)  # type: ignore[arg-type]
+    assert mm.residuals is not None and mm.residuals.rows == "interior"
+    mm.save(tmp_path / "metamodel_analytic.npz")
+    again, path = defaults.default_metamodel(tmp_path, "analytic")
+    assert again.residuals is not None and again.residuals.rows == RESIDUAL_RULE
+    assert Metamodel.load(path).residuals.rows == RESIDUAL_RULE  # type: ignore[union-attr]

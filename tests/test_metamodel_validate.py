@@ -99,3 +99,30 @@ def test_cli_fit_and_validate(tmp_path, data, capsys) -> None:  # type: ignore[n
     assert "curve_rel_err" in text and "angle_nrmse" in text
     assert json.loads((tmp_path / "v.json").read_text())["k"] == 3
     assert main(["metamodel", "fit", str(tmp_path / "missing.h5"), "--out", str(out)]) == 2
+
+
+def test_residual_model_keeps_the_lines_region() -> None:
+    """``line=True``: only interior runs whose every state lies within 2 sigma of its mu
+    range enter K_res; the statistics are exactly those of those rows (p18 proposal)."""
+    from formtwin.metamodel.validate import CrossValidation, residual_model
+    from formtwin.spec import load_spec
+
+    spec = load_spec()
+    st, box = spec.state, spec.run_inputs
+    rng = np.random.default_rng(3)
+    n, n_t = 2000, 5
+    X = box.lo + rng.random((n, len(box))) * (box.hi - box.lo)
+    near = np.all((X[:, :len(st.names)] >= st.mu_min - 2 * st.sigma)
+                  & (X[:, :len(st.names)] <= st.mu_max + 2 * st.sigma), axis=1)
+    X[:3] = box.lo  # corners: never used
+    near[:3] = False
+    r = rng.standard_normal((n, n_t)) * np.where(near, 1.0, 10.0)[:, None]
+    cv = CrossValidation(spec, X, r, np.zeros((n, n_t)), np.zeros((n, 2)), np.zeros((n, 2)),
+                         np.zeros(n, dtype=np.int64), 0.0)
+    assert near.sum() >= 2 * n_t
+    res = residual_model(cv)
+    assert res.n == near.sum() and res.rows == "interior, line 2 sigma"
+    np.testing.assert_allclose(res.curve_cov, r[near].T @ r[near] / near.sum())
+    wide = residual_model(cv, line=False)
+    assert wide.n == n - 3 and np.trace(wide.curve_cov) > 10 * np.trace(res.curve_cov)
+    assert wide.rows == "interior"

@@ -80,11 +80,12 @@ def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
 
     Fitted on first use (a few minutes) and cached in ``cache`` under a name made of the
     DOE file's content hash and a hash of the metamodel settings, so a new DOE (a physics
-    change) or new metamodel defaults fit a new one. The description (for the result's
+    change) or new metamodel defaults fit a new one (as does a cached file whose residual
+    statistics are of another rule than the default's). The description (for the result's
     ``model`` entry) names the physics model and its version, the DOE file and its hash.
     """
     from formtwin.defaults import bundled_doe, default_doe
-    from formtwin.metamodel import Metamodel, calibrate
+    from formtwin.metamodel import RESIDUAL_RULE, Metamodel, calibrate
 
     doe = bundled_doe("bending")
     digest = file_digest(doe)
@@ -92,7 +93,8 @@ def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
     key = hashlib.sha256(settings.encode()).hexdigest()[:8]
     path = cache / f"metamodel_bending_doe{digest}_mm{key}.npz"
     cached = Metamodel.load(path) if path.exists() else None
-    if cached is not None and cached.residuals is not None:  # else: from before the error model
+    if cached is not None and cached.residuals is not None \
+            and cached.residuals.rows == RESIDUAL_RULE:  # else: another error model
         mm, n_runs = cached, None
     else:
         data = default_doe("bending", cache)  # checks the DOE against the physics version
@@ -102,6 +104,7 @@ def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
         tmp = Path(mm.save(cache / f"{path.stem}.tmp.npz"))
         tmp.replace(path)
         n_runs = int(data.n)
+    assert mm.residuals is not None  # calibrate() set them, or the cache check found them
     info: dict[str, Any] = {
         "name": "metamodel of the bundled physics DOE",
         "physics": "bending",
@@ -109,6 +112,8 @@ def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
         "doe": str(doe.relative_to(ROOT)) if doe.is_relative_to(ROOT) else doe.name,
         "doe_sha256_16": digest,
         "metamodel": settings,
+        "residual_rule": mm.residuals.rows,
+        "residual_runs": mm.residuals.n,
         "metamodel_file": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT)
         else str(path),
     }

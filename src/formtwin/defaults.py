@@ -27,7 +27,7 @@ from scipy.stats import qmc
 
 from formtwin.dataset import DoeDataset
 from formtwin.measurement import ProcessModel
-from formtwin.metamodel import Metamodel, calibrate
+from formtwin.metamodel import RESIDUAL_RULE, Metamodel, calibrate
 from formtwin.simulator import Simulator, SimulatorModel
 from formtwin.spec import ProcessSpec, load_spec
 
@@ -127,20 +127,20 @@ def default_doe(name: str, cache: Path) -> DoeDataset:
 def default_metamodel(cache: Path, physics: str = "bending",
                       path: str | Path | None = None) -> tuple[Metamodel, Path]:
     """Load the metamodel at ``path``, or fit (once, cached in ``cache``) the default one
-    with the statistics of its 5-fold held-out residuals (:func:`~formtwin.metamodel.calibrate`)."""
+    with the statistics of its 5-fold held-out residuals (:func:`~formtwin.metamodel.calibrate`).
+    A cached file of another model version, without residuals or with residuals of another
+    rule than :data:`~formtwin.metamodel.RESIDUAL_RULE` is refitted (a loaded metamodel
+    keeps its fitted length scales, not the default's settings to refit them)."""
     if path is not None:
         return Metamodel.load(path), Path(path)
     data = default_doe(physics, cache)
     out = cache / f"metamodel_{physics}.npz"
     if out.exists():
         mm = Metamodel.load(out)
-        if mm.model_version == data.model_version and mm.residuals is not None:
+        if mm.model_version == data.model_version and mm.residuals is not None \
+                and mm.residuals.rows == RESIDUAL_RULE:
             return mm, out
-        if mm.model_version == data.model_version:  # a file from before the error model
-            log.info("adding the k-fold residuals to %s", out)
-            calibrate(mm, data)
-            mm.save(out)
-            return mm, out
+        log.info("%s is of another model version or residual rule: refitting", out)
     log.info("fitting the metamodel on %d runs of the %s model", data.n, physics)
     cache.mkdir(parents=True, exist_ok=True)
     mm = calibrate(Metamodel().fit(data), data)

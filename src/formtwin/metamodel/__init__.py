@@ -11,6 +11,7 @@ from formtwin.metamodel.protocols import Approximation, Dataset, Reduction
 from formtwin.metamodel.rbf import KERNELS, RBF, loo_objective, loo_residuals
 from formtwin.metamodel.residuals import ResidualModel
 from formtwin.metamodel.validate import (
+    RESIDUAL_RULE,
     CrossValidation,
     calibrate,
     cross_validate,
@@ -18,6 +19,6 @@ from formtwin.metamodel.validate import (
     validate,
 )
 
-__all__ = ["KERNELS", "POD", "RBF", "Approximation", "CrossValidation", "Dataset", "Metamodel",
-           "Prediction", "Reduction", "ResidualModel", "calibrate", "cross_validate",
-           "loo_objective", "loo_residuals", "plot_validation", "validate"]
+__all__ = ["KERNELS", "POD", "RBF", "RESIDUAL_RULE", "Approximation", "CrossValidation",
+           "Dataset", "Metamodel", "Prediction", "Reduction", "ResidualModel", "calibrate",
+           "cross_validate", "loo_objective", "loo_residuals", "plot_validation", "validate"]

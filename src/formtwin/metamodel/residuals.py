@@ -41,6 +41,9 @@ class ResidualModel:
     angle_mean : (2,) mean angle residual, deg (diagnostic).
     k : number of folds of the cross-validation.
     n : number of runs behind the statistics.
+    rows : which runs they are of (:func:`~formtwin.metamodel.validate.residual_model`'s
+        rule, e.g. ``"interior, line 2 sigma"``; ``""`` for a file from before the rule
+        was stored), so a loader can tell statistics made by another rule.
     """
 
     curve_cov: FloatArray
@@ -49,6 +52,7 @@ class ResidualModel:
     angle_mean: FloatArray
     k: int
     n: int
+    rows: str = ""
 
     def __post_init__(self) -> None:
         c, a = np.asarray(self.curve_cov, np.float64), np.asarray(self.angle_cov, np.float64)
@@ -65,7 +69,8 @@ class ResidualModel:
         object.__setattr__(self, "angle_cov", a)
 
     @classmethod
-    def from_residuals(cls, curves: FloatArray, angles: FloatArray, k: int) -> ResidualModel:
+    def from_residuals(cls, curves: FloatArray, angles: FloatArray, k: int, rows: str = ""
+                       ) -> ResidualModel:
         """Statistics of residual curves ``(n, n_t)`` N and angles ``(n, 2)`` deg.
 
         Rows with a non-finite value are dropped (a failed run has no residual).
@@ -80,7 +85,7 @@ class ResidualModel:
         if n < 2:
             raise ValueError(f"{n} finite residual rows, expected at least 2")
         return cls(curve_cov=rc.T @ rc / n, curve_mean=rc.mean(axis=0),
-                   angle_cov=ra.T @ ra / n, angle_mean=ra.mean(axis=0), k=int(k), n=n)
+                   angle_cov=ra.T @ ra / n, angle_mean=ra.mean(axis=0), k=int(k), n=n, rows=rows)
 
     @property
     def n_t(self) -> int:
@@ -91,7 +96,7 @@ class ResidualModel:
         """Arrays that rebuild the model (saved as ``residuals.*`` with the metamodel)."""
         return {"curve_cov": self.curve_cov, "curve_mean": np.asarray(self.curve_mean),
                 "angle_cov": self.angle_cov, "angle_mean": np.asarray(self.angle_mean),
-                "k": np.array(self.k), "n": np.array(self.n)}
+                "k": np.array(self.k), "n": np.array(self.n), "rows": np.array(self.rows)}
 
     @classmethod
     def from_state(cls, arrays: dict[str, np.ndarray]) -> ResidualModel:
@@ -100,4 +105,5 @@ class ResidualModel:
                    curve_mean=np.asarray(arrays["curve_mean"], np.float64),
                    angle_cov=np.asarray(arrays["angle_cov"], np.float64),
                    angle_mean=np.asarray(arrays["angle_mean"], np.float64),
-                   k=int(arrays["k"]), n=int(arrays["n"]))
+                   k=int(arrays["k"]), n=int(arrays["n"]),
+                   rows=str(arrays["rows"]) if "rows" in arrays else "")

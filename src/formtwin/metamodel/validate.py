@@ -146,37 +146,69 @@ def cross_validate(model: Metamodel | Callable[[], Metamodel], dataset: Dataset,
                            float(np.mean(seconds)))
 
 
-def residual_model(cv: CrossValidation, interior: bool = True) -> ResidualModel:
+#: half-width of the line's region in state sigmas (:func:`residual_model`)
+LINE_SIGMAS = 2.0
+
+
+def residual_rule(interior: bool = True, line: bool = True) -> str:
+    """The name of :func:`residual_model`'s choice of runs, stored with its statistics."""
+    return ", ".join(["interior"] * interior + [f"line {LINE_SIGMAS:g} sigma"] * line) or "all"
+
+
+#: the rule of :func:`calibrate`'s default: a metamodel whose statistics have another is
+#: recalibrated by the loaders of the bundled one (:mod:`formtwin.defaults`)
+RESIDUAL_RULE = residual_rule()
+
+
+def residual_model(cv: CrossValidation, interior: bool = True, line: bool = True
+                   ) -> ResidualModel:
     """Statistics of the held-out residuals (truth minus prediction) of a cross-validation.
 
     ``interior``: only runs strictly inside the design box (no input on a bound). The
     paper's design puts 2^d runs on the corners of the box; held out, each is predicted by
     extrapolation, with errors far above those inside the box where a tracker works
-    (about mu, a few sigma wide). Falls back to all runs if fewer than ``2 n_t`` are inside.
+    (about mu, a few sigma wide). ``line``: of those, only the runs whose every state lies
+    within :data:`LINE_SIGMAS` sigma of the range of its statistics mu
+    (``[mu_min - 2 sigma, mu_max + 2 sigma]``), where a line's products are: the box's
+    edges (e.g. a punch pinching the flap at the smallest punch end distances) hold a
+    large share of the runs and of the error but few products. Each step falls back to the
+    rows before it if fewer than ``2 n_t`` remain. The result's ``rows`` names the rule
+    asked for (:func:`residual_rule`), its ``n`` the runs used.
     """
     rows = np.ones(cv.inputs.shape[0], dtype=bool)
+    n_min = 2 * cv.curves.shape[1]
     if interior:
         lo, hi = cv.spec.run_inputs.lo, cv.spec.run_inputs.hi
         tol = 1e-9 * (hi - lo)
         inside = np.all((cv.inputs > lo + tol) & (cv.inputs < hi - tol), axis=1)
-        if inside.sum() >= 2 * cv.curves.shape[1]:
+        if inside.sum() >= n_min:
             rows = inside
+    if line:
+        st = cv.spec.state
+        x = cv.inputs[:, :len(st.names)]
+        near = rows & np.all((x >= st.mu_min - LINE_SIGMAS * st.sigma)
+                             & (x <= st.mu_max + LINE_SIGMAS * st.sigma), axis=1)
+        if near.sum() >= n_min:
+            rows = near
     return ResidualModel.from_residuals(cv.curves[rows] - cv.predicted_curves[rows],
                                         cv.angles[rows] - cv.predicted_angles[rows],
-                                        k=int(cv.fold.max() + 1))
+                                        k=int(cv.fold.max() + 1),
+                                        rows=residual_rule(interior, line))
 
 
 def calibrate(metamodel: Metamodel, dataset: Dataset, k: int = 5, seed: int = 0,
-              interior: bool = True) -> Metamodel:
+              interior: bool = True, line: bool = True) -> Metamodel:
     """Attach the statistics of k-fold held-out residuals to a fitted ``metamodel``.
 
     The folds are fitted with ``metamodel``'s settings on ``dataset`` (the one it was
-    fitted to); the statistics (of the runs inside the box, see :func:`residual_model`) go
-    to ``metamodel.residuals`` (saved with it). Costs ``k`` fits. Returns ``metamodel``.
+    fitted to); the statistics (of the runs inside the box where a line's products are, see
+    :func:`residual_model`) go to ``metamodel.residuals`` (saved with it). Costs ``k`` fits.
+    Returns ``metamodel``.
     """
     if metamodel.curve_model is None:
         raise RuntimeError("calibrate: the metamodel is not fitted")
-    metamodel.residuals = residual_model(cross_validate(metamodel, dataset, k, seed), interior)
+    metamodel.residuals = residual_model(cross_validate(metamodel, dataset, k, seed),
+                                         interior, line)
     log.info("calibrate: %d-fold residuals of %d runs, curve rms %.3g N", k,
              metamodel.residuals.n, float(np.sqrt(np.trace(metamodel.residuals.curve_cov)
                                                   / metamodel.residuals.n_t)))
