@@ -143,14 +143,17 @@ def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, chan
 
 def estimates_code() -> str:
     """Hash of the package's source outside what charts, serves or studies (monitoring,
-    service, cli, study, control, physics: the DOE's hash covers the latter): the code that
-    makes the estimates (a cached series is stale when it changes)."""
+    service, cli, study, control, physics: the DOE's hash covers the latter) and of its data
+    files' JSON (the interval calibration): what makes the estimates (a cached series is
+    stale when it changes)."""
     h = hashlib.sha256()
     pkg = Path(formtwin.__file__).parent
     skip = ("monitoring", "service", "cli", "study", "control", "physics", "figures.py")
     for f in sorted(pkg.rglob("*.py")):
         if f.relative_to(pkg).parts[0] not in skip:
             h.update(f.read_bytes())
+    for f in sorted((pkg / "data").glob("*.json")):
+        h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
 

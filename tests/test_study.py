@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from formtwin.dataset import DatasetError
 from formtwin.doe import latin_hypercube, run_design
 from formtwin.metamodel import Metamodel
 from formtwin.physics.analytic import AnalyticBending
@@ -98,6 +100,32 @@ def test_study_is_reproducible_from_its_seed(metamodel: tuple[Metamodel, Path],
     np.testing.assert_array_equal(a.nrmse[2], b.nrmse[2])
 
 
+def test_cached_runs_of_other_settings_are_made_again(metamodel: tuple[Metamodel, Path],
+                                                     tmp_path: Path) -> None:
+    """The study folder's cache reuses a run only if it was made from the same inputs:
+    other tracker settings in the same folder run the filters again, and give the numbers
+    of a fresh folder."""
+    mm, mm_path = metamodel
+    base = StudySettings(n_products=40, window=20, n_realisations=1, n_repetitions=1,
+                         tracker=TrackerConfig(n_particles=100), series=(1,), workers=1,
+                         seed=9, paper_repetitions=0)
+    first = run_study(base, tmp_path / "a", mm, mm_path, AnalyticBending(SPEC))
+    assert first.timings["filter_runs_computed"] == 1
+    again = run_study(base, tmp_path / "a", mm, mm_path, AnalyticBending(SPEC))
+    assert again.timings["cached"] == 1.0
+    other = dataclasses.replace(base, tracker=TrackerConfig(n_particles=120))
+    changed = run_study(other, tmp_path / "a", mm, mm_path, AnalyticBending(SPEC))
+    assert changed.timings["filter_runs_computed"] == 1 and "cached" not in changed.timings
+    fresh = run_study(other, tmp_path / "b", mm, mm_path, AnalyticBending(SPEC))
+    np.testing.assert_array_equal(changed.nrmse[0], fresh.nrmse[0])
+    assert not np.array_equal(changed.nrmse[0], first.nrmse[0])
+    # another seed wants other pseudo-data: not the seed-9 file's, and the physics runs'
+    # file of the folder holds another design (a clear error, not a silent reuse)
+    with pytest.raises(DatasetError, match="fe_0.nc: holds a different design"):
+        run_study(dataclasses.replace(other, seed=10), tmp_path / "a", mm, mm_path,
+                  AnalyticBending(SPEC))
+
+
 def test_bad_settings_are_named() -> None:
     with pytest.raises(ValueError, match="window = 600"):
         StudySettings(n_products=500, window=600)
@@ -136,12 +164,20 @@ def test_cli_quick_study_on_the_embedded_default(tmp_path: Path) -> None:
         assert floors.b[:7].max() > 0 and floors.b_angles.max() > 0
 
 
+def _stand_in_files(folder: Path) -> None:
+    """Files where the study's tasks expect a metamodel and 5 realisations (their keys
+    hash the contents)."""
+    for name in ("mm.npz", *(f"realisation_{k}.nc" for k in range(5))):
+        (folder / name).write_bytes(name.encode())
+
+
 def test_the_study_counts_its_filter_runs(tmp_path: Path) -> None:
     """What `formtwin study` announces is what it runs (default: 6 series x 5 datasets x 5
     repetitions, plus the paper's likelihood once per dataset in series 1, 5 and 6)."""
     from formtwin.study.run import StudySettings, _tasks
 
     assert StudySettings().n_filter_runs == 165
+    _stand_in_files(tmp_path)
     for kw in ({}, {"paper_repetitions": 0}, {"series": (2, 3, 5)},
                {"paper_repetitions": 2, "n_repetitions": 3}):
         st = StudySettings(**kw)  # type: ignore[arg-type]
@@ -155,6 +191,7 @@ def test_the_papers_runs_are_eq_12_whatever_the_tracker_compares(tmp_path: Path)
     from formtwin.tracker import TrackerConfig
 
     st = StudySettings(tracker=TrackerConfig(compare="measurement"))
+    _stand_in_files(tmp_path)
     tasks = _tasks(st, tmp_path, tmp_path / "mm.npz", tmp_path)
     paper = [t for t in tasks if t.tracker.likelihood == "paper"]
     mine = [t for t in tasks if t.tracker.likelihood != "paper"]

@@ -58,8 +58,10 @@ NOT_IN_RESULTS = ("service", "cli", "monitoring", "figures.py")
 def _key(settings: ControlStudySettings, target: float, version: str,
          metamodel: ProcessModel) -> str:
     """Hash of what makes a dataset's result: settings (not the worker count), target,
-    physics version, the metamodel (its curve and angles at the box's middle) and the source
-    of the package outside :data:`NOT_IN_RESULTS` (tracker, controllers, plant, study)."""
+    physics version, the metamodel (its curve and angles at the box's middle, its residual
+    statistics ``K_res`` if it has them), the source of the package outside
+    :data:`NOT_IN_RESULTS` (tracker, controllers, plant, study) and its data files' JSON
+    (the interval calibration)."""
     d = dataclasses.asdict(settings)
     d["tracker"] = settings.tracker.to_dict()
     for name in ("workers", "datasets"):  # a dataset's result depends on neither
@@ -70,10 +72,16 @@ def _key(settings: ControlStudySettings, target: float, version: str,
     mid = 0.5 * (spec.inputs.lo + spec.inputs.hi)[None, :]
     h.update(np.ascontiguousarray(metamodel.predict_curves(mid), dtype="<f8").tobytes())
     h.update(np.ascontiguousarray(metamodel.predict_angles(mid), dtype="<f8").tobytes())
+    residuals = getattr(metamodel, "residuals", None)
+    if residuals is not None:
+        for cov in (residuals.curve_cov, residuals.angle_cov):
+            h.update(np.ascontiguousarray(cov, dtype="<f8").tobytes())
     pkg = Path(__file__).resolve().parents[1]
     for f in sorted(pkg.rglob("*.py")):
         if f.relative_to(pkg).parts[0] not in NOT_IN_RESULTS:
             h.update(f.read_bytes())
+    for f in sorted((pkg / "data").glob("*.json")):
+        h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
 

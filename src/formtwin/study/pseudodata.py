@@ -105,19 +105,23 @@ def make_realisation(
     physics: Simulator,
     folder: Path,
     executor: str | Executor | None = None,
+    key: str = "",
 ) -> Realisation:
     """Create (or reload from ``folder``) realisation ``index`` of ``n`` products.
 
     The physics runs go through the DOE runner (parallel, resumable): its dataset
-    ``fe_K.nc`` in ``folder`` is the cache of the ``FE`` curves.
+    ``fe_K.nc`` in ``folder`` is the cache of the ``FE`` curves. ``key`` names what made
+    the file (seed, models: :func:`~formtwin.study.keys.cache_key`); a file with another
+    is made again.
     """
     path = folder / f"realisation_{index}.nc"
     if path.exists():
         with xr.open_dataset(path, engine="h5netcdf") as ds:
-            real = Realisation.from_dataset(ds.load())
-        if real.n == n and real.u.shape[1] == len(spec.controls):
+            real, stored = Realisation.from_dataset(ds.load()), ds.attrs.get("key", "")
+        if real.n == n and real.u.shape[1] == len(spec.controls) and stored == key:
             return real
-        log.info("%s holds %d products, %d wanted: regenerating", path, real.n, n)
+        log.info("%s holds %d products of key %r, %d of key %r wanted: regenerating", path,
+                 real.n, stored, n, key)
     rng = np.random.default_rng(np.random.SeedSequence([seed, index]))
     run = draw_production_run(spec, n, rng)
     inputs = run.inputs
@@ -138,6 +142,8 @@ def make_realisation(
     real = Realisation(mu=run.mu, theta=run.theta, theta_d=run.theta_d, x=run.x, u=run.u,
                        index=index, curves=curves, angles=angles, ok=ok)
     folder.mkdir(parents=True, exist_ok=True)
-    real.to_dataset(spec).to_netcdf(path, engine="h5netcdf")
+    ds = real.to_dataset(spec)
+    ds.attrs["key"] = key
+    ds.to_netcdf(path, engine="h5netcdf")
     log.info("realisation %d: %d products, %d physics failures", index, n, int((~fe.ok).sum()))
     return real

@@ -24,6 +24,7 @@ from formtwin.doe import make_executor
 from formtwin.measurement import ProcessModel, monte_carlo_inputs
 from formtwin.simulator import Simulator
 from formtwin.spec import ProcessSpec
+from formtwin.study.keys import cache_key, stored_key
 from formtwin.study.metrics import run_scores
 from formtwin.study.pseudodata import Realisation, make_realisation
 from formtwin.study.series import (
@@ -35,6 +36,7 @@ from formtwin.study.series import (
     run_task,
 )
 from formtwin.tracker import TrackerConfig
+from formtwin.tracker.intervals import CALIBRATION_PATH
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -138,12 +140,14 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
     # one pool for the physics runs and the filter runs: each worker compiles the physics
     # (Numba, ~11 s) once, not once per realisation
     with make_executor(_executor_name(settings), settings.workers) as pool:
+        data_key = cache_key(settings.seed, physics.version, files=(metamodel_path,))
         realisations = [make_realisation(spec, k, settings.n_products, settings.seed,
-                                         metamodel, physics, data_dir, executor=pool)
+                                         metamodel, physics, data_dir, executor=pool,
+                                         key=data_key)
                         for k in range(settings.n_realisations)]
         t_data = time.perf_counter() - t0
         tasks = _tasks(settings, folder, metamodel_path, data_dir)
-        todo = [t for t in tasks if not Path(t.out_path).exists()]
+        todo = [t for t in tasks if stored_key(Path(t.out_path)) != t.key]
         # K_MC once per (realisation, mu known or assumed, likelihood) file, in the pool,
         # before the filter runs that read it
         needed = {t.measurement_path: t for t in todo if not Path(t.measurement_path).exists()}
@@ -188,14 +192,25 @@ def _tasks(settings: StudySettings, folder: Path, metamodel_path: Path,
         runs.append((dataclasses.replace(settings.tracker, likelihood="paper", compare="model",
                                          intervals="cloud"),
                      settings.paper_repetitions, "_paper", settings.paper_series))
-    return [Task(series=s, realisation=k, repetition=r, metamodel_path=str(metamodel_path),
-                 realisation_path=str(data_dir / f"realisation_{k}.nc"),
-                 measurement_path=str(measurement_file(folder, k, SERIES[s - 1].mu_known,
-                                                       tracker.likelihood)),
-                 out_path=str(folder / "runs" / f"series{s}_real{k}_rep{r}{tag}.npz"),
-                 tracker=tracker, seed=settings.seed)
-            for tracker, reps, tag, series in runs for s in settings.series if s in series
-            for k in range(settings.n_realisations) for r in range(reps)]
+    tasks, runs_dir = [], folder / "runs"
+    for tracker, reps, tag, series in runs:
+        for s in (s for s in settings.series if s in series):
+            known = SERIES[s - 1].mu_known
+            for k in range(settings.n_realisations):
+                real = data_dir / f"realisation_{k}.nc"
+                # what makes the measurement model, and (with it) a filter run
+                made_of = (tracker.to_dict(), settings.seed, known)
+                files = (metamodel_path, real)
+                measurement = measurement_file(folder, k, known, tracker.likelihood,
+                                               cache_key(*made_of, files=files))
+                tasks += [Task(series=s, realisation=k, repetition=r,
+                               metamodel_path=str(metamodel_path), realisation_path=str(real),
+                               measurement_path=str(measurement),
+                               out_path=str(runs_dir / f"series{s}_real{k}_rep{r}{tag}.npz"),
+                               tracker=tracker, seed=settings.seed,
+                               key=cache_key(*made_of, s, r, files=(*files, CALIBRATION_PATH)))
+                          for r in range(reps)]
+    return tasks
 
 
 def _cost(task: Task) -> float:

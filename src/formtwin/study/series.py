@@ -41,6 +41,7 @@ from formtwin._threads import single_blas_thread
 from formtwin.estimates import HEALTH
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.metamodel import Metamodel
+from formtwin.study.keys import stored_key
 from formtwin.study.pseudodata import Realisation
 from formtwin.tracker import Tracker, TrackerConfig, build_measurement, build_tracker
 
@@ -101,6 +102,9 @@ class Task:
     out_path: str
     tracker: TrackerConfig
     seed: int
+    #: :func:`~formtwin.study.keys.cache_key` of what makes the run (saved with it: a run
+    #: file with another key is made again)
+    key: str
 
 
 @functools.lru_cache(maxsize=2)
@@ -120,11 +124,13 @@ def _measurement(path: str) -> MeasurementModel:
 
 
 def measurement_file(folder: Path, realisation: int, mu_known: bool,
-                     likelihood: str = "calibrated") -> Path:
+                     likelihood: str = "calibrated", key: str = "") -> Path:
     """Where the study keeps the measurement model of a realisation (mu known or assumed,
-    calibrated likelihood, or the paper's, which the discrepancy likelihood builds on)."""
+    calibrated likelihood, or the paper's, which the discrepancy likelihood builds on),
+    named by the ``key`` of what makes it (:func:`~formtwin.study.keys.cache_key`)."""
     kind = "known" if mu_known else "assumed"
     tail = "" if likelihood == "calibrated" else "_paper"  # discrepancy: the paper's
+    tail += f"_{key}" if key else ""
     return folder / "measurement" / f"real{realisation}_mu_{kind}{tail}.npz"
 
 
@@ -168,10 +174,10 @@ def run_task(task: Task) -> str:
     """Run one filter over one realisation and save its estimates as npz; returns the path.
 
     Products whose curve is missing (failed physics run) are skipped and get NaN estimates.
-    An existing output file is reused (the study resumes).
+    An existing output file with the task's key is reused (the study resumes).
     """
     out = Path(task.out_path)
-    if out.exists():
+    if stored_key(out) == task.key:
         return str(out)
     with single_blas_thread():
         _run(task, out)
@@ -218,7 +224,8 @@ def _run(task: Task, out: Path) -> None:
     arrays: dict[str, Any] = {"mean": mean, "std": std, "angles_mean": ang_mean,
                               "angles_std": ang_std, "ess": ess,
                               "loglik": loglik, "collapsed": np.asarray(est.collapsed),
-                              "fit_distance2": d2, "health": health}
+                              "fit_distance2": d2, "health": health,
+                              "key": np.array(task.key)}
     if est.mu_mean is not None and est.mu_std is not None:  # learned mu, (n, 7)
         for key, value in (("mu_mean", est.mu_mean), ("mu_std", est.mu_std)):
             full = np.full((n, len(spec.state)), np.nan)
