@@ -32,7 +32,8 @@ from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
 from formtwin.doe import make_executor
-from formtwin.study.series import SERIES, Task, measurement_file, prepare
+from formtwin.study.run import _tasks  # the study's own runs: their paths and keys
+from formtwin.study.series import SERIES, Task, prepare
 from formtwin.tracker.sandwich import shared_removal
 
 FloatArray = NDArray[np.float64]
@@ -66,15 +67,12 @@ def replay_runs(result: Any, folder: Path, metamodel_path: Path, series: int
     """:func:`replay` of every run of ``series`` in the study ``result`` (made in
     ``folder`` with the metamodel at ``metamodel_path``), in a process pool."""
     st = result.settings
-    tasks = {key: Task(series=key[0], realisation=key[1], repetition=key[2],
-                       metamodel_path=str(metamodel_path),
-                       realisation_path=str(folder / "data" / f"realisation_{key[1]}.nc"),
-                       measurement_path=str(measurement_file(
-                           folder, key[1], SERIES[series - 1].mu_known, st.tracker.likelihood)),
-                       out_path=str(path), tracker=st.tracker, seed=st.seed)
-             for key, path in sorted(result.run_paths.items()) if key[0] == series}
+    tasks = {(t.series, t.realisation, t.repetition): t
+             for t in _tasks(st, folder, metamodel_path, folder / "data")
+             if t.series == series and t.tracker == st.tracker}
     with make_executor(None, st.workers) as pool:
-        futures = {key: pool.submit(replay, task) for key, task in tasks.items()}
+        futures = {key: pool.submit(replay, tasks[key])
+                   for key in sorted(result.run_paths) if key[0] == series}
         return {key: f.result() for key, f in futures.items()}
 
 
