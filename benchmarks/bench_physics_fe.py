@@ -353,8 +353,11 @@ def _independent(beam: BendingModel, n: int, seed: int, mesh1: int, mesh2: int,
     names = tuple(doe.spec.run_inputs.names)
     pts = independent_points(doe.inputs, names, 2 ** len(names), n, seed)
     t = np.asarray(beam.spec.time)
-    beams = {beam.version: beam, "bending-2.3 (pinch_reach=0)":
-             BendingModel(beam.spec, beam.geometry, beam.disc, pinch_reach=0.0)}
+    other = {f.name: getattr(beam.disc, f.name) for f in dataclasses.fields(Discretisation)
+             if f.name != "pinch_reach" and getattr(beam.disc, f.name) != f.default}
+    beams = {beam.version: beam,
+             "bending-2.3 (pinch_reach=0" + "".join(f", {k}={v}" for k, v in other.items())
+             + ")": BendingModel(beam.spec, beam.geometry, beam.disc, pinch_reach=0.0)}
     fe1 = CalculixModel(beam.spec, n_thick=mesh1, stage2=False)
     fe2 = CalculixModel(beam.spec, n_thick=mesh2)
     points: dict[str, dict[str, Any]] = {}
