@@ -223,3 +223,7 @@ def test_calibration_replay_learns_shares_and_their_std(metamodel: tuple[Metamod
         np.testing.assert_allclose(lo[:, 7:], std[:, 7:], rtol=1e-12)  # theta's rows
         np.testing.assert_array_equal(lo[:, -2:], std[:, -2:])  # the angles' linearised
         assert stds[key].shape == std.shape
+    from formtwin.study.calibrate import floors_from_study  # floors on top of the shares
+    entry = floors_from_study(result, 6, 0.0, stds=stds)
+    assert min(entry["coverage_calibrated_in_sample"][:7]) >= 0.9 - 1e-9
+    assert np.all(np.array(entry["floors"]) >= 0)
