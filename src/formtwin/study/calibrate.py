@@ -12,11 +12,12 @@ the study or the benchmarks), filtered as series 5 (no deviation model) and seri
 (deviation estimated, mu assumed), the last ``window`` products of each run. The runs'
 std are the cloud's plus, where mu is assumed (series 6), the linearised error of assuming
 it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not; the
-particle filter keeps more of the offset than the linearised term says, so first the series-6
-runs are replayed and the term's shares learned (:mod:`formtwin.study.mu_share`), and
-floors for trackers with theta_d and mu assumed are learned on the runs' std with them
-(``deviation.mu_assumed``: floors and ``mu_share``; ``deviation``'s own, learned with the
-linearised term, serve theta_d with mu known). The floors
+particle filter keeps more of the offset than the linearised term says: the series-6
+runs can be replayed and the term's shares learned (``--mu-share``,
+:mod:`formtwin.study.mu_share`), with floors for trackers with theta_d and mu assumed learned
+on the runs' std with them (``deviation.mu_assumed``: floors and ``mu_share``;
+``deviation``'s own, learned with the linearised term, serve theta_d with mu known; off by
+default: no net gain on the benchmark in session 11, docs/likelihood.md). The floors
 are stored with the diagonal of the metamodel's ``K_res``
 (:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
 
@@ -164,6 +165,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="products per dataset (the last half are scored)")
     parser.add_argument("--seed", type=int, default=SEED)
     parser.add_argument("--write", default=str(CALIBRATION_PATH))
+    parser.add_argument("--mu-share", action="store_true",
+                        help="also learn the assumed mu's shares and their floors "
+                             "(deviation.mu_assumed; off: no net gain measured in session 11)")
     args = parser.parse_args(argv)
     if args.seed == StudySettings().seed:
         raise SystemExit("--seed: the study's own seed would calibrate on its data")
@@ -178,9 +182,9 @@ def main(argv: list[str] | None = None) -> None:
                              tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu"))
     result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
     d0, n_gate = gate_d0(result)
-    dev = SERIES_OF["deviation"]  # mu assumed: the shares of the term, then its std
-    share, stds = share_from_study(result, replay_runs(result, Path(args.out), mm_path, dev))
-    out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
+    dev = SERIES_OF["deviation"]
+    out: dict[str, Any] = {
+           "what": "floors (internal units; angles degrees) added in quadrature to the "
                    "cloud's std (plus the assumed mu's term where mu is assumed) by "
                    "TrackerConfig(intervals='calibrated'), learned on independent physics "
                    "pseudo-data (formtwin.study.calibrate)",
@@ -193,9 +197,11 @@ def main(argv: list[str] | None = None) -> None:
                         "tracker": settings.tracker.to_dict()},
            "fit_gate": {"d0": d0, "ewma": FIT_EWMA, "series": GATE_SERIES, "runs": n_gate},
            "no_deviation": floors_from_study(result, SERIES_OF["no_deviation"], d0),
-           "deviation": {**floors_from_study(result, dev, d0),  # mu known (series 3)
-                         "mu_assumed": {**floors_from_study(result, dev, d0, stds=stds),
-                                        "mu_share": [round(float(v), 4) for v in share]}}}
+           "deviation": floors_from_study(result, dev, d0)}
+    if args.mu_share:  # theta_d with mu known (series 3) keeps the floors above
+        share, stds = share_from_study(result, replay_runs(result, Path(args.out), mm_path, dev))
+        out["deviation"]["mu_assumed"] = {**floors_from_study(result, dev, d0, stds=stds),
+                                          "mu_share": [round(float(v), 4) for v in share]}
     Path(args.write).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     print(json.dumps({k: out[k] for k in ("fit_gate", *SERIES_OF)}, indent=1))
 
