@@ -47,6 +47,7 @@ import numpy as np
 from formtwin._bench import write_result
 from formtwin.cli import study
 from formtwin.defaults import default_metamodel, physics_model
+from formtwin.study.pseudodata import data_digest
 from formtwin.study.run import StudyResult, run_study
 
 TARGETS = {"s1_state_ratio": ("<=", 1.05), "s5_state_ratio": ("<=", 0.7),
@@ -193,6 +194,7 @@ def main() -> None:
         "study_filter_runs_s": round(float(timings["filter_runs_s"]), 1),
         "study_filter_runs": int(timings["filter_runs_computed"]),
         "extra_runs_s": round(extra_s, 1),
+        "pseudo_data_digest": data_digest(full.realisations),
         "likelihood": lik,
         "intervals": base.tracker.intervals,
         "method": ("study_s: the default `formtwin study` (bending) in an emptied folder, "

@@ -15,6 +15,7 @@ from formtwin.metamodel import Metamodel
 from formtwin.physics.analytic import AnalyticBending
 from formtwin.spec import load_spec
 from formtwin.study.metrics import normalised_rmse, normalisers, rmse
+from formtwin.study.pseudodata import data_digest
 from formtwin.study.report import write_report
 from formtwin.study.run import StudySettings, run_study
 from formtwin.tracker import TrackerConfig
@@ -83,6 +84,9 @@ def test_quick_study_end_to_end(metamodel: tuple[Metamodel, Path], tmp_path: Pat
     assert np.isnan(result.paper["nrmse"][[1, 2, 3]]).all()
     assert not np.array_equal(result.paper["nrmse"], nrmse)
     assert (tmp_path / "nrmse.csv").read_text().count("\n") == 1 + 6 * 2
+    digest = json.loads((tmp_path / "results.json").read_text())["data_digest"]
+    assert digest == data_digest(result.realisations)
+    assert f"pseudo-data digest FE | {digest['FE']}" in text
     # a second run reuses every cached piece and gives the same numbers
     again = run_study(settings, tmp_path, mm, mm_path, AnalyticBending(SPEC))
     assert again.timings["cached"] == 1.0
@@ -98,6 +102,13 @@ def test_study_is_reproducible_from_its_seed(metamodel: tuple[Metamodel, Path],
     a = run_study(settings, tmp_path / "a", mm, mm_path, AnalyticBending(SPEC))
     b = run_study(settings, tmp_path / "b", mm, mm_path, AnalyticBending(SPEC))
     np.testing.assert_array_equal(a.nrmse[2], b.nrmse[2])
+    # the pseudo-data's digest records that: equal for the same seed, and one ulp of one
+    # force value of the physics data changes its source's digest and no other
+    assert data_digest(a.realisations) == data_digest(b.realisations)
+    r = b.realisations[0]
+    r.curves["FE"][7, 3] = np.nextafter(r.curves["FE"][7, 3], np.inf)
+    da, db = data_digest(a.realisations), data_digest(b.realisations)
+    assert [s for s in da if da[s] != db[s]] == ["FE"]
 
 
 def test_cached_runs_of_other_settings_are_made_again(metamodel: tuple[Metamodel, Path],

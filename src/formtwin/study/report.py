@@ -16,6 +16,7 @@ from formtwin.spec import ProcessSpec
 from formtwin.study.figures import component_labels, plot_nrmse, plot_timeseries
 from formtwin.study.honest import honest_summary, honest_table, plot_honest
 from formtwin.study.metrics import summarise
+from formtwin.study.pseudodata import data_digest
 from formtwin.study.run import StudyResult
 from formtwin.study.series import SERIES
 
@@ -108,6 +109,7 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
                 for s in st.series]
     failures = {r.index: int((~r.ok["FE"]).sum()) for r in result.realisations}
     honest = honest_summary(result, spec)
+    digest = data_digest(result.realisations)
     plot_honest(honest, folder / "fig_skill_coverage.png")
     blocks: list[Block] = [
         ("h1", "formtwin study: the six simulation series of Havinga et al."),
@@ -119,7 +121,8 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
               f"{result.timings['filter_runs_s']:.0f} s)."),
         ("h2", "Settings"),
         ("table", ["setting", "value"], [[k, str(v)] for k, v in result.settings_dict().items()]
-         + [[k, v] for k, v in sources.items()]),
+         + [[k, v] for k, v in sources.items()]
+         + [[f"pseudo-data digest {src}", d] for src, d in digest.items()]),
         ("table", ["series", "data", "filter model", "statistics"],
          [[str(s.number), s.data_label, "g(MM), estimates theta_d" if s.deviation else "MM",
            "mu known" if s.mu_known else "mu learned, prior U(mu_min, mu_max)"
@@ -194,6 +197,7 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
                     f.write(f"{s},{k},{r},{vals}\n")
     summary: dict[str, Any] = {"settings": result.settings_dict(), "timings": result.timings,
                "sources": sources, "components": labels,
+               "data_digest": digest,
                "nrmse_overall": {f"series{s}": dict(zip(labels, map(_json_float,
                                                                      overall[s - 1]), strict=True))
                                  for s in st.series},
