@@ -208,33 +208,3 @@ def test_the_papers_runs_are_eq_12_whatever_the_tracker_compares(tmp_path: Path)
     mine = [t for t in tasks if t.tracker.likelihood != "paper"]
     assert paper and all(t.tracker.compare == "model" for t in paper)
     assert mine and all(t.tracker.compare == "measurement" for t in mine)
-
-
-def test_calibration_replay_learns_shares_and_their_std(metamodel: tuple[Metamodel, Path],
-                                                         tmp_path: Path) -> None:
-    """The interval calibration's replay of a series-6 run (mu assumed) reproduces its
-    means (else it raises); with shares of 1 the recomputed std are the run's, and the
-    learned shares are >= 0 with std that grow as they fall (the term's state rows)."""
-    from formtwin.study import mu_share
-
-    mm, mm_path = metamodel
-    settings = StudySettings(n_products=40, window=20, n_realisations=1, n_repetitions=2,
-                             tracker=TrackerConfig(n_particles=100, intervals="cloud_mu"),
-                             series=(6,), workers=1, seed=9, paper_repetitions=0)
-    result = run_study(settings, tmp_path, mm, mm_path, AnalyticBending(SPEC))
-    reps = mu_share.replay_runs(result, tmp_path, mm_path, 6)
-    assert sorted(reps) == [(6, 0, 0), (6, 0, 1)]
-    share, stds = mu_share.share_from_study(result, reps)
-    assert share.shape == (7,) and np.all(share >= 0) and np.all(np.isfinite(share))
-    for key, rep in reps.items():
-        _, std = mu_share.run_arrays(result, key)
-        np.testing.assert_allclose(mu_share.shared_std(std, rep, np.ones(7)), std, rtol=1e-9)
-        lo = mu_share.shared_std(std, rep, np.zeros(7))
-        assert np.all(lo[-20:, :7] >= std[-20:, :7] * (1 - 1e-12))
-        np.testing.assert_allclose(lo[:, 7:], std[:, 7:], rtol=1e-12)  # theta's rows
-        np.testing.assert_array_equal(lo[:, -2:], std[:, -2:])  # the angles' linearised
-        assert stds[key].shape == std.shape
-    from formtwin.study.calibrate import floors_from_study  # floors on top of the shares
-    entry = floors_from_study(result, 6, 0.0, stds=stds)
-    assert min(entry["coverage_calibrated_in_sample"][:7]) >= 0.9 - 1e-9
-    assert np.all(np.array(entry["floors"]) >= 0)

@@ -11,13 +11,7 @@ the study seed :data:`SEED` (the study's default is 0, so they share no realisat
 the study or the benchmarks), filtered as series 5 (no deviation model) and series 6
 (deviation estimated, mu assumed), the last ``window`` products of each run. The runs'
 std are the cloud's plus, where mu is assumed (series 6), the linearised error of assuming
-it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not; the
-particle filter keeps more of the offset than the linearised term says: the series-6
-runs can be replayed and the term's shares learned (``--mu-share``,
-:mod:`formtwin.study.mu_share`), with floors for trackers with theta_d and mu assumed learned
-on the runs' std with them (``deviation.mu_assumed``: floors and ``mu_share``;
-``deviation``'s own, learned with the linearised term, serve theta_d with mu known; off by
-default: no net gain on the benchmark in session 11, docs/likelihood.md). The floors
+it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not. The floors
 are stored with the diagonal of the metamodel's ``K_res``
 (:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
 
@@ -47,7 +41,6 @@ from numpy.typing import NDArray
 
 from formtwin.defaults import default_metamodel, physics_model
 from formtwin.study.metrics import Z90
-from formtwin.study.mu_share import replay_runs, share_from_study
 from formtwin.study.run import StudyResult, StudySettings, run_study
 from formtwin.study.series import SERIES
 from formtwin.tracker import TrackerConfig
@@ -102,28 +95,24 @@ def gate_d0(result: StudyResult, a: float = FIT_EWMA) -> tuple[float, int]:
 
 
 def floors_from_study(result: StudyResult, series: int, d0: float,
-                      a: float = FIT_EWMA,
-                      stds: dict[tuple[int, int, int], FloatArray] | None = None
-                      ) -> dict[str, Any]:
+                      a: float = FIT_EWMA) -> dict[str, Any]:
     """Floors of the 18 augmented components and the 2 angles from every run of
     ``series`` in ``result`` (last ``window`` products), constant and fit-gated (``d0``,
     weight ``a``), with the coverage of the cloud's and of both calibrated intervals on
-    these runs; ``stds``: the runs' reported std (n, 20) by (series, realisation,
-    repetition) instead of the stored (the assumed mu's term with the learned shares)."""
+    these runs."""
     window = result.settings.window
     src = SERIES[series - 1].data
-    errs, sds, E = [], [], []
-    for (s, i, r), path in sorted(result.run_paths.items()):
+    errs, stds, E = [], [], []
+    for (s, i, _r), path in sorted(result.run_paths.items()):
         if s != series:
             continue
         real = result.realisations[i]
         with np.load(path) as run:
             errs.append(np.c_[run["mean"] - real.truth,
                               run["angles_mean"] - real.angles[src]][-window:])
-            sds.append((np.c_[run["std"], run["angles_std"]] if stds is None
-                        else stds[(s, i, r)])[-window:])
+            stds.append(np.c_[run["std"], run["angles_std"]][-window:])
             E.append(fit_ewma(run["fit_distance2"], a)[0][-window:])
-    err, std, e = np.concatenate(errs), np.concatenate(sds), np.concatenate(E)
+    err, std, e = np.concatenate(errs), np.concatenate(stds), np.concatenate(E)
     b = learn_floors(err, std)
     s_max = float(np.nanmax(e)) - d0
     gate = gate_scale(e, d0, s_max)[:, None]
@@ -165,9 +154,6 @@ def main(argv: list[str] | None = None) -> None:
                         help="products per dataset (the last half are scored)")
     parser.add_argument("--seed", type=int, default=SEED)
     parser.add_argument("--write", default=str(CALIBRATION_PATH))
-    parser.add_argument("--mu-share", action="store_true",
-                        help="also learn the assumed mu's shares and their floors "
-                             "(deviation.mu_assumed; off: no net gain measured in session 11)")
     args = parser.parse_args(argv)
     if args.seed == StudySettings().seed:
         raise SystemExit("--seed: the study's own seed would calibrate on its data")
@@ -182,9 +168,7 @@ def main(argv: list[str] | None = None) -> None:
                              tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu"))
     result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
     d0, n_gate = gate_d0(result)
-    dev = SERIES_OF["deviation"]
-    out: dict[str, Any] = {
-           "what": "floors (internal units; angles degrees) added in quadrature to the "
+    out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
                    "cloud's std (plus the assumed mu's term where mu is assumed) by "
                    "TrackerConfig(intervals='calibrated'), learned on independent physics "
                    "pseudo-data (formtwin.study.calibrate)",
@@ -196,12 +180,7 @@ def main(argv: list[str] | None = None) -> None:
                         "window": settings.window,
                         "tracker": settings.tracker.to_dict()},
            "fit_gate": {"d0": d0, "ewma": FIT_EWMA, "series": GATE_SERIES, "runs": n_gate},
-           "no_deviation": floors_from_study(result, SERIES_OF["no_deviation"], d0),
-           "deviation": floors_from_study(result, dev, d0)}
-    if args.mu_share:  # theta_d with mu known (series 3) keeps the floors above
-        share, stds = share_from_study(result, replay_runs(result, Path(args.out), mm_path, dev))
-        out["deviation"]["mu_assumed"] = {**floors_from_study(result, dev, d0, stds=stds),
-                                          "mu_share": [round(float(v), 4) for v in share]}
+           **{key: floors_from_study(result, s, d0) for key, s in SERIES_OF.items()}}
     Path(args.write).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     print(json.dumps({k: out[k] for k in ("fit_gate", *SERIES_OF)}, indent=1))
 

@@ -121,9 +121,7 @@ class TrackerConfig:
         ``"calibrated_fit"`` (default) scales their squares by the running fit distance in
         excess of its mean on the metamodel's own curves (learned in the same calibration:
         :class:`~formtwin.tracker.intervals.Floors`), so they shrink where the metamodel
-        explains the curves; both, for a tracker with theta_d and mu assumed, use the
-        calibration's shares of the assumed mu's term and the floors learned with them
-        (:func:`~formtwin.tracker.sandwich.shared_removal`, where the calibration has them);
+        explains the curves;
         ``"cloud"`` the particles' weighted std alone (eq. 14; no assumed-mu term);
         ``"cloud_mu"`` that plus the assumed mu's term (see ``mu_known``; the
         calibration's runs); ``"sandwich"`` adds the part of

@@ -40,13 +40,14 @@ from formtwin.spec import ProcessSpec
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
-from formtwin.tracker.intervals import Floors, mu_share
+from formtwin.tracker.intervals import Floors
 from formtwin.tracker.sandwich import STATE_KEYS, Sandwich
 from formtwin.tracker.ssm import BendingSSM
 
 FloatArray = NDArray[np.float64]
 
 log = logging.getLogger(__name__)
+
 
 #: weight the predicted angles may leave out: the lightest particles whose weights sum to at
 #: most this are not evaluated (the angles' weighted mean and std move by at most ~this
@@ -161,12 +162,11 @@ class Tracker:
         c = self.config
         metamodel = c.intervals in ("sandwich", "gated")
         assumed = c.intervals != "cloud" and not (c.mu_known or c.learn_mu)
-        calibrated = c.intervals in ("calibrated", "calibrated_fit")  # the floors, s
-        share = mu_share(model, c.estimate_deviation) if calibrated and assumed else None
-        self.sandwich = Sandwich(self.ssm, c.intervals == "gated", metamodel, assumed, share) \
+        self.sandwich = Sandwich(self.ssm, c.intervals == "gated", metamodel, assumed) \
             if metamodel or assumed else None
-        self.floors = Floors(model, c.estimate_deviation, c.intervals == "calibrated_fit",
-                             assumed) if calibrated else None
+        self.floors = Floors(model, self.config.estimate_deviation, self.config.intervals
+                             == "calibrated_fit") \
+            if self.config.intervals in ("calibrated", "calibrated_fit") else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 

@@ -85,7 +85,7 @@ def _warn_other_layout(n_cal: int, n: int, path: Path) -> None:
                 "reporting the cloud's std", path.name, n_cal, n)
 
 
-def _entry(model: Any, deviation: bool, mu_assumed: bool = False) -> dict[str, Any] | None:
+def _entry(model: Any, deviation: bool) -> dict[str, Any] | None:
     """The calibration's entry for a tracker on ``model`` with (``deviation``) or without
     theta_d, ``None`` for a model without ``K_res`` and (logged once) for another
     metamodel's calibration or another layout of the estimated variables."""
@@ -97,32 +97,12 @@ def _entry(model: Any, deviation: bool, mu_assumed: bool = False) -> dict[str, A
         _warn_other_model(str(cal.get("model_version")), CALIBRATION_PATH)
         return None
     entry: dict[str, Any] = dict(cal["deviation" if deviation else "no_deviation"])
-    if mu_assumed and isinstance(entry.get("mu_assumed"), dict):  # its own floors and s
-        entry.update(entry["mu_assumed"])
     n, n_cal = len(model.spec.augmented), len(entry.get("floors", ()))
     if n_cal != n:
         _warn_other_layout(n_cal, n, CALIBRATION_PATH)
         return None
     entry["fit_gate"] = cal.get("fit_gate")
     return entry
-
-
-def mu_share(model: Any, deviation: bool) -> FloatArray | None:
-    """The particle filter's shares ``s`` (n_x,) of the linearised filter's removal of an
-    assumed mu's offset (:func:`formtwin.tracker.sandwich.shared_removal`) that the
-    bundled calibration learned for a tracker on ``model`` with (``deviation``) or without
-    theta_d and mu assumed (the entry's ``mu_assumed`` part); ``None`` (the linearised
-    term) where it learned none (without theta_d; a calibration made before session 11)
-    and for another metamodel."""
-    entry = _entry(model, deviation, mu_assumed=True)
-    if entry is None or "mu_share" not in entry:
-        return None
-    share = np.array(entry["mu_share"], dtype=np.float64)
-    n_x = len(model.spec.state)
-    if share.shape != (n_x,) or not np.all(np.isfinite(share)) or np.any(share < 0):
-        raise ValueError(f"{CALIBRATION_PATH.name}: mu_share of shape {share.shape}, "
-                         f"expected ({n_x},) finite shares >= 0")
-    return share
 
 
 def _floor_arrays(entry: dict[str, Any], prefix: str, n: int) -> tuple[FloatArray, FloatArray]:
@@ -189,13 +169,11 @@ class Floors:
     (:func:`formtwin.study.calibrate.learn_floors` with ``scale``).
     """
 
-    def __init__(self, model: Any, deviation: bool, gated: bool,
-                 mu_assumed: bool = False) -> None:
+    def __init__(self, model: Any, deviation: bool, gated: bool) -> None:
         """Floors of the bundled calibration for a tracker on ``model`` with
-        (``deviation``) or without theta_d; ``gated``: the fit gate; ``mu_assumed``: the
-        floors learned with the assumed mu's shares where the calibration has them."""
+        (``deviation``) or without theta_d; ``gated``: the fit gate."""
         n = len(model.spec.augmented)
-        entry = _entry(model, deviation, mu_assumed)
+        entry = _entry(model, deviation)
         self.gated = gated
         self.ewma: tuple[float, float] = (0.0, 0.0)
         self.d0, self.a, self.s_max = 0.0, 1.0, 0.0

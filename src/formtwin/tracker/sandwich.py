@@ -35,15 +35,7 @@ prediction error, so the estimate's error from ``d`` is ``G_mu d`` with
 ``G_mu E[d d^T] G_mu^T`` (the law of total variance over mu, to first order; the data's
 information on mu is not used: ``learn_mu`` learns it, and then there is no term). Exact
 for a linear-Gaussian model (tests/test_tracker_intervals.py). Without data (``J = 0``)
-``G_mu`` stays ``[I; 0]``: the estimate keeps the whole offset. The particle filter keeps
-more of it than the linearised filter for some states (those the data and theta_d do not
-tell apart from the offset): with the shares ``s`` (n_x,) of the linearised removal
-``([I; 0] - G_mu) d`` that the particle filter achieves, learned on the calibration's
-physics runs (:mod:`formtwin.study.mu_share`; ``intervals="calibrated"`` and
-``"calibrated_fit"``), the state's rows of ``G_mu`` become ``I - s (I - G_mu)``
-(:func:`shared_removal`; ``s = 1``: the linearised filter, ``0``: the whole offset kept).
-The angles keep the linearised term: in them the states' larger share of the offset is
-largely offset by theta's (the shares are learned on the states' errors only).
+``G_mu`` stays ``[I; 0]``: the estimate keeps the whole offset.
 
 ``"gated"`` multiplies ``B`` by the posterior probability that the metamodel's error is in
 the data (the adaptive likelihood's ``P(kappa > 0)``; 1 for the other likelihoods).
@@ -112,22 +104,6 @@ def _next_G_mu(M: FloatArray, F: FloatArray, G_mu: FloatArray) -> FloatArray:
     return out
 
 
-def shared_removal(G_mu: FloatArray, share: FloatArray) -> FloatArray:
-    """``G_mu`` (m, n_x) with its state rows ``I - s (I - G_mu)``: of the removal of the
-    offset that the linearised filter predicts, the particle filter's ``share`` ``s``
-    (n_x,) (module doc); the constant parameters' rows as they are.
-
-    >>> import numpy as np
-    >>> G = shared_removal(np.array([[0.4, 0.1], [0.2, 0.6], [3.0, 1.0]]), np.array([0.5, 0.0]))
-    >>> G.round(3).tolist()   # row 0: 1 - 0.5 * 0.6 and 0.5 * 0.1; row 1: the whole offset kept
-    [[0.7, 0.05], [0.0, 1.0], [3.0, 1.0]]
-    """
-    nx = G_mu.shape[1]
-    out = G_mu.copy()
-    out[:nx] = np.eye(nx) - share[:, None] * (np.eye(nx) - G_mu[:nx])
-    return out
-
-
 def mu_step(G_mu: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray,
             F: FloatArray, Q: FloatArray) -> FloatArray:
     """The next sensitivity ``G_mu`` (m, n_x) of the estimate's error to an offset ``d``
@@ -154,14 +130,12 @@ class Sandwich:
     ``G_mu E[d d^T] G_mu^T`` of an assumed mu (``mu_assumed``)."""
 
     def __init__(self, ssm: Any, gated: bool = False, metamodel: bool = True,
-                 mu_assumed: bool = False, mu_share: FloatArray | None = None) -> None:
+                 mu_assumed: bool = False) -> None:
         """For the tracker's model ``ssm`` (:class:`~formtwin.tracker.BendingSSM`);
         ``gated``: ``B`` times the posterior probability of ``kappa > 0``; ``metamodel``:
         the metamodel error's term; ``mu_assumed``: the assumed mu's term, with the offset
         ``d = mu_line - mu`` of the line's mu drawn from ``U(mu_min, mu_max)``:
-        ``E[d d^T] = diag(range^2 / 12) + (mid - mu)(mid - mu)^T``; ``mu_share``: the
-        particle filter's shares (n_x,) of the linearised removal of the offset
-        (:func:`shared_removal`; ``None``: the linearised filter's ``G_mu``)."""
+        ``E[d d^T] = diag(range^2 / 12) + (mid - mu)(mid - mu)^T``."""
         self.ssm = ssm
         self.gated = gated
         nx, self.m = ssm.n_x, ssm.n_varying
@@ -179,9 +153,6 @@ class Sandwich:
         #: E[d d^T] = R_mu R_mu^T (n_x, n_x + 1); zeros when mu is known or learned
         self.mu_half: FloatArray = np.c_[np.diag(np.sqrt(var)), mid - ssm._mu] \
             if mu_assumed else np.zeros((nx, 0))
-        self.mu_share = None if mu_share is None else np.asarray(mu_share, dtype=np.float64)
-        if self.mu_share is not None and self.mu_share.shape != (nx,):
-            raise ValueError(f"mu_share: shape {self.mu_share.shape}, expected ({nx},)")
         self.G = np.zeros((self.m, n_t))
         self.G_mu = self.G_mu0 = np.eye(self.m, nx)  # the initial law's mean is mu
         self.P = self.P0 = np.diag(np.r_[ssm._sigma**2, (hi[nx:] - lo[nx:]) ** 2 / 12.0])
@@ -218,11 +189,9 @@ class Sandwich:
             self.P = P
         c = self.weight()
         H = self.G @ self.k_half  # B = H H^T
-        H_mu = self.G_mu @ self.mu_half  # the angles': the linearised (module doc)
-        Hs_mu = H_mu if self.mu_share is None else \
-            shared_removal(self.G_mu, self.mu_share) @ self.mu_half
+        H_mu = self.G_mu @ self.mu_half
         var = np.zeros(na)
-        var[:m] = c * np.sum(H * H, axis=1) + np.sum(Hs_mu * Hs_mu, axis=1)
+        var[:m] = c * np.sum(H * H, axis=1) + np.sum(H_mu * H_mu, axis=1)
         Ha, Ha_mu = self.Ja @ H[:n_in], self.Ja @ H_mu[:n_in]
         return var, c * np.sum(Ha * Ha, axis=1) + np.sum(Ha_mu * Ha_mu, axis=1)
 
