@@ -162,6 +162,96 @@ def test_frictionless_drag_needs_no_force() -> None:
     assert np.abs(moments[3:]).max() < 1e-7
 
 
+def wrapped_strip(radius: float, t: float, h: float, mirror: bool) -> Sheet:
+    """A stress-free strip (mm) lying on a convex radius: 1 mm straight on top, a quarter
+    circle of the mid-surface radius ``radius + t/2`` about ``(0, -radius)``, 1 mm straight
+    down; ``mirror``: reflected in ``y`` (it wraps up under a tool above, upper face on it)."""
+    rm = radius + 0.5 * t
+    xs = np.linspace(-1.0, 0.0, int(round(1.0 / h)) + 1)
+    ang = np.linspace(0.5 * math.pi, 0.0, int(round(rm * 0.5 * math.pi / h)) + 1)[1:]
+    ys = np.linspace(-radius, -radius - 1.0, int(round(1.0 / h)) + 1)[1:]
+    X = np.vstack([np.c_[xs, np.full_like(xs, 0.5 * t)],
+                   np.c_[rm * np.cos(ang), -radius + rm * np.sin(ang)],
+                   np.c_[np.full_like(ys, rm), ys]])
+    if mirror:
+        X[:, 1] *= -1.0
+    yl, wl = np.polynomial.legendre.leggauss(7)
+    xg, wg = np.polynomial.legendre.leggauss(2)
+    return Sheet(X, t, 0.5 * yl, 0.5 * wl, 0.5 * (xg + 1), 0.5 * wg)
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.1, 0.3])
+@pytest.mark.parametrize("face", [-1, +1])
+def test_capstan_on_a_tool_radius(mu: float, face: int) -> None:
+    """An elastic strip (t/R = 0.01) wrapped 90 deg over a tool radius, its root clamped, pulled
+    at the other end: sliding everywhere, the tension falls along the wrap as ``exp(-mu phi)``
+    (capstan), so the root holds ``P exp(-mu pi/2)``; on the lower face over a die and on the
+    upper face under a tool above (friction on arcs: the normal's rotation, the face's lever
+    arm)."""
+    radius, t, p = 2.0, 0.02, 1.0
+    sheet = wrapped_strip(radius, t, 0.05, mirror=face > 0)
+    pts = np.array([[-5.0, 0.0], [radius, 0.0], [radius, -6.0]])
+    if face > 0:  # the mirrored tool, traversed so that it stays on the right
+        pts = pts[::-1] * np.array([1.0, -1.0])
+    tool = make_toolset([("tool", 0, face, [(pts, np.array([radius]))])])
+    fref = np.zeros(sheet.u.size)
+    fref[-2] = p * face  # pulled along the straight end, away from the wrap
+    t_grid = ramp()
+    h = solve(sheet, ELASTIC, tool, t_grid, DISC, dt_max=0.1, mu=np.array([mu]), lam=t_grid,
+              fref=fref)
+    assert h.status == 0
+    assert -h.reactions[-1, 0] / p == pytest.approx(math.exp(-mu * 0.5 * math.pi), rel=4e-3)
+
+
+def test_friction_of_a_moving_tool_acts_in_its_frame() -> None:
+    """A vertical strip pressed (1 N/mm per node) against a vertical wall that moves up with the
+    crank (a tool that moves with the punch): the wall drags the strip up, the support at its
+    root holds it with ``-mu N``; without friction it holds nothing."""
+    sheet = Sheet(np.c_[np.full(5, 1e-4), np.linspace(0.0, -1.0, 5)], T,
+                  *(0.5 * a for a in np.polynomial.legendre.leggauss(15)),
+                  np.array([0.5 - 0.5 / math.sqrt(3), 0.5 + 0.5 / math.sqrt(3)]),
+                  np.array([0.5, 0.5]))
+    wall = make_toolset([("wall", 1, +1, [(np.array([[0.5 * T, -5.0], [0.5 * T, 5.0]]),
+                                          np.zeros(0))])])
+    fref = np.zeros(sheet.u.size)
+    fref[0::3] = 1.0
+    t = np.r_[0.0, 0.2, 0.4, 0.8, 1.2]
+    rot = np.arange(2, sheet.u.size, 3)
+    stiff = Material(yield_stress=1e12, E=1e9, rate=False)
+    for mu in (0.0, 0.2):
+        h = solve(sheet, stiff, wall, t, DISC, dt_max=0.01, mu=np.array([mu]),
+                  lam=np.minimum(t / 0.2, 1.0), fix=np.r_[1, rot],
+                  fix_ref=np.zeros(1 + rot.size), fref=fref)
+        assert h.status == 0
+        assert np.all(np.diff(h.force[:, 3]) > 0)  # the wall rises
+        np.testing.assert_allclose(h.reactions[2:, 1], -mu * 5.0, atol=1e-6)
+        sheet.u[:] = 0.0
+
+
+def test_face_friction_is_not_shear_force() -> None:
+    """A flat, unbent strip under a uniform friction traction ``q`` on one face: ``dM/ds = 0``,
+    but its mean shear stress is ``q/2`` (a continuum's ``tau_xy`` is ``q`` on that face, 0 on
+    the other): the moment ``(t/2) q`` of the traction about the mid-surface balances the shear
+    force. :func:`friction_shear` (``Discretisation.friction_shear``) adds it to the
+    elements' ``dM/ds / t``; bending-2.4 (without it) has 0."""
+    from formtwin.physics.bending.contact import contact_points, friction_shear
+    from formtwin.physics.bending.kernels import element_shear
+
+    sheet = Sheet.straight(0.0, 1.0, 0.5 * T, 4, T, 15, 2)
+    el, xi, _, share = contact_points(sheet.X, sheet.phi0, 4)
+    q = 30.0  # MPa: N/mm of tangential force per mm of sheet, per mm of width
+    zero = np.zeros_like(share)
+    for tool_tt in (np.c_[q * share, zero], np.c_[zero, -q * share]):  # either face/tool
+        tadd = np.zeros(4)
+        friction_shear(sheet.X, el, xi, tool_tt, tadd)
+        tau = np.zeros(4)
+        element_shear(sheet.X, sheet.sig, T, sheet.ylay, sheet.wlay, sheet.xg, tau, tadd=tadd)
+        np.testing.assert_allclose(np.abs(tau), 0.5 * q, rtol=1e-12)
+        old = np.ones(4)
+        element_shear(sheet.X, sheet.sig, T, sheet.ylay, sheet.wlay, sheet.xg, old)
+        np.testing.assert_allclose(old, 0.0, atol=1e-12)
+
+
 @pytest.mark.parametrize(("rate", "window", "strain"), [
     (1.0, 0.0, 0.02), (100.0, 0.0, 0.02), (1.0, 5e-3, 0.1)])
 def test_cowper_symonds_bar(rate: float, window: float, strain: float) -> None:

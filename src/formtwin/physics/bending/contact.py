@@ -165,6 +165,39 @@ def face_pressure(X, Xp, fn, tface, a, pface, towner=None):  # type: ignore[no-u
                     if towner is not None and pface.shape[1] > 2 and towner[k] == 1:
                         pface[i, 2] += fn[j, k] * (1.0 - d / a) / a
 
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def friction_shear(X, el, xi, tt, tadd):  # type: ignore[no-untyped-def]
+    """Correction (MPa) of each element's ``dM/ds / t`` for the face friction, ``tadd (n_el,)``.
+
+    A tangential contact force ``F_t`` on a face (+-t/2) is an axial force plus a moment
+    ``m = -(t/2) tt`` (counter-clockwise) about the mid-surface, whatever the face, with ``tt``
+    the committed tangential force along the tool's ``tau = (-n_y, n_x)`` (:func:`contact_node`;
+    ``tt (n_points, n_tools)``, N/mm). A beam's moment balance is ``dM/ds = -V - m`` (``m`` per
+    length): the section's transverse shear force ``V`` is ``-(dM/ds + m)``, so the elements'
+    ``dM/ds / t`` (:func:`.kernels.element_shear`, which stands for ``-V/t``) takes
+    ``m/t = -sum(tt) / (2 L)`` over the element's points (a point at a node half to each of its
+    elements). A strip dragged over a die has ``dM/ds = 0`` but a mean shear stress of half the
+    friction traction, as in a continuum (``tau_xy`` = traction on the face, 0 on the other).
+    """
+    n_el = X.shape[0] - 1
+    tadd[:] = 0.0
+    for q in range(el.shape[0]):
+        s = 0.0
+        for k in range(tt.shape[1]):
+            s += tt[q, k]
+        if s == 0.0:
+            continue
+        e = el[q]
+        if xi[q] == 0.0 and e > 0:  # a node's point: half to each element
+            tadd[e - 1] += 0.5 * s
+            tadd[e] += 0.5 * s
+        else:
+            tadd[min(e, n_el - 1)] += s
+    for e in range(n_el):
+        tadd[e] *= -0.5 / math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+
+
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
 def hermite_face(xa, ya, pa, xb, yb, pb, s, h, L0, xi, d):  # type: ignore[no-untyped-def]
     """Face point ``y`` (returned as ``(yx, yy)``) of a contact point, and its derivatives.

@@ -212,12 +212,14 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def element_shear(X, sig, thick, ylay, wlay, xg, tshear,  # type: ignore[no-untyped-def]
-                  pface=None, reach=0.0, p0=0.0, p1=1.0):
+                  pface=None, reach=0.0, p0=0.0, p1=1.0, tadd=None):
     """Mean transverse shear stress ``V / t`` (MPa) of each element into ``tshear (n_el,)``.
 
     ``V = dM/ds`` from the bending moments ``M = -int sigma y dy`` (N mm/mm) of the layer
     stresses ``sig (n_el, n_g, n_layers)`` at the first and last Gauss point ``xg`` (moment
-    linear along the element, as its curvature).
+    linear along the element, as its curvature). ``tadd (n_el,)`` (MPa) is added to each
+    element's value first (:func:`.contact.friction_shear`: the face friction's distributed
+    moment, which ``dM/ds`` counts as shear force).
 
     With ``reach > 0`` (mm) and the punch's face pressure ``pface[:, 2]`` (MPa,
     :func:`.contact.face_pressure`): an element under the punch takes the largest ``|tau|``
@@ -238,6 +240,8 @@ def element_shear(X, sig, thick, ylay, wlay, xg, tshear,  # type: ignore[no-unty
             m1 -= wy * sig[e, n_g - 1, k]
         l0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
         tshear[e] = (m1 - m0) / (l0 * (xg[n_g - 1] - xg[0]) * thick)
+        if tadd is not None:
+            tshear[e] += tadd[e]
     if pface is None or reach <= 0.0:
         return
     tau0 = tshear.copy()

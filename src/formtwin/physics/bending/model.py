@@ -96,6 +96,10 @@ class Discretisation:
         ``rate_per_speed * |c'(t)|`` of the ram speed ``c'`` (mm/s), smoothed over the same
         window: the CalculiX reference's rate law (:mod:`formtwin.physics.calculix`,
         ``FeSettings.rate_per_speed = 0.1``), for like-with-like comparisons with it.
+    friction_shear
+        Whether the elements' shear stress (``transverse_shear``) counts the face friction's
+        distributed moment ``(t/2) F_t`` out of ``dM/ds`` (:func:`.contact.friction_shear`);
+        False (the default) is bending-2.4, whose ``V = dM/ds`` includes it.
     """
 
     n_elements: int = 32
@@ -121,6 +125,7 @@ class Discretisation:
     pinch_reach: float = 1.0
     pinch_pressure: tuple[float, float] = (0.25, 0.5)
     rate_per_speed: float = 0.0
+    friction_shear: bool = False
 
     def opts(self, dt_max: float, rate_tau: float = 0.0) -> FloatArray:
         """Solver option array for :func:`~.solver.run_history` (``rate_tau`` in s)."""
@@ -128,7 +133,8 @@ class Discretisation:
                          self.cap_disp, self.predict, self.line_search, self.ls_ratio,
                          self.easy_iter, self.easy_steps, rate_tau, self.pressure_spread,
                          float(self.transverse_shear), float(self.ls_energy),
-                         self.pinch_reach, *self.pinch_pressure, self.rate_per_speed])
+                         self.pinch_reach, *self.pinch_pressure, self.rate_per_speed,
+                         float(self.friction_shear)])
 
 
 @dataclass
@@ -181,7 +187,6 @@ class Sheet:
     def positions(self) -> FloatArray:
         """Current node positions ``(n_nodes, 2)``."""
         return np.asarray(self.X + self.u.reshape(-1, 3)[:, :2], dtype=np.float64)
-
 
 
 @dataclass

@@ -25,7 +25,12 @@ import math
 import numpy as np
 from numba import njit
 
-from formtwin.physics.bending.contact import contact_forces, face_pressure, point_face
+from formtwin.physics.bending.contact import (
+    contact_forces,
+    face_pressure,
+    friction_shear,
+    point_face,
+)
 from formtwin.physics.bending.kernels import (
     BW,
     SQ,
@@ -39,7 +44,8 @@ from formtwin.physics.bending.kernels import (
 K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 (DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
- RATE_TAU, SPREAD, SHEAR, LS_ENERGY, PINCH_REACH, PINCH_P0, PINCH_P1, RATE_SPEED) = range(19)
+ RATE_TAU, SPREAD, SHEAR, LS_ENERGY, PINCH_REACH, PINCH_P0, PINCH_P1, RATE_SPEED,
+ FRICTION_SHEAR) = range(20)
 # status codes
 OK, FAIL_STEP = 0, 1
 
@@ -344,9 +350,12 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                 face_pressure(X, Xp, ct_trial[2], tface, opts[SPREAD] * thick, pface, towner)
             if opts[SHEAR] > 0.0:  # the elements' shear stresses for the next increment
                 ys = SQ * mesh[7][1]  # plane-strain yield stress
+                tadd = np.zeros(n_el)  # the face friction's distributed moment, as V/t
+                if opts[FRICTION_SHEAR] > 0.0:
+                    friction_shear(X, el, xi, ct_trial[0], tadd)
                 element_shear(X, sig, thick, mesh[3], mesh[4], mesh[5], tshear, pface,
                               opts[PINCH_REACH] * thick, opts[PINCH_P0] * ys,
-                              opts[PINCH_P1] * ys)
+                              opts[PINCH_P1] * ys, tadd)
             for q in range(el.shape[0]):
                 for k in range(n_tools):
                     ct_act[q, k] = ct_act_t[q, k]
