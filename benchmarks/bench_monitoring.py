@@ -45,6 +45,11 @@ by their settings and a hash of the code that makes the estimates, so chart desi
    zero offset +-2 N; ``--fault-reps`` runs each, in control otherwise): the delay to the
    first alarm and to the first mismatch alarm, and ``signalled_share``: the share of the
    50-product windows after the fault with a mismatch alarm (1: signalled throughout).
+5. Alarm episodes (:mod:`~formtwin.monitoring.episodes`, as the service stores and publishes
+   alarms): per fault run the signals (the service's alarm rows until session 12) and the
+   episodes raised per 1000 products after the fault; in control the episodes per 10^4
+   charted products beside the false alarms (signals). The figures above count signals
+   (every one in control, the first after a change) and do not depend on the episodes.
 """
 
 from __future__ import annotations
@@ -73,6 +78,7 @@ from formtwin.monitoring.calibrate import (
     measurement_noise,
     series,
 )
+from formtwin.monitoring.episodes import Episode, Episodes, clear_after
 from formtwin.monitoring.glr import residual_response, step_response
 from formtwin.monitoring.monitor import Alarm, Monitor, MonitorConfig
 from formtwin.monitoring.scenarios import Change, Fault, changed_run
@@ -121,6 +127,19 @@ def chart(config: MonitorConfig, s: Series) -> list[Alarm]:
             for a in mon.update_values({k: float(v[i]) for k, v in s.items()}, i)]
 
 
+def episodes(config: MonitorConfig, s: Series) -> list[Episode]:
+    """Chart a run's series with alarm episodes; every episode (its last state), in the
+    order raised."""
+    mon = Monitor(config)
+    eps = Episodes(clear_after(mon))
+    n = len(next(iter(s.values())))
+    out: dict[tuple[str, str, int], Episode] = {}
+    for i in range(n):
+        for c in eps.update(i, mon.update_values({k: float(v[i]) for k, v in s.items()}, i)):
+            out[(c.episode.variable, c.episode.chart, c.episode.first)] = c.episode
+    return list(out.values())
+
+
 def changed(model: ProcessModel, mm: MeasurementModel, tcfg: TrackerConfig, change: Change,
             n: int, seed: int, noise: bool = True, fault: Fault | None = None
             ) -> tuple[np.ndarray, Estimates]:
@@ -165,10 +184,11 @@ def delay(alarms: list[Alarm], at: int, n: int) -> tuple[int, int, str]:
             first.variable if first else "")
 
 
-def persistence(alarms: list[Alarm], at: int, n: int) -> dict[str, Any]:
+def persistence(alarms: list[Alarm], eps: list[Episode], at: int, n: int) -> dict[str, Any]:
     """Of one fault's run: products to the first alarm and to the first mismatch alarm
-    (``None``: none) and the share of the :data:`WINDOW`-product windows from ``at`` to
-    ``n`` with a mismatch alarm."""
+    (``None``: none), the share of the :data:`WINDOW`-product windows from ``at`` to ``n``
+    with a mismatch alarm, and the signals and episodes raised from ``at`` on per 1000
+    products."""
     mis = [a.index for a in alarms if a.chart == "mismatch" and a.index >= at]
     first = [a.index for a in alarms if a.index >= at]
     wins = range(at, n, WINDOW)
@@ -176,7 +196,11 @@ def persistence(alarms: list[Alarm], at: int, n: int) -> dict[str, Any]:
             "first_mismatch": mis[0] - at + 1 if mis else None,
             "signalled_share": round(sum(any(w <= i < w + WINDOW for i in mis) for w in wins)
                                      / len(wins), 3),
-            "alarms_before": sum(a.index < at for a in alarms)}
+            "alarms_before": sum(a.index < at for a in alarms),
+            "signals_per_1000": round(sum(a.index >= at for a in alarms) / (n - at) * 1e3, 1),
+            "episodes_per_1000": round(sum(e.first >= at for e in eps) / (n - at) * 1e3, 1),
+            "episodes": {f"{e.variable}/{e.chart}": [e.first, e.last, e.signals, e.cleared]
+                         for e in eps if e.first >= at}}
 
 
 def summary(d: list[int], horizon: int, target: int = 30) -> dict[str, Any]:
@@ -341,7 +365,7 @@ def main() -> None:
                                       float(mu[j]), float(spec.state.sigma[j]), n, design)
                 for j, n in enumerate(names)}
     steps = figures.pop("step_2sigma")
-    per_fault = {k: [persistence(chart(config, s), args.at, args.at + args.fault_products)
+    per_fault = {k: [persistence(chart(config, s), episodes(config, s), args.at, n_fault)
                      for s in v] for k, v in faults.items()}
     flat = [r for v in per_fault.values() for r in v]
     figures = {
@@ -356,6 +380,10 @@ def main() -> None:
                 [r["signalled_share"] for r in flat if r["first_mismatch"] is not None]
                 or [np.nan])), 3),
             "detected": sum(r["first_mismatch"] is not None for r in flat), "runs": len(flat),
+            "signals_per_1000_mean": round(float(np.mean([r["signals_per_1000"] for r in flat])),
+                                           1),
+            "episodes_per_1000_mean": round(float(np.mean([r["episodes_per_1000"]
+                                                           for r in flat])), 1),
             "window": WINDOW, "products_after": args.fault_products, "per_fault": per_fault},
         "step_2sigma_in_the_estimates": response,
         "linearised_bound": bound,
@@ -452,6 +480,7 @@ def evaluate(config: MonitorConfig, ic_runs: list[Series],
     """False alarms on ``ic_runs`` and delays on the changed runs of ``config``'s charts."""
     d = config.warmup + config.phase1
     ic_alarms = [a for s in ic_runs for a in chart(config, s)]
+    ic_episodes = [e for s in ic_runs for e in episodes(config, s)]
     charted = len(ic_runs) * (args.ic_products - d)
     n = args.at + args.after
     results: dict[str, list[tuple[int, int, str]]] = {
@@ -477,6 +506,8 @@ def evaluate(config: MonitorConfig, ic_runs: list[Series],
         "false_alarms_in_control": len(ic_alarms),
         "charted_products_in_control": charted,
         "false_alarms_by_chart": by_chart,
+        "false_alarm_episodes_per_10k_products": round(len(ic_episodes) / charted * 1e4, 3),
+        "false_alarm_episodes_in_control": len(ic_episodes),
         "false_alarms_before_changes": false_changes,
         "step_2sigma": block("step"),
         f"drift_{args.drift}sigma_per_product": block("drift"),
@@ -494,6 +525,7 @@ def evaluate(config: MonitorConfig, ic_runs: list[Series],
             "glr_signature": {k: [round(v, 4) for v in g.signature]
                               for k, g in config.glr.items()},
             "shewhart_limit": config.shewhart,
+            "clear_after": clear_after(Monitor(config)),
             "widen": {k: {c: round(f, 3) for c, f in w.items()}
                       for k, w in config.widen.items()}},
     }

@@ -63,14 +63,29 @@ def test_alarms_are_charted_stored_and_survive_a_restart(tmp_path: Path,
     phases = [o.message["monitoring"]["phase"] for o in ref_out]
     assert phases[:2] == ["warmup"] * 2 and phases[2:5] == ["phase1"] * 3
     assert set(phases[5:]) == {"charting"}
-    every = [a for o in ref_out for a in o.alarms]
-    # the charts' alarms (the service's model-health episodes are alarms too, tested below)
+    # the product's signals (per product) and its episodes (one per chart while it signals)
+    every = [{**a, "seq": o.seq} for o in ref_out for a in o.message["monitoring"]["alarms"]]
     alarms = [a for a in every if a["chart"] != "model_mismatch"]
     assert len(alarms) > 5  # out of control by construction
     assert {a["variable"] for a in alarms} <= {"thickness", "angle_stage2"}
-    stored = ref_mon.alarms()
+    stored = ref_mon.signals()
     assert [(a["seq"], a["variable"], a["chart"]) for a in stored] == \
         [(a["seq"], a["variable"], a["chart"]) for a in every]
+    episodes = ref_mon.alarms()
+    assert len(episodes) == len({(a["variable"], a["chart"]) for a in every}) < len(every)
+    for ep in episodes:  # each episode's signals are its chart's, counted and linked
+        mine = [a for a in stored if a["episode_id"] == ep["id"]]
+        assert mine and {(a["variable"], a["chart"]) for a in mine} == {
+            (ep["variable"], ep["chart"])}
+        assert (ep["raised_seq"], ep["last_seq"], ep["signals"]) == (
+            mine[0]["seq"], mine[-1]["seq"], len(mine))
+        assert ep["ratio"] == pytest.approx(max(abs(a["statistic"]) / a["limit"]
+                                                for a in mine))
+    # published: the raises, an update at most once per clear-after products, no storm
+    published = [a for o in ref_out for a in o.alarms]
+    assert sorted(a["id"] for a in published if a["event"] == "raised") == \
+        [e["id"] for e in episodes]
+    assert len(published) < len(every) / 2
     # the message carries the chart statistics: the EWMA statistic beyond its limit
     for o in ref_out:
         for a in o.message["monitoring"]["alarms"]:
@@ -84,28 +99,34 @@ def test_alarms_are_charted_stored_and_survive_a_restart(tmp_path: Path,
         values_of(o.message, config), o.message["index"])]
     assert again == [{k: a[k] for k in again[0]} for a in alarms]
 
-    # a service stopped after 23 products, then a restart: same charts, same alarms, none
-    # doubled, none lost
+    # a service stopped after 23 products, then a restart: same charts, same signals and
+    # episodes, none doubled, none lost
     proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
     mon = attach(proc, config)
     for p in payloads[:23]:
         proc.handle(p)
-    n_before = len(mon.alarms())
+    n_before = len(mon.signals())
     assert n_before >= 1
     close(proc)
     proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
     mon = attach(proc, config)
-    assert len(mon.alarms()) == n_before
+    assert len(mon.signals()) == n_before
     rest = [proc.handle(p) for p in payloads[23:]]
     assert [o.message for o in rest] == [o.message for o in ref_out[23:]]
+    assert [o.alarms for o in rest] == [o.alarms for o in ref_out[23:]]
     assert mon.monitor.state() == ref_mon.monitor.state()
-    strip = [{k: a[k] for k in ("seq", "variable", "chart", "side", "statistic")}
-             for a in mon.alarms()]
+    assert mon.episodes.state() == ref_mon.episodes.state()
+    strip = [{k: a[k] for k in ("seq", "variable", "chart", "side", "statistic", "episode_id")}
+             for a in mon.signals()]
     assert strip == [{k: a[k] for k in strip[0]} for a in stored]
-    # acknowledging: stored with its note, kept on a second acknowledgement
+    untimed = ("raised_at", "updated_at", "cleared_at")
+    assert [{k: v for k, v in e.items() if k not in untimed} for e in mon.alarms()] == \
+        [{k: v for k, v in e.items() if k not in untimed} for e in ref_mon.alarms()]
+    # acknowledging an episode: stored with its note, kept on a second acknowledgement
     first = mon.alarms()[0]
     acked = mon.acknowledge(first["id"], "seen", now=1000.0)
     assert acked["acked_at"] == 1000.0 and acked["ack_note"] == "seen"
+    assert acked["state"] == "active"  # acknowledged, still signalling
     assert mon.acknowledge(first["id"], "again", now=2000.0)["acked_at"] == 1000.0
     assert first["id"] not in [a["id"] for a in mon.alarms(unacked=True)]
     with pytest.raises(KeyError, match="no alarm"):
@@ -122,13 +143,13 @@ def test_a_failed_commit_leaves_charts_and_tables_as_before(tmp_path: Path,
     ref = open_processor(tmp_path / "ref.sqlite", SETTINGS)
     attach(ref, tight_config())
     want = [ref.handle(p) for p in payloads[:12]]
-    assert want[-1].alarms  # the product that fails raises alarms
+    assert want[-1].message["monitoring"]["alarms"]  # the product that fails signals
     proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
     mon = attach(proc, tight_config())
     for p in payloads[:11]:
         proc.handle(p)
-    before = json.dumps(mon.monitor.state())
-    n_alarms = len(mon.alarms())
+    before = json.dumps([mon.monitor.state(), mon.episodes.state()])
+    n_alarms, episodes = len(mon.signals()), mon.alarms()
     real = mon.write
 
     def fail(*args: Any) -> list[dict[str, Any]]:
@@ -138,13 +159,14 @@ def test_a_failed_commit_leaves_charts_and_tables_as_before(tmp_path: Path,
     mon.write = fail  # type: ignore[method-assign]
     with pytest.raises(sqlite3.OperationalError):
         proc.handle(payloads[11])
-    assert json.dumps(mon.monitor.state()) == before
-    assert len(mon.alarms()) == n_alarms and proc.store.counts()["accepted"] == 11
+    assert json.dumps([mon.monitor.state(), mon.episodes.state()]) == before
+    assert len(mon.signals()) == n_alarms and proc.store.counts()["accepted"] == 11
+    assert mon.alarms() == episodes
     mon.write = real  # type: ignore[method-assign]
     again = proc.handle(payloads[11])
     assert again.kind == "accepted" and again.message == want[-1].message
-    assert [a["variable"] for a in again.alarms] == [a["variable"] for a in want[-1].alarms]
-    assert len(mon.alarms()) == n_alarms + len(again.alarms)
+    assert again.alarms == want[-1].alarms
+    assert len(mon.signals()) == n_alarms + len(again.message["monitoring"]["alarms"])
     close(proc)
     close(ref)
 
@@ -233,6 +255,9 @@ def test_alarm_routes_need_the_page_token(tmp_path: Path, payloads: list[bytes])
         assert post("api/alarms/999999/ack", "s3cret")[0] == 404
         assert any(e.get("type") == "ack" for _, e in feed.since(0)[1])
         assert any(e.get("type") == "alarms" for _, e in feed.since(0)[1])
+        signals = json.loads(urllib.request.urlopen(url + "api/signals", timeout=10).read())
+        assert signals == mon.signals() and {a["episode_id"] for a in signals} == {
+            a["id"] for a in listed}
         lim = json.loads(urllib.request.urlopen(url + "api/monitor", timeout=10).read())
         assert lim["quantities"] == ["thickness", "angle_stage2"]
     finally:
@@ -260,7 +285,12 @@ def test_model_health_episode_is_an_alarm(tmp_path: Path) -> None:
             for i, c in enumerate(phys, 1)]
     opened = [o.seq for o in outs if any(n["reason"] == "model_mismatch" for n in o.notices)]
     health = [a for a in mon.alarms() if a["chart"] == "model_mismatch"]
-    assert len(opened) == 1 and [a["seq"] for a in health] == opened
+    assert len(opened) == 1 and [a["raised_seq"] for a in health] == opened
     assert health[0]["variable"] == "model_health" and health[0]["side"] == "high"
     assert health[0]["statistic"] >= health[0]["limit"] > 0
+    # every product of the model-health episode is a signal of its alarm episode; the
+    # signal row is the opening product's
+    state = [o.message["model_health"]["state"] for o in outs]
+    assert health[0]["signals"] == state.count("model_mismatch")
+    assert [a["seq"] for a in mon.signals() if a["chart"] == "model_mismatch"] == opened
     close(proc)

@@ -1,7 +1,7 @@
 """Monitoring on the live page, in a real headless Chromium against a running `formtwin
 serve` with user-set limits: a control chart per monitored variable with its limits, the
-alarms listed and marked, published on the alarms topic, and acknowledged on the page
-(with the page token; without it the service refuses)."""
+signals marked on the charts, the alarm episodes listed, published on the alarms topic, and
+acknowledged on the page (with the page token; without it the service refuses)."""
 
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
             page.wait_for_function("Number(document.body.dataset.points || 0) >= 20 && "
                                    "Number(document.body.dataset.alarms || 0) >= 3",
                                    timeout=30_000)
-            # one control chart per monitored variable, with its limits and alarms
+            # one control chart per monitored variable, with its limits and signals
             keys = page.evaluate("window.formtwinLive.charts.map(c => c.key)")
             assert "chart:thickness" in keys and "chart:angle_stage2" in keys
             assert "glr:thickness" in keys and "glr:angle_stage2" not in keys
@@ -73,23 +73,35 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
             charted = [i for i, v in enumerate(upper) if v is not None]
             assert len(charted) == 20 - 5  # after warm-up and Phase I
             assert all(lower[i] == -upper[i] and stat[i] is not None for i in charted)
-            n_alarms = int(page.get_attribute("body", "data-alarms") or 0)
-            stored = _get(port, "api/alarms")
+            signals = _get(port, "api/signals")
             marked = {seqs[i] for i, v in enumerate(marks) if v is not None}
-            assert marked == {a["seq"] for a in stored if a["variable"] == "thickness"}
+            assert marked == {a["seq"] for a in signals if a["variable"] == "thickness"}
             assert marked
-            assert n_alarms == len(stored) == len(collector.get(ALARMS))
-            # the GLR chart: its statistic with its one limit, marked where it alarmed
+            # the GLR chart: its statistic with its one limit, marked where it signalled
             seqs_g, stat_g, upper_g, lower_g, marks_g = page.evaluate(
                 "window.formtwinLive.charts.find(c => c.key === 'glr:thickness').plot.data")
             assert [v for v in upper_g if v is not None] == [20.0] * (20 - 5)
             assert all(v is None for v in lower_g)
             assert {seqs_g[i] for i, v in enumerate(marks_g) if v is not None} == {
-                a["seq"] for a in stored if a["variable"] == "thickness" and a["chart"] == "glr"}
-            assert any(a["chart"] == "glr" for a in stored)
+                a["seq"] for a in signals if a["variable"] == "thickness" and a["chart"] == "glr"}
+            assert any(a["chart"] == "glr" for a in signals)
+            # the list: one episode per chart and variable, many signals each, raised once
+            # on the alarms topic
+            episodes = _get(port, "api/alarms")
+            n_alarms = int(page.get_attribute("body", "data-alarms") or 0)
+            assert n_alarms == len(episodes) < len(signals)
+            assert len({(e["variable"], e["chart"]) for e in episodes}) == len(episodes)
+            assert any(e["signals"] > 1 for e in episodes)
+            assert sorted(m["id"] for m in collector.get(ALARMS) if m["event"] == "raised") == \
+                [e["id"] for e in episodes]
             assert page.inner_text("#n-alarms") == str(n_alarms)
-            # acknowledge the newest alarm on the page
-            newest = stored[-1]["id"]
+            active = sum(e["state"] == "active" for e in episodes)
+            assert page.inner_text("#n-active") == str(active) and active
+            busiest = max(episodes, key=lambda e: e["signals"])
+            row = page.inner_text(f".alarm[data-id='{busiest['id']}']")
+            assert f"{busiest['signals']} signals" in row and busiest["state"] in row
+            # acknowledge the newest episode on the page
+            newest = episodes[-1]["id"]
             page.click(f".alarm[data-id='{newest}'] button")
             page.wait_for_function(
                 f"document.querySelector(\".alarm[data-id='{newest}']\")"
@@ -102,7 +114,7 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
             page.screenshot(path=str(tmp_path / "alarms.png"), full_page=True)
         # without the token the service refuses to acknowledge
         req = urllib.request.Request(f"http://127.0.0.1:{port}/api/alarms/"
-                                     f"{stored[0]['id']}/ack", method="POST", data=b"")
+                                     f"{episodes[0]['id']}/ack", method="POST", data=b"")
         with pytest.raises(urllib.error.HTTPError) as err:
             urllib.request.urlopen(req, timeout=10)
         assert err.value.code == 403

@@ -1,8 +1,11 @@
 """The live page's alarm routes (added to the app of :mod:`formtwin.service.web`).
 
 * ``GET /api/monitor`` -- the charted quantities, chart settings and limits;
-* ``GET /api/alarms?unacked=1`` -- stored alarms, oldest first;
-* ``POST /api/alarms/{id}/ack`` -- acknowledge one; needs the page token (header
+* ``GET /api/alarms?unacked=1&active=1`` -- stored alarm episodes, oldest first (raised,
+  active or cleared, acknowledged or not; :mod:`formtwin.monitoring.episodes`);
+* ``GET /api/signals?since_seq=N`` -- the per-product signals (a chart beyond its limit),
+  each with its episode's id;
+* ``POST /api/alarms/{id}/ack`` -- acknowledge an episode; needs the page token (header
   ``X-Formtwin-Token``, the ``token`` of the page's URL as printed by ``formtwin serve``):
   reading is open on the page's address, acting is not. A wrong or missing token is 403, an
   unknown id 404. The acknowledgement is stored and sent to every open page.
@@ -29,8 +32,12 @@ def add_alarm_routes(app: FastAPI, monitor: ServiceMonitor, feed: LiveFeed,
         return JSONResponse(monitor.limits())
 
     @app.get("/api/alarms")
-    def alarms(unacked: int = 0, since_seq: int = 0) -> JSONResponse:
-        return JSONResponse(monitor.alarms(since_seq=since_seq, unacked=bool(unacked)))
+    def alarms(unacked: int = 0, active: int = 0) -> JSONResponse:
+        return JSONResponse(monitor.alarms(unacked=bool(unacked), active=bool(active)))
+
+    @app.get("/api/signals")
+    def signals(since_seq: int = 0) -> JSONResponse:
+        return JSONResponse(monitor.signals(since_seq=since_seq))
 
     @app.post("/api/alarms/{alarm_id}/ack")
     async def ack(alarm_id: int, request: Request) -> JSONResponse:

@@ -1,23 +1,29 @@
-"""Monitoring in the service: control charts on every accepted estimate, alarms stored,
-published and acknowledged.
+"""Monitoring in the service: control charts on every accepted estimate, alarm episodes
+stored, published and acknowledged.
 
 :class:`ServiceMonitor` runs a :class:`~formtwin.monitoring.Monitor` (EWMA and CUSUM charts
 on the state posterior means and the predicted angles, GLR charts for a level change of a
 state variable, the model-mismatch CUSUM on the filter's health: log-evidence increment
-and ESS against their in-control distribution). For
-every accepted product the processor calls :meth:`ServiceMonitor.observe` *before* the
-commit (after the service's model health, :mod:`formtwin.service.health`, whose opening
-``model_mismatch`` episode becomes an alarm too, chart ``model_mismatch``): the chart
-statistics, their limits and the product's alarms go into the estimate message
+and ESS against their in-control distribution) and the charts' alarm episodes
+(:class:`~formtwin.monitoring.episodes.Episodes`: raised by a chart's first signal, active
+while it signals, cleared after it has been quiet for its clear-after products). The
+service's model health (:mod:`formtwin.service.health`) is an alarm too, chart
+``model_mismatch``: its episode is the model-health episode (every product in it is a
+signal, cleared at the product that closes it). For every accepted product the processor
+calls :meth:`ServiceMonitor.observe` *before* the commit: the chart statistics, their
+limits, the product's signals and episode changes go into the estimate message
 (``"monitoring"``), and :meth:`ServiceMonitor.write` puts them into the ``alarms`` table
-(one row per alarm, unique per product, variable and chart, where they are acknowledged),
-both in the SQLite transaction of the product and the tracker checkpoint
+(one row per signal, unique per product, variable and chart, with its episode's id) and the
+``alarm_episodes`` table (one row per episode, where it is acknowledged), both in the
+SQLite transaction of the product and the tracker checkpoint
 (:meth:`~formtwin.service.store.Store.commit_product`): a kill at any instant leaves a
-product with all its alarm rows or neither. They are published with the estimate and shown
-on the page.
+product with all its rows or none. The episode changes that are reported (raised, updated
+at most once per clear-after products, cleared) are published and shown on the page.
 
-Restart: the monitor's state is rebuilt by charting the stored estimates again in commit
-order (the charts are deterministic).
+Restart: the monitor's and the episodes' state are rebuilt by charting the stored estimates
+again in commit order (the charts are deterministic). A store of the schema before the
+episodes (``alarms`` only) gets the ``episode_id`` column and its episodes from that
+rebuild, each linked to its signal rows and acknowledged if all of them were.
 
 The chart configuration is fixed with the store (``meta`` key ``monitor_config``, JSON):
 either calibrated at the store's first start on simulated in-control runs of the service's
@@ -28,11 +34,13 @@ for departures from the tracker's mu, the line's means ``--mu`` or by default th
 mid-range, so a line running elsewhere alarms: give it its means;
 :func:`~formtwin.monitoring.calibrate.calibrate`), or a user's file
 (:meth:`~formtwin.monitoring.MonitorConfig.to_json` format: in-control means, residual
-sigmas, chart limits).
+sigmas, chart limits). So are the episodes' clear-after products (``meta`` key
+``alarm_clear_after``, :func:`~formtwin.monitoring.episodes.clear_after`).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import sqlite3
@@ -44,29 +52,17 @@ from typing import Any
 import numpy as np
 
 from formtwin.monitoring.calibrate import ChartDesign, calibrate, in_control_runs
+from formtwin.monitoring.charts import Alarm
+from formtwin.monitoring.episodes import Change, Episode, Episodes, clear_after
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
+from formtwin.service import alarm_tables as tables
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker
 
 log = logging.getLogger(__name__)
 
-_DDL = """
-CREATE TABLE IF NOT EXISTS alarms (
-    id INTEGER PRIMARY KEY,
-    seq INTEGER NOT NULL,
-    part_id TEXT NOT NULL,
-    product_index INTEGER NOT NULL,
-    variable TEXT NOT NULL,
-    chart TEXT NOT NULL,
-    side TEXT NOT NULL,
-    statistic REAL NOT NULL,
-    limit_value REAL NOT NULL,
-    raised_at REAL NOT NULL,
-    acked_at REAL,
-    ack_note TEXT,
-    UNIQUE (seq, variable, chart)
-);
-"""
+#: the model-health alarm's episode is the model-health episode: it clears with it
+HEALTH_CLEAR_AFTER = {"model_mismatch": 1}
 
 
 @dataclass(frozen=True)
@@ -130,34 +126,55 @@ def values_of(message: dict[str, Any], config: MonitorConfig) -> dict[str, float
 
 
 class ServiceMonitor:
-    """The charts of a running service and its ``alarms`` table.
+    """The charts of a running service, their ``alarms`` (signals) and ``alarm_episodes``.
 
     Parameters
     ----------
-    store : the service's store (the ``alarms`` table is created in its file).
+    store : the service's store (the tables are created in its file, an older ``alarms``
+        table is migrated).
     config : the chart configuration (see :func:`monitor_config`).
     """
 
     def __init__(self, store: Store, config: MonitorConfig) -> None:
         self.config = config
         self.store = store
-        store.ensure_tables(_DDL)
+        had_episodes = tables.ensure(store)
         self.monitor = Monitor(config)
-        self._saved: dict[str, Any] | None = None
+        stored = store.get_meta("alarm_clear_after")
+        if stored is None:
+            stored = json.dumps({**clear_after(self.monitor), **HEALTH_CLEAR_AFTER})
+            store.set_meta("alarm_clear_after", stored)
+        self.clear_after: dict[str, int] = json.loads(stored)
+        self.episodes = Episodes(self.clear_after)
+        self._saved: tuple[dict[str, Any], dict[str, Any]] | None = None
+        seen: dict[tuple[str, str, int], Episode] = {}
+        products: dict[int, tuple[str, float]] = {}
         for row in store.products(status="accepted"):  # rebuild the charts' state
             if row.estimate is None:
                 continue
-            self.monitor.update_values(values_of(row.estimate, config),
-                                       int(row.estimate.get("index", row.seq - 1)))
+            index = int(row.estimate.get("index", row.seq - 1))
+            alarms = self.monitor.update_values(values_of(row.estimate, config), index)
+            changes = self.episodes.update(row.seq, _signals(row.estimate, alarms, index))
+            if not had_episodes:  # an older store: its episodes from this rebuild
+                products[row.seq] = (row.part_id, row.received_at)
+                seen.update({(c.episode.variable, c.episode.chart, c.episode.first):
+                             c.episode for c in changes})
+        if seen:
+            store.transaction(lambda cur: tables.backfill(cur, list(seen.values()), products))
+            log.info("alarm episodes rebuilt for %d earlier products: %d", len(products),
+                     len(seen))
 
     # ------------------------------------------------------------------ processor hooks
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:
-        """Chart one accepted estimate message; return its ``"monitoring"`` entry:
-        ``phase`` (warmup, phase1, charting), ``charts`` (quantity -> chart -> [statistic,
-        limit], sigma units) and ``alarms`` (list of dicts). :meth:`rollback` undoes it."""
-        self._saved = self.monitor.state()
+        """Chart one accepted estimate message (its ``seq`` set); return its
+        ``"monitoring"`` entry: ``phase`` (warmup, phase1, charting), ``charts`` (quantity
+        -> chart -> [statistic, limit], sigma units), ``alarms`` (the product's signals)
+        and ``episodes`` (the changes it made). :meth:`rollback` undoes it."""
+        self._saved = (self.monitor.state(), self.episodes.state())
         index = int(message.get("index", self.monitor.n))
         alarms = self.monitor.update_values(values_of(message, self.config), index)
+        signals = _signals(message, alarms, index)
+        changes = self.episodes.update(int(message["seq"]), signals)
         c = self.config
         n = self.monitor.n  # this product's phase: its charts ran only when charting
         phase = ("warmup" if n <= c.warmup else "phase1" if n <= c.warmup + c.phase1
@@ -166,83 +183,103 @@ class ServiceMonitor:
                   for n, d in self.monitor.last.items()}
         out = [{**a.to_dict(), "statistic": _num(a.statistic), "limit": _num(a.limit)}
                for a in alarms]
-        health = message.get("model_health") or {}
-        if health.get("event") == "opened":  # the service's model-health episode opens
-            out.append({"variable": "model_health", "chart": "model_mismatch",
-                        "index": index, "statistic": float(health.get("failing", 0)),
-                        "limit": _num(float((health.get("rule") or {}).get("k", math.nan))),
-                        "side": "high"})
-        return {"phase": phase, "charts": charts, "alarms": out}
+        if (message.get("model_health") or {}).get("event") == "opened":
+            a = signals[-1]  # the service's model-health episode opens: a signal row
+            out.append({**a.to_dict(), "limit": _num(a.limit)})
+        return {"phase": phase, "charts": charts, "alarms": out,
+                "episodes": [_change(ch) for ch in changes]}
 
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
         if self._saved is not None:
-            self.monitor = Monitor(self.config, self._saved)
+            self.monitor = Monitor(self.config, self._saved[0])
+            self.episodes = Episodes(self.clear_after, self._saved[1])
             self._saved = None
 
     def write(self, cur: sqlite3.Cursor, seq: int, part_id: str, entry: dict[str, Any],
               now: float) -> list[dict[str, Any]]:
-        """Insert the alarms of product ``seq`` with ``cur`` (inside the product's
-        transaction); return them with their ids (the alarms-topic messages)."""
-        out = []
+        """Write the episodes and signals of product ``seq`` with ``cur`` (inside the
+        product's transaction); return the reported episode changes (the alarms-topic
+        messages: the episode with ``event`` raised, updated or cleared)."""
+        ids, out = {}, []
+        for ch in entry.get("episodes") or []:
+            key = (str(ch["variable"]), str(ch["chart"]))
+            ids[key] = tables.put(cur, ch, part_id, now)
+            if ch["event"] != "signal":
+                out.append({"event": ch["event"], **tables.episode_by_id(cur, ids[key])})
         for a in entry.get("alarms") or []:
-            row = (seq, part_id, int(a["index"]), str(a["variable"]), str(a["chart"]),
-                   str(a["side"]), _real(a["statistic"]), _real(a["limit"]), now)
-            cur.execute("INSERT INTO alarms(seq, part_id, product_index, variable, chart, "
-                        "side, statistic, limit_value, raised_at) VALUES (?,?,?,?,?,?,?,?,?)",
-                        row)
-            out.append(_alarm((int(cur.lastrowid or 0), *row, None, None)))
+            tables.insert_signal(cur, seq, part_id, a, now,
+                                 ids.get((str(a["variable"]), str(a["chart"]))))
         return out
 
     def committed(self) -> None:
         """The product of the last :meth:`observe` is in: forget its undo."""
         self._saved = None
 
-    # ------------------------------------------------------------------ the table
-    def alarms(self, since_seq: int = 0, unacked: bool = False, limit: int = 1000
+    # ------------------------------------------------------------------ the tables
+    def alarms(self, unacked: bool = False, active: bool = False, limit: int = 1000
                ) -> list[dict[str, Any]]:
-        """Stored alarms of products after ``since_seq`` (newest ``limit``, oldest first)."""
-        sql = f"SELECT {_ALARM_COLS} FROM alarms WHERE seq > ?"
+        """Stored alarm episodes (newest ``limit``, oldest first): ``state`` active,
+        cleared or closed (cleared and acknowledged)."""
+        sql = f"SELECT {tables.EPISODE_COLS} FROM alarm_episodes WHERE 1"
         if unacked:
             sql += " AND acked_at IS NULL"
-        sql += " ORDER BY id DESC LIMIT ?"
-        rows = self.store.query(sql, (since_seq, int(limit)))
-        return [_alarm(r) for r in reversed(rows)]
+        if active:
+            sql += " AND cleared_seq IS NULL"
+        rows = self.store.query(sql + " ORDER BY id DESC LIMIT ?", (int(limit),))
+        return [tables.episode(r) for r in reversed(rows)]
 
-    def acknowledge(self, alarm_id: int, note: str = "", now: float | None = None
+    def signals(self, since_seq: int = 0, limit: int = 1000) -> list[dict[str, Any]]:
+        """Stored signals of products after ``since_seq`` (newest ``limit``, oldest
+        first), each with its ``episode_id``."""
+        rows = self.store.query(f"SELECT {tables.SIGNAL_COLS} FROM alarms WHERE seq > ? "
+                                "ORDER BY id DESC LIMIT ?", (since_seq, int(limit)))
+        return [tables.row_dict(tables.SIGNAL_KEYS, r) for r in reversed(rows)]
+
+    def acknowledge(self, episode_id: int, note: str = "", now: float | None = None
                     ) -> dict[str, Any]:
-        """Acknowledge an alarm; return it. ``KeyError`` for an unknown id; acknowledging
-        twice keeps the first acknowledgement."""
+        """Acknowledge an alarm episode; return it. ``KeyError`` for an unknown id;
+        acknowledging twice keeps the first acknowledgement."""
         t = time.time() if now is None else now
-        self.store.execute("UPDATE alarms SET acked_at = ?, ack_note = ? WHERE id = ? AND "
-                           "acked_at IS NULL", (t, note[:200], int(alarm_id)))
-        rows = self.store.query(f"SELECT {_ALARM_COLS} FROM alarms WHERE id = ?",
-                                (int(alarm_id),))
+        self.store.execute("UPDATE alarm_episodes SET acked_at = ?, ack_note = ? WHERE "
+                           "id = ? AND acked_at IS NULL", (t, note[:200], int(episode_id)))
+        rows = self.store.query(f"SELECT {tables.EPISODE_COLS} FROM alarm_episodes WHERE id = ?",
+                                (int(episode_id),))
         if not rows:
-            raise KeyError(f"no alarm with id {alarm_id}")
-        return _alarm(rows[0])
+            raise KeyError(f"no alarm with id {episode_id}")
+        return tables.episode(rows[0])
 
     def limits(self) -> dict[str, Any]:
-        """What the page draws: the charted quantities, their charts and chart settings."""
+        """What the page draws: the charted quantities, their charts and chart settings,
+        and the episodes' clear-after products."""
         c = self.config
         return {"quantities": list(c.quantities), "health": list(c.health), "glr": list(c.glr),
                 "ewma": {"lam": c.ewma.lam, "L": c.ewma.L},
                 "cusum": {"k": c.cusum.k, "h": c.cusum.h},
                 "mismatch": {"k": c.mismatch.k, "h": c.mismatch.h},
                 "warmup": c.warmup, "phase1": c.phase1,
-                "means": {n: m for n, m in self.monitor.means.items()}}
+                "means": {n: m for n, m in self.monitor.means.items()},
+                "clear_after": dict(self.clear_after)}
 
 
-_ALARM_COLS = ("id, seq, part_id, product_index, variable, chart, side, statistic, "
-               "limit_value, raised_at, acked_at, ack_note")
-_ALARM_KEYS = ("id", "seq", "part_id", "index", "variable", "chart", "side", "statistic",
-               "limit", "raised_at", "acked_at", "ack_note")
+def _signals(message: dict[str, Any], alarms: tuple[Alarm, ...], index: int
+             ) -> list[Alarm]:
+    """A product's signals for its episodes: the charts' alarms, and the model-health
+    alarm while the service's model-health episode is open."""
+    health = message.get("model_health") or {}
+    if health.get("state") != "model_mismatch":
+        return list(alarms)
+    k = float((health.get("rule") or {}).get("k", math.nan))
+    return [*alarms, Alarm("model_health", "model_mismatch", index,
+                           float(health.get("failing", 0)), k, "high")]
 
 
-def _alarm(row: tuple[Any, ...]) -> dict[str, Any]:
-    """An alarm as a JSON-safe dict from its row (columns :data:`_ALARM_COLS`)."""
-    return {k: _num(v) if isinstance(v, float) else v
-            for k, v in zip(_ALARM_KEYS, row, strict=True)}
+def _change(ch: Change) -> dict[str, Any]:
+    """An episode change as it goes into the estimate message."""
+    d = ch.episode.to_dict()
+    return {"event": ch.kind, **{k: d[k] for k in (
+        "variable", "chart", "side", "first", "last", "signals", "ratio", "statistic",
+        "limit", "cleared")}}
 
 
 def _num(v: float) -> float | None:
@@ -250,9 +287,5 @@ def _num(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
-def _real(v: Any) -> float:
-    """A stored statistic (None -> NaN)."""
-    return math.nan if v is None else float(v)
-
-
-__all__ = ["MonitorSource", "ServiceMonitor", "monitor_config", "values_of"]
+__all__ = ["HEALTH_CLEAR_AFTER", "MonitorSource", "ServiceMonitor", "monitor_config",
+           "values_of"]

@@ -77,7 +77,8 @@ class MonitorLike(Protocol):
 
     def write(self, cur: sqlite3.Cursor, seq: int, part_id: str, entry: dict[str, Any],
               now: float) -> list[dict[str, Any]]:
-        """Insert the product's alarms inside its transaction; return them."""
+        """Write the product's alarm episodes and signals inside its transaction; return
+        the messages for the alarms topic."""
         ...
 
     def committed(self) -> None:
@@ -136,7 +137,7 @@ class Outcome:
     message: dict[str, Any]
     part_id: str | None = None
     seq: int | None = None
-    alarms: tuple[dict[str, Any], ...] = ()
+    alarms: tuple[dict[str, Any], ...] = ()  # alarm episodes' reported changes
     notices: tuple[dict[str, Any], ...] = ()  # model health, for the errors topic
     payload: bytes | None = None  # ``message`` as JSON, when already encoded (stored so)
 

@@ -202,6 +202,18 @@ class Store:
         with self._lock:
             return int(self._db.execute(sql, args).rowcount)
 
+    def transaction(self, work: Callable[[sqlite3.Cursor], None]) -> None:
+        """Run ``work(cursor)`` in one transaction: all its writes are in, or none."""
+        with self._lock:
+            cur = self._db.cursor()
+            cur.execute("BEGIN IMMEDIATE")
+            try:
+                work(cur)
+                cur.execute("COMMIT")
+            except BaseException:
+                cur.execute("ROLLBACK")
+                raise
+
     # -- writes -----------------------------------------------------------------------
     def commit_product(self, *, part_id: str, cycle: int, timestamp: str, status: str,
                        digest: str, curve: FloatArray, measured_angles: list[float] | None,

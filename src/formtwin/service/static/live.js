@@ -116,6 +116,8 @@
     });
   }
 
+  // alarm episodes: one per chart and variable from its first signal until the chart has
+  // been quiet for its clear-after products; acknowledged per episode
   const alarmRows = new Map();
   const token = new URLSearchParams(window.location.search).get("token") || "";
   function showAlarm(a) {
@@ -128,10 +130,15 @@
       alarmRows.set(a.id, row);
     }
     row.innerHTML = "";
+    row.dataset.state = a.state;
+    row.classList.toggle("cleared", a.state !== "active");
     const text = document.createElement("span");
-    text.textContent = "#" + a.id + " product " + a.seq + " (" + a.part_id + "): " +
-      a.variable + " " + a.chart + " " + a.side + ", " + fmt(a.statistic) + " beyond " +
-      fmt(a.limit);
+    const span = a.last_seq > a.raised_seq ? " to " + a.last_seq : "";
+    text.textContent = "#" + a.id + " " + a.variable + " " + a.chart + " " + a.side + ": " +
+      a.state + (a.cleared_seq ? " at product " + a.cleared_seq : "") + "; raised at product " +
+      a.raised_seq + " (" + a.raised_part + "), " + a.signals + " signal" +
+      (a.signals === 1 ? "" : "s") + " (products " + a.raised_seq + span + "), largest " +
+      fmt(a.statistic) + " beyond " + fmt(a.limit);
     row.appendChild(text);
     if (a.acked_at) {
       row.classList.add("acked");
@@ -151,11 +158,16 @@
       };
       row.appendChild(b);
     }
-    let open = 0;
-    alarmRows.forEach((r) => { if (!r.classList.contains("acked")) open += 1; });
-    el("n-alarms").textContent = String(open);
+    let unacked = 0, active = 0;
+    alarmRows.forEach((r) => {
+      if (!r.classList.contains("acked")) unacked += 1;
+      if (r.dataset.state === "active") active += 1;
+    });
+    el("n-alarms").textContent = String(unacked);
+    el("n-active").textContent = String(active);
     document.body.dataset.alarms = String(alarmRows.size);
-    document.body.dataset.openAlarms = String(open);
+    document.body.dataset.openAlarms = String(unacked);
+    document.body.dataset.activeAlarms = String(active);
   }
 
   function loadAlarms() {
