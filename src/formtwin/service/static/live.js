@@ -143,7 +143,7 @@
     if (a.acked_at) {
       row.classList.add("acked");
       const s = document.createElement("span");
-      s.textContent = "  acknowledged";
+      s.textContent = "; acknowledged";
       row.appendChild(s);
     } else {
       const b = document.createElement("button");
