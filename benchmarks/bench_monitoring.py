@@ -187,11 +187,17 @@ def delay(alarms: list[Alarm], at: int, n: int) -> tuple[int, int, str]:
 def persistence(alarms: list[Alarm], eps: list[Episode], at: int, n: int) -> dict[str, Any]:
     """Of one fault's run: products to the first alarm and to the first mismatch alarm
     (``None``: none), the share of the :data:`WINDOW`-product windows from ``at`` to ``n``
-    with a mismatch alarm, and the signals and episodes raised from ``at`` on per 1000
-    products."""
+    with a mismatch alarm, the signals and episodes raised from ``at`` on per 1000
+    products, and per chart its episodes, signals and longest gap between signals
+    (``by_chart``)."""
     mis = [a.index for a in alarms if a.chart == "mismatch" and a.index >= at]
     first = [a.index for a in alarms if a.index >= at]
     wins = range(at, n, WINDOW)
+    by_chart: dict[str, list[int]] = {}  # episodes, signals, longest gap between signals
+    for key in sorted({f"{a.variable}/{a.chart}" for a in alarms if a.index >= at}):
+        idx = [a.index for a in alarms if a.index >= at and f"{a.variable}/{a.chart}" == key]
+        by_chart[key] = [sum(e.first >= at and f"{e.variable}/{e.chart}" == key for e in eps),
+                         len(idx), int(np.max(np.diff(idx), initial=0))]
     return {"first_alarm": first[0] - at + 1 if first else None,
             "first_mismatch": mis[0] - at + 1 if mis else None,
             "signalled_share": round(sum(any(w <= i < w + WINDOW for i in mis) for w in wins)
@@ -199,8 +205,7 @@ def persistence(alarms: list[Alarm], eps: list[Episode], at: int, n: int) -> dic
             "alarms_before": sum(a.index < at for a in alarms),
             "signals_per_1000": round(sum(a.index >= at for a in alarms) / (n - at) * 1e3, 1),
             "episodes_per_1000": round(sum(e.first >= at for e in eps) / (n - at) * 1e3, 1),
-            "episodes": {f"{e.variable}/{e.chart}": [e.first, e.last, e.signals, e.cleared]
-                         for e in eps if e.first >= at}}
+            "by_chart": by_chart}
 
 
 def summary(d: list[int], horizon: int, target: int = 30) -> dict[str, Any]:
