@@ -110,6 +110,11 @@ def test_page_shows_charts_and_alarms_and_acknowledges(mosquitto: Mosquitto,  # 
             acked = [a for a in _get(port, "api/alarms") if a["acked_at"] is not None]
             assert [a["id"] for a in acked] == [newest]
             assert acked[0]["ack_note"] == "acknowledged on the live page"
+            # ... and published on the alarms topic for whoever else watches the line
+            wait_for(lambda: any(m["event"] == "acknowledged" for m in collector.get(ALARMS)),
+                     10, "the acknowledgement on the alarms topic")
+            ack_msgs = [m for m in collector.get(ALARMS) if m["event"] == "acknowledged"]
+            assert [(m["id"], m["acked_at"]) for m in ack_msgs] == [(newest, acked[0]["acked_at"])]
             assert not errors, errors
             page.screenshot(path=str(tmp_path / "alarms.png"), full_page=True)
         # without the token the service refuses to acknowledge

@@ -286,6 +286,7 @@ def _serve(args: argparse.Namespace) -> int:
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
+        service = MqttService(proc, broker, topics, client_id=args.client_id)
         if not args.no_page:
             from formtwin.service.web import LiveFeed, PageServer
             from formtwin.spec import load_spec
@@ -301,12 +302,11 @@ def _serve(args: argparse.Namespace) -> int:
             if monitor is not None:
                 from formtwin.service.alarm_api import add_alarm_routes
 
-                add_alarm_routes(page.app, monitor, feed, token)
+                add_alarm_routes(page.app, monitor, feed, token, on_ack=service.publish_alarm)
             url = page.start()
             print(f"live page: {url}" + (f"?token={token}" if token else ""), flush=True)
         if check is not None:
             check.listener, proc.on_outcome = proc.on_outcome, check
-        service = MqttService(proc, broker, topics, client_id=args.client_id)
         # the ~10^5 objects of the model, the libraries and the page live as long as the
         # process: kept out of the garbage collector's full collections, which otherwise
         # take ~60 ms every few hundred products and stall the stream (p99 latency)

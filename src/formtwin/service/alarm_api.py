@@ -8,11 +8,14 @@
 * ``POST /api/alarms/{id}/ack`` -- acknowledge an episode; needs the page token (header
   ``X-Formtwin-Token``, the ``token`` of the page's URL as printed by ``formtwin serve``):
   reading is open on the page's address, acting is not. A wrong or missing token is 403, an
-  unknown id 404. The acknowledgement is stored and sent to every open page.
+  unknown id 404. The acknowledgement is stored, sent to every open page and, with
+  ``on_ack``, published (the serve command: on the alarms topic, event ``acknowledged``,
+  so a control room or MES that subscribes sees who has seen what).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -22,10 +25,12 @@ from formtwin.service.alarms import ServiceMonitor
 from formtwin.service.web import TOKEN_HEADER, LiveFeed, token_ok
 
 
-def add_alarm_routes(app: FastAPI, monitor: ServiceMonitor, feed: LiveFeed,
-                     token: str) -> None:
+def add_alarm_routes(app: FastAPI, monitor: ServiceMonitor, feed: LiveFeed, token: str,
+                     on_ack: Callable[[dict[str, Any]], None] | None = None) -> None:
     """Add the alarm routes to ``app``; acknowledging needs ``token`` (empty: the page is
-    read-only, acknowledging is refused, :func:`formtwin.service.web.token_ok`)."""
+    read-only, acknowledging is refused, :func:`formtwin.service.web.token_ok`);
+    ``on_ack`` gets each acknowledged episode as ``{"event": "acknowledged", **episode}``
+    (again on a repeated acknowledgement, which keeps the first one's time and note)."""
 
     @app.get("/api/monitor")
     def limits() -> JSONResponse:
@@ -56,6 +61,8 @@ def add_alarm_routes(app: FastAPI, monitor: ServiceMonitor, feed: LiveFeed,
         except KeyError:
             return JSONResponse({"error": f"no alarm with id {alarm_id}"}, status_code=404)
         feed.push({"type": "ack", "alarm": alarm})
+        if on_ack is not None:
+            on_ack({"event": "acknowledged", **alarm})
         return JSONResponse(alarm)
 
 

@@ -147,6 +147,11 @@ class MqttService:
         self.handled = 0
         self.busy_s = 0.0
 
+    def publish_alarm(self, message: dict[str, Any]) -> None:
+        """Publish an alarm message (an acknowledgement from the live page) on the alarms
+        topic, QoS 1 (paho queues it while the broker is away; thread-safe)."""
+        self.client.publish(self.topics.alarms or self.topics.errors, dumps(message), qos=1)
+
     def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, rc: Any,
                     props: Any = None) -> None:
         if getattr(rc, "is_failure", False):
