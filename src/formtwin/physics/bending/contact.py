@@ -29,10 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-from formtwin.physics.bending.kernels import BW
-
-#: fast-math flags that keep NaN/inf semantics (failed runs must still be detected)
-FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+from formtwin.physics.bending.kernels import BW, FASTMATH
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)

@@ -61,8 +61,13 @@ SQ = 2.0 / math.sqrt(3.0)  # plane-strain factor between sigma_xx and the von Mi
 #: ``tau`` may exceed ``k`` for an increment)
 SHEAR_FLOOR = 0.2
 BW = 5  # semi-bandwidth of the stiffness of a chain of 3-dof nodes
-#: fast-math flags that keep NaN/inf semantics (failed runs must still be detected)
-FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+#: fast-math flags of all kernels (also :mod:`.contact`): they keep NaN/inf semantics
+#: (failed runs must still be detected) and leave out ``reassoc`` and ``contract``. With
+#: those two, LLVM re-optimises a callee linked into its caller differently from the
+#: callee compiled alone; a fresh process calls the latter, a process that loads the
+#: caller from Numba's on-disk cache the former, and the outputs differed by up to 0.3 N
+#: (session 12, docs/physics.md "Determinism")
+FASTMATH = {"nsz", "arcp", "afn"}
 
 # ---------------------------------------------------------------------------- material
 
