@@ -122,7 +122,10 @@ def friction_history(mu: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     reaction at the dragged dof and the sum of the reactions at the held rotations.
     """
     stiff = Material(yield_stress=1e12, E=1e9, rate=False)
-    sheet = Sheet.straight(0.0, 1.0, 0.5 * T, 4, T, 15, 2)
+    # the lower face 1e-9 mm into the die: at a gap of exactly 0 the first step's contact
+    # (and with it a stiffness against the strip's rigid vertical motion) hung on the last
+    # bit of the face position (it failed without the fast-math flag `contract`)
+    sheet = Sheet.straight(0.0, 1.0, 0.5 * T - 1e-9, 4, T, 15, 2)
     die = make_toolset([("die", 0, -1, [(np.array([[-5.0, 0.0], [5.0, 0.0]]), np.zeros(0))])])
     fref = np.zeros(sheet.u.size)
     fref[1::3] = -1.0
