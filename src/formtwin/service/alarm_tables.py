@@ -108,7 +108,7 @@ def backfill(cur: sqlite3.Cursor, episodes: list[Episode],
                     "raised_part, raised_at, last_seq, signals, ratio, statistic, limit_value, "
                     "cleared_seq, cleared_at, updated_at) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                     (ep.variable, ep.chart, ep.side, ep.first, part, raised_at, ep.last,
-                     ep.signals, ep.ratio, _opt(ep.statistic), _opt(ep.limit), ep.cleared,
+                     ep.signals, ep.ratio, num(ep.statistic), num(ep.limit), ep.cleared,
                      None if ep.cleared is None else last_at, last_at))
         eid = int(cur.lastrowid or 0)
         where = "variable = ? AND chart = ? AND seq BETWEEN ? AND ?"
@@ -152,17 +152,12 @@ def episode(row: tuple[Any, ...]) -> dict[str, Any]:
 
 def row_dict(keys: tuple[str, ...], row: tuple[Any, ...]) -> dict[str, Any]:
     """A row as a JSON-safe dict."""
-    return {k: _num(v) if isinstance(v, float) else v for k, v in zip(keys, row, strict=True)}
+    return {k: num(v) if isinstance(v, float) else v for k, v in zip(keys, row, strict=True)}
 
 
-def _num(v: float) -> float | None:
-    """JSON-safe number."""
+def num(v: float) -> float | None:
+    """A JSON-safe or nullable stored number (NaN, inf -> None)."""
     return float(v) if math.isfinite(v) else None
-
-
-def _opt(v: float) -> float | None:
-    """A nullable stored number (NaN -> NULL)."""
-    return v if math.isfinite(v) else None
 
 
 def _real(v: Any) -> float:
@@ -171,4 +166,4 @@ def _real(v: Any) -> float:
 
 
 __all__ = ["EPISODE_COLS", "SIGNAL_COLS", "SIGNAL_KEYS", "backfill", "ensure", "episode",
-           "episode_by_id", "insert_signal", "put", "row_dict"]
+           "episode_by_id", "insert_signal", "num", "put", "row_dict"]

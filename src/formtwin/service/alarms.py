@@ -160,7 +160,8 @@ class ServiceMonitor:
                 seen.update({(c.episode.variable, c.episode.chart, c.episode.first):
                              c.episode for c in changes})
         if seen:
-            store.transaction(lambda cur: tables.backfill(cur, list(seen.values()), products))
+            with store.transaction() as cur:
+                tables.backfill(cur, list(seen.values()), products)
             log.info("alarm episodes rebuilt for %d earlier products: %d", len(products),
                      len(seen))
 
@@ -179,13 +180,14 @@ class ServiceMonitor:
         n = self.monitor.n  # this product's phase: its charts ran only when charting
         phase = ("warmup" if n <= c.warmup else "phase1" if n <= c.warmup + c.phase1
                  else "charting")
-        charts = {n: {k: [_num(v[0]), _num(v[1])] for k, v in d.items()}
+        charts = {n: {k: [tables.num(v[0]), tables.num(v[1])] for k, v in d.items()}
                   for n, d in self.monitor.last.items()}
-        out = [{**a.to_dict(), "statistic": _num(a.statistic), "limit": _num(a.limit)}
+        out = [{**a.to_dict(), "statistic": tables.num(a.statistic),
+                "limit": tables.num(a.limit)}
                for a in alarms]
         if (message.get("model_health") or {}).get("event") == "opened":
             a = signals[-1]  # the service's model-health episode opens: a signal row
-            out.append({**a.to_dict(), "limit": _num(a.limit)})
+            out.append({**a.to_dict(), "limit": tables.num(a.limit)})
         return {"phase": phase, "charts": charts, "alarms": out,
                 "episodes": [_change(ch) for ch in changes]}
 
@@ -281,10 +283,6 @@ def _change(ch: Change) -> dict[str, Any]:
         "variable", "chart", "side", "first", "last", "signals", "ratio", "statistic",
         "limit", "cleared")}}
 
-
-def _num(v: float) -> float | None:
-    """JSON-safe number."""
-    return float(v) if math.isfinite(v) else None
 
 
 __all__ = ["HEALTH_CLEAR_AFTER", "MonitorSource", "ServiceMonitor", "monitor_config",

@@ -31,6 +31,7 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -202,13 +203,15 @@ class Store:
         with self._lock:
             return int(self._db.execute(sql, args).rowcount)
 
-    def transaction(self, work: Callable[[sqlite3.Cursor], None]) -> None:
-        """Run ``work(cursor)`` in one transaction: all its writes are in, or none."""
+    @contextmanager
+    def transaction(self) -> Iterator[sqlite3.Cursor]:
+        """A cursor in one transaction (``with store.transaction() as cur``): all its
+        writes are in, or none (rolled back on any exception)."""
         with self._lock:
             cur = self._db.cursor()
             cur.execute("BEGIN IMMEDIATE")
             try:
-                work(cur)
+                yield cur
                 cur.execute("COMMIT")
             except BaseException:
                 cur.execute("ROLLBACK")
@@ -234,26 +237,19 @@ class Store:
         """
         now = time.time() if received_at is None else received_at
         blob = np.ascontiguousarray(curve, dtype="<f8").tobytes()
-        with self._lock:
-            cur = self._db.cursor()
-            cur.execute("BEGIN IMMEDIATE")
-            try:
-                cur.execute(
-                    "INSERT INTO products(part_id, cycle, timestamp, received_at, status, "
-                    "digest, curve, measured_angles, estimate) VALUES (?,?,?,?,?,?,?,?,?)",
-                    (part_id, cycle, timestamp, now, status, digest, blob,
-                     None if measured_angles is None else json.dumps(measured_angles),
-                     _json(estimate)))
-                seq = int(cur.lastrowid or 0)
-                if checkpoint is not None:
-                    cur.execute("INSERT OR REPLACE INTO checkpoint(id, seq, data) "
-                                "VALUES (1, ?, ?)", (seq, checkpoint))
-                if within is not None:
-                    within(cur, seq)
-                cur.execute("COMMIT")
-            except BaseException:
-                cur.execute("ROLLBACK")
-                raise
+        with self.transaction() as cur:
+            cur.execute(
+                "INSERT INTO products(part_id, cycle, timestamp, received_at, status, "
+                "digest, curve, measured_angles, estimate) VALUES (?,?,?,?,?,?,?,?,?)",
+                (part_id, cycle, timestamp, now, status, digest, blob,
+                 None if measured_angles is None else json.dumps(measured_angles),
+                 _json(estimate)))
+            seq = int(cur.lastrowid or 0)
+            if checkpoint is not None:
+                cur.execute("INSERT OR REPLACE INTO checkpoint(id, seq, data) "
+                            "VALUES (1, ?, ?)", (seq, checkpoint))
+            if within is not None:
+                within(cur, seq)
         return seq
 
     def add_rejection(self, *, payload_digest: str, reason: str, detail: str,

@@ -286,6 +286,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     for i in fix_idx:
         free[i] = 0
     u_trial = np.empty(n)
+    tadd = np.zeros(n_el)  # the face friction's distributed moment as V/t (friction_shear)
     du_prev = np.zeros(n)
     dp_prev = 0.0
     dt_prev = 0.0
@@ -350,7 +351,6 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                 face_pressure(X, Xp, ct_trial[2], tface, opts[SPREAD] * thick, pface, towner)
             if opts[SHEAR] > 0.0:  # the elements' shear stresses for the next increment
                 ys = SQ * mesh[7][1]  # plane-strain yield stress
-                tadd = np.zeros(n_el)  # the face friction's distributed moment, as V/t
                 if opts[FRICTION_SHEAR] > 0.0:
                     friction_shear(X, el, xi, ct_trial[0], tadd)
                 element_shear(X, sig, thick, mesh[3], mesh[4], mesh[5], tshear, pface,
