@@ -237,7 +237,8 @@ def test_face_friction_is_not_shear_force() -> None:
     the other): the moment ``(t/2) q`` of the traction about the mid-surface balances the shear
     force. :func:`friction_shear` (``Discretisation.friction_shear``) adds it to the
     elements' ``dM/ds / t``; bending-2.4 (without it) has 0."""
-    from formtwin.physics.bending.contact import contact_points, friction_shear
+    from formtwin.physics.bending.contact import friction_shear
+    from formtwin.physics.bending.faces import contact_points
     from formtwin.physics.bending.kernels import element_shear
 
     sheet = Sheet.straight(0.0, 1.0, 0.5 * T, 4, T, 15, 2)
@@ -331,7 +332,8 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool, n_su
     assembled band tangent and the punch column ``dR/dp`` are the finite-difference
     derivatives of the residual, in stick and in slip, on a nose (arc) and on a flat die,
     with rotated nodes."""
-    from formtwin.physics.bending.contact import contact_points
+    from formtwin.physics.bending.faces import contact_points
+    from formtwin.physics.bending.kernels import layer_scales_all
     from formtwin.physics.bending.solver import BW, assemble
 
     sheet = Sheet.straight(0.0, 0.6, 0.5 * T, 3, T, 15, 2)
@@ -355,8 +357,11 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool, n_su
     ct_rel[:, :, 0] = Xp[:, [0]] + (5e-3 if slip else 1e-7)
     ct_rel[:, :, 1] = 0.0
     ct_rel[:, 1, 1] = T - p
+    tshear = np.zeros(sheet.X.shape[0] - 1)
+    scales = np.empty((*zeros.shape, 3))
+    layer_scales_all(zeros, zeros, tshear, ELASTIC.array, scales)
     contact = (np.zeros((n_p, 2)), ct_rel, np.zeros((n_p, 2), np.int64),
-               np.zeros((sheet.X.shape[0], 2)), np.zeros(sheet.X.shape[0] - 1))
+               np.zeros((sheet.X.shape[0], 2)), tshear, scales)
     press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0, 5e-4])
     toolarr = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, el, xi,
                pen, Xp)
@@ -498,7 +503,7 @@ def test_contact_points_lie_on_the_face_of_a_bent_sheet() -> None:
     points inside the elements lie on the offset circle ``r -+ t/2`` to the interpolation's
     O(h^4) (exactly on a straight sheet), their derivatives by the nodes' rotations match
     finite differences, and the points' shares of the length sum to the sheet's length."""
-    from formtwin.physics.bending.contact import contact_points, hermite_face, point_face
+    from formtwin.physics.bending.faces import contact_points, hermite_face, point_face
 
     r, errors = 1.0, []
     for n_el in (8, 16):

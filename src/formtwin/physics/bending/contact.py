@@ -6,7 +6,7 @@ Contact points
     A point at ``xi`` in element ``e`` (nodes ``a = e``, ``b = e + 1``) lies ``s t/2``
     along the normal ``n = (-sin, cos)`` of the direction ``(1 - xi) phi_a + xi phi_b``
     from the cubic Hermite mid-surface ``H1 x_a + H2 L0 t(phi_a) + H3 x_b + H4 L0 t(phi_b)``
-    (:func:`hermite_face`), where ``phi_i`` is the node's direction, ``t = (cos, sin)``,
+    (:func:`.faces.hermite_face`), where ``phi_i`` is the node's direction, ``t = (cos, sin)``,
     ``s = +-1`` the face and ``L0`` the element's reference length. Points at the nodes (``xi = 0``)
     are the node's face point, as in a node-to-surface scheme; the inner points let a tool
     corner (a nose of a few element lengths) slide along the sheet without the force
@@ -29,6 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
+from formtwin.physics.bending.faces import face_trig, point_face_trig
 from formtwin.physics.bending.kernels import BW, FASTMATH
 
 
@@ -195,87 +196,6 @@ def friction_shear(X, el, xi, tt, tadd):  # type: ignore[no-untyped-def]
         tadd[e] *= -0.5 / math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
 
 
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
-def hermite_face(xa, ya, pa, xb, yb, pb, s, h, L0, xi, d):  # type: ignore[no-untyped-def]
-    """Face point ``y`` (returned as ``(yx, yy)``) of a contact point, and its derivatives.
-
-    Nodes ``a, b`` at ``(x, y)`` with directions ``p`` (rad); face ``s`` (+-1) at ``h`` (mm)
-    from the mid-surface; element reference length ``L0``; ``xi`` in [0, 1]. The mid-surface
-    point is the cubic Hermite ``H1 x_a + H2 L0 t(p_a) + H3 x_b + H4 L0 t(p_b)``, the face
-    point lies ``s h`` along the normal of the interpolated direction ``(1 - xi) p_a + xi
-    p_b`` (on a circular arc both are exact to O(L0^4)). Writes ``d (5, 2)``: ``dy/dp_a``,
-    ``dy/dp_b``, ``d2y/dp_a2``, ``d2y/dp_b2``, ``d2y/dp_a dp_b``; ``dy/dx_a = H1``,
-    ``dy/dx_b = H3`` (times the identity).
-    """
-    return hermite_face_cs(xa, ya, pa, math.cos(pa), math.sin(pa), xb, yb, pb, math.cos(pb),
-                           math.sin(pb), s, h, L0, xi, d)
-
-
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
-def hermite_face_cs(xa, ya, pa, ca, sa, xb, yb, pb, cb, sb, s, h, L0, xi,  # type: ignore[no-untyped-def]
-                    d):
-    """:func:`hermite_face` with the nodes' ``cos, sin`` of their directions given."""
-    x2 = xi * xi
-    x3 = x2 * xi
-    H1, H2, H3, H4 = 1.0 - 3.0 * x2 + 2.0 * x3, xi - 2.0 * x2 + x3, 3.0 * x2 - 2.0 * x3, x3 - x2
-    if xi == 0.0:
-        cp, sp = ca, sa
-    else:
-        ang = (1.0 - xi) * pa + xi * pb
-        cp, sp = math.cos(ang), math.sin(ang)
-    sh = s * h
-    wa, wb = 1.0 - xi, xi
-    d[0, 0] = -H2 * L0 * sa - sh * cp * wa
-    d[0, 1] = H2 * L0 * ca - sh * sp * wa
-    d[1, 0] = -H4 * L0 * sb - sh * cp * wb
-    d[1, 1] = H4 * L0 * cb - sh * sp * wb
-    d[2, 0] = -H2 * L0 * ca + sh * sp * wa * wa
-    d[2, 1] = -H2 * L0 * sa - sh * cp * wa * wa
-    d[3, 0] = -H4 * L0 * cb + sh * sp * wb * wb
-    d[3, 1] = -H4 * L0 * sb - sh * cp * wb * wb
-    d[4, 0] = sh * sp * wa * wb
-    d[4, 1] = -sh * cp * wa * wb
-    return (H1 * xa + H2 * L0 * ca + H3 * xb + H4 * L0 * cb - sh * sp,
-            H1 * ya + H2 * L0 * sa + H3 * yb + H4 * L0 * sb + sh * cp)
-
-
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def contact_points(X, phi0, n_sub):  # type: ignore[no-untyped-def]
-    """Contact points of a sheet ``X (n_nodes, 2)``: element ``(n_p,)``, ``xi (n_p,)``,
-    reference position ``(n_p, 2)`` and share of the sheet's length ``(n_p,)`` (mm)."""
-    n_el = X.shape[0] - 1
-    n_p = n_el * n_sub + 1
-    el = np.zeros(n_p, dtype=np.int64)
-    xi = np.zeros(n_p)
-    Xp = np.zeros((n_p, 2))
-    w = np.zeros(n_p)
-    for e in range(n_el):
-        L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
-        for m in range(n_sub + 1 if e == n_el - 1 else n_sub):
-            p = e * n_sub + m
-            el[p] = e
-            xi[p] = m / n_sub
-            Xp[p, 0] = X[e, 0] + xi[p] * (X[e + 1, 0] - X[e, 0])
-            Xp[p, 1] = X[e, 1] + xi[p] * (X[e + 1, 1] - X[e, 1])
-        for m in range(n_sub):
-            w[e * n_sub + m] += 0.5 * L0 / n_sub
-            w[e * n_sub + m + 1] += 0.5 * L0 / n_sub
-    return el, xi, Xp, w
-
-
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def point_face(X, phi0, u, el, xi, p, s, h):  # type: ignore[no-untyped-def]
-    """Current face point ``(x, y)`` of contact point ``p`` (face ``s``, offset ``h``)."""
-    e = el[p]
-    L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
-    d = np.zeros((5, 2))
-    yx, yy = hermite_face(X[e, 0] + u[3 * e], X[e, 1] + u[3 * e + 1],
-                                phi0[e] + u[3 * e + 2], X[e + 1, 0] + u[3 * e + 3],
-                                X[e + 1, 1] + u[3 * e + 4], phi0[e + 1] + u[3 * e + 5],
-                                s, h, L0, xi[p], d)
-    return yx, yy
-
-
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore[no-untyped-def]
                    ct_trial, g0, Kb, R, col, Jp):
@@ -300,11 +220,10 @@ def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore
     n_nodes = X.shape[0]
     dnode = np.empty(n_nodes)
     pre = primitive_frames(ptype, pdata)
-    cnode = np.empty(n_nodes)  # cos, sin of the nodes' directions
-    snode = np.empty(n_nodes)
-    for i in range(n_nodes):
-        cnode[i] = math.cos(phi0[i] + u[3 * i + 2])
-        snode[i] = math.sin(phi0[i] + u[3 * i + 2])
+    # cos, sin of the nodes' and the points' directions, the elements' lengths: once, not
+    # once per tool (the same numbers)
+    trig = np.empty((n_nodes + el.shape[0], 2))
+    L0s = face_trig(X, phi0, u, el, xi, trig)
     for k in range(towner.shape[0]):
         ty = p if towner[k] == 1 else 0.0
         s = tface[k]
@@ -317,17 +236,14 @@ def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore
             ct_n_t[q, k] = 0.0
             e = el[q]
             i0 = 3 * e
-            L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+            L0 = L0s[e]
             # a point lies within 1.5 L0 + t/2 of its element's nodes (Hermite weights
             # |H2|, |H4| <= 4/27; stretch allowed for), and a contact needs |gap| <= t: the
             # tool's distance being 1-Lipschitz, an element whose nodes are both farther
             # than 2 L0 + 1.5 t from it has no contact point on it
             if min(dnode[e], dnode[e + 1]) > 2.0 * L0 + 1.5 * thick:
                 continue
-            px, py = hermite_face_cs(
-                X[e, 0] + u[i0], X[e, 1] + u[i0 + 1], phi0[e] + u[i0 + 2], cnode[e], snode[e],
-                X[e + 1, 0] + u[i0 + 3], X[e + 1, 1] + u[i0 + 4], phi0[e + 1] + u[i0 + 5],
-                cnode[e + 1], snode[e + 1], s, half, L0, xi[q], d)
+            px, py = point_face_trig(X, u, el, xi, q, s, half, L0s, trig, d)
             py -= ty
             dist, gap, nx, ny, rho = closest_point(px, py, tstart[k], tstart[k + 1], ptype,
                                                    pdata, pre)

@@ -101,22 +101,56 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[n
     at the committed hardening and rate (at least :data:`SHEAR_FLOOR`).
     Returns ``(sigma, eps_bar, E_tangent)``.
     """
-    sig_tr = sig_n + E * de - syy  # the stress difference that yields
-    a = abs(sig_tr)
+    r, fac, s0 = layer_scales(epb_n, rate_n, sy, e0, q, hard, tau)
+    return layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac, s0)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def layer_scales(epb_n, rate_n, sy, e0, q, hard, tau):  # type: ignore[no-untyped-def]
+    """The factors of :func:`layer_update` that depend on the committed state alone:
+    hardening ratio ``r`` at ``epb_n``, shear factor ``fac`` of the rate-free yield surface
+    and the rate-dependent axial yield stress ``s0`` (MPa, times ``r`` at yield).
+
+    They are constant over a time increment's Newton iterations (:func:`layer_scales_all`
+    computes them once per increment); :func:`layer_return` takes them.
+    """
     r = 1.0
     if epb_n > 0.0:
         r, h = hardening(epb_n, hard)
     fac = 1.0
     if tau != 0.0:  # von Mises with the shear stress: (s_xx - s_yy)^2/4 + tau^2 = k^2
         fac = math.sqrt(max(1.0 - 3.0 * (tau / (sy * r)) ** 2, SHEAR_FLOOR ** 2))
-    if a <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
-        return sig_tr + syy, epb_n, E
     rf = 1.0
     if rate_n > 0.0:
         rf = 1.0 + (rate_n / e0) ** q
+    fac_rate = fac
     if tau != 0.0:
-        fac = math.sqrt(max(1.0 - 3.0 * (tau / (rf * sy * r)) ** 2, SHEAR_FLOOR ** 2))
-    s0 = SQ * rf * sy * fac
+        fac_rate = math.sqrt(max(1.0 - 3.0 * (tau / (rf * sy * r)) ** 2, SHEAR_FLOOR ** 2))
+    return r, fac, SQ * rf * sy * fac_rate
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def layer_scales_all(epb, rate, tshear, mat, out):  # type: ignore[no-untyped-def]
+    """:func:`layer_scales` of every layer point ``(n_el, n_g, n_layers)`` into ``out (n_el,
+    n_g, n_layers, 3)``, with element ``e``'s shear stress ``tshear[e]`` (MPa)."""
+    sy, e0, q, hard = mat[1], mat[2], mat[3], mat[4]
+    for e in range(epb.shape[0]):
+        for g in range(epb.shape[1]):
+            for k in range(epb.shape[2]):
+                r, fac, s0 = layer_scales(epb[e, g, k], rate[e, g, k], sy, e0, q, hard,
+                                          tshear[e])
+                out[e, g, k, 0] = r
+                out[e, g, k, 1] = fac
+                out[e, g, k, 2] = s0
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac, s0):  # type: ignore[no-untyped-def]
+    """:func:`layer_update` with the factors of :func:`layer_scales` given."""
+    sig_tr = sig_n + E * de - syy  # the stress difference that yields
+    a = abs(sig_tr)
+    if a <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
+        return sig_tr + syy, epb_n, E
     if a - s0 * r <= 0.0:
         return sig_tr + syy, epb_n, E
     dg = 0.0
@@ -138,14 +172,16 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[n
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
-                 sig, epb, eps, rate, sig_t, epb_t, eps_t, f, K, B, pface, tshear):
+                 sig, epb, eps, sig_t, epb_t, eps_t, f, K, B, pface, scales):
     """Internal force ``f (6,)`` and tangent ``K (6, 6)`` of element ``e`` (nodes e, e+1).
 
-    Reads the committed layer state ``sig, epb, eps, rate [e]`` and writes the trial state
+    Reads the committed layer state ``sig, epb, eps [e]`` and writes the trial state
     into ``sig_t, epb_t, eps_t [e]``; ``B (3, 6)`` is work space; ``pface (n_nodes, 2)``
     the contact pressures (MPa) on the lower and upper face, interpolated linearly along
-    the element, give each layer its through-thickness stress; ``tshear (n_el,)`` the
-    elements' mean transverse shear stresses (MPa, :func:`element_shear`).
+    the element, give each layer its through-thickness stress; ``scales (n_el, n_g,
+    n_layers, 3)`` the layers' yield factors of the committed state (:func:`layer_scales_all`
+    with the lagged strain rates and the elements' mean transverse shear stresses of
+    :func:`element_shear`).
     """
     X1, Y1, X2, Y2 = X[e, 0], X[e, 1], X[e + 1, 0], X[e + 1, 1]
     dX, dY = X2 - X1, Y2 - Y1
@@ -160,7 +196,7 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
     th1 = u[i0 + 2] - alpha
     th2 = u[i0 + 5] - alpha
     ul = (ln * ln - l0 * l0) / (ln + l0)
-    E, sy, e0, q, hard = mat[0], mat[1], mat[2], mat[3], mat[4]
+    E, sy, hard = mat[0], mat[1], mat[4]
     f0 = f1 = f2 = 0.0
     k00 = k01 = k02 = k11 = k12 = k22 = 0.0
     for g in range(xg.shape[0]):
@@ -174,9 +210,9 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
             y = thick * ylay[k]
             ek = ul / l0 - y * kap
             syy = -(p_lo * (0.5 - ylay[k]) + p_up * (0.5 + ylay[k]))
-            sg, eb, et = layer_update(ek - eps[e, g, k], sig[e, g, k], epb[e, g, k],
-                                      rate[e, g, k], E, sy, e0, q, hard, syy,
-                                      tshear[e])
+            sg, eb, et = layer_return(ek - eps[e, g, k], sig[e, g, k], epb[e, g, k], E, sy,
+                                      hard, syy, scales[e, g, k, 0], scales[e, g, k, 1],
+                                      scales[e, g, k, 2])
             sig_t[e, g, k] = sg
             epb_t[e, g, k] = eb
             eps_t[e, g, k] = ek

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin.physics.bending.contact import contact_points, point_face
+from formtwin.physics.bending.faces import contact_points, face_points
 from formtwin.physics.bending.geometry import FlapGeometry, ToolSet, make_toolset
 from formtwin.physics.bending.material import Material
 from formtwin.physics.bending.solver import OK, crank, run_history
@@ -228,7 +228,8 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
                         np.zeros(0, np.int64), np.zeros(0), ())
     n_tools = tools.owner.size
     n_nodes = sheet.X.shape[0]
-    el, xi, Xp, share = contact_points(sheet.X, sheet.phi0, disc.contact_points)
+    phi0 = sheet.phi0  # a property that computes: once
+    el, xi, Xp, share = contact_points(sheet.X, phi0, disc.contact_points)
     pen = np.repeat((penalty * share)[:, None], 2, axis=1)
     press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0]) if press is None else press
     press = np.r_[press, smooth]
@@ -242,23 +243,21 @@ def solve(sheet: Sheet, material: Material, tools: ToolSet | None, targets: Floa
     pa = np.array([crank(t0, press)[0]])
     ct_t = np.zeros((el.size, n_tools))
     ct_rel = np.zeros((el.size, n_tools, 2))  # the points' face positions (tool frame)
-    for q in range(el.size):
-        for k in range(n_tools):
-            ct_rel[q, k] = point_face(sheet.X, sheet.phi0, sheet.u, el, xi, q,
-                                      float(tools.face[k]), 0.5 * sheet.thickness)
-    ct_rel[:, :, 1] -= pa[0] * (tools.owner == 1)[None, :]
+    face_points(sheet.X, phi0, sheet.u, el, xi, np.asarray(tools.face, dtype=np.float64),
+                tools.owner, 0.5 * sheet.thickness, float(pa[0]), ct_rel)
     ct_act = np.zeros((el.size, n_tools), dtype=np.int64)
     rec_u = np.zeros((targets.size, n))
     rec_f = np.zeros((targets.size, 8))
     rec_r = np.zeros((targets.size, n))
     counters = np.zeros(4, dtype=np.int64)
-    mesh = (sheet.X, sheet.phi0, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg,
+    mesh = (sheet.X, phi0, sheet.thickness, sheet.ylay, sheet.wlay, sheet.xg, sheet.wg,
             material.array)
     state = (sheet.u, pa, sheet.sig, sheet.epb, sheet.eps, sheet.rate)
     tool_arrays = (tools.ptype, tools.pdata, tools.tstart, tools.owner, tools.face, mu, el, xi,
                    pen, Xp)
     status = run_history(targets, lam, lam_fix, t0, mesh, state, tool_arrays,
-                         (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 3)), np.zeros(n_nodes - 1)),
+                         (ct_t, ct_rel, ct_act, np.zeros((n_nodes, 3)), np.zeros(n_nodes - 1),
+                          np.empty((*sheet.sig.shape, 3))),
                          (press, fref, fix, fix_ref),
                          disc.opts(dt_max, rate_tau), (rec_u, rec_f, rec_r, counters))
     return History(targets, rec_u, rec_f, rec_r, int(status), counters)

@@ -25,12 +25,8 @@ import math
 import numpy as np
 from numba import njit
 
-from formtwin.physics.bending.contact import (
-    contact_forces,
-    face_pressure,
-    friction_shear,
-    point_face,
-)
+from formtwin.physics.bending.contact import contact_forces, face_pressure, friction_shear
+from formtwin.physics.bending.faces import face_points
 from formtwin.physics.bending.kernels import (
     BW,
     SQ,
@@ -38,6 +34,7 @@ from formtwin.physics.bending.kernels import (
     band_solve,
     beam_element,
     element_shear,
+    layer_scales_all,
 )
 
 # indices into the ``press`` array
@@ -68,9 +65,10 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``trial = (sig_t, epb_t, eps_t)``
     (written), ``tools = (ptype, pdata, tstart, towner, tface, tmu, el, xi, pen, Xp)``: the
     tools and the contact points (element, ``xi``, penalties, reference positions;
-    :mod:`.contact`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear)``
+    :mod:`.contact`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear, scales)``
     (per point and tool, committed; ``pface`` the face pressures at the nodes, MPa;
-    ``tshear`` the elements' mean shear stresses, MPa),
+    ``tshear`` the elements' mean shear stresses, MPa; ``scales`` the layers' yield factors
+    of the committed state, :func:`.kernels.layer_scales_all`),
     ``ct_trial = (ct_t_t, ct_act_t, ct_n_t)`` (written; ``ct_n_t`` normal forces, N/mm).
     Contact acts at points on the sheet's faces (:func:`.contact.contact_forces`), so the
     normal and friction forces also load the nodes' rotations.
@@ -79,7 +77,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     X, phi0, thick, ylay, wlay, xg, wg, mat = mesh
     sig_t, epb_t, eps_t = trial
     ptype, pdata, tstart, towner, tface, tmu, el, xi, pen = tools[:9]
-    pface, tshear = contact[3], contact[4]
+    pface, scales = contact[3], contact[5]
     n_dof = u.shape[0]
     n_el = X.shape[0] - 1
     Kb[:, :] = 0.0
@@ -92,7 +90,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     Bw = np.zeros((3, 6))
     for e in range(n_el):
         beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,
-                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw, pface, tshear)
+                     sig, epb, eps, sig_t, epb_t, eps_t, fe, Ke, Bw, pface, scales)
         i0 = 3 * e
         for a in range(6):
             R[i0 + a] += fe[a]
@@ -247,7 +245,8 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
 
     Grouped arguments: ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``state =
     (u, pa, sig, epb, eps, rate)``, ``tools = (ptype, pdata, tstart, towner, tface, tmu, el,
-    xi, pen, Xp)`` (:func:`assemble`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear)``,
+    xi, pen, Xp)`` (:func:`assemble`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear,
+    scales)`` (``scales`` work space, kept in step with the committed state),
     ``loads = (press, fref, fix_idx, fix_ref)``, ``record = (rec_u, rec_f, rec_r, counters)``.
 
     Loads are ``lam(t) * fref``, prescribed dofs ``u[fix_idx] = lam_fix(t) * fix_ref``
@@ -260,7 +259,8 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     X, phi0, thick = mesh[0], mesh[1], mesh[2]
     u, pa, sig, epb, eps, rate = state
     towner, tface, el, xi, Xp = tools[3], tools[4], tools[6], tools[7], tools[9]
-    ct_t, ct_rel, ct_act, pface, tshear = contact
+    ct_t, ct_rel, ct_act, pface, tshear, scales = contact
+    layer_scales_all(epb, rate, tshear, mesh[7], scales)
     press, fref, fix_idx, fix_ref = loads
     rec_u, rec_f, rec_r, counters = record
     n = u.shape[0]
@@ -356,14 +356,14 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                 element_shear(X, sig, thick, mesh[3], mesh[4], mesh[5], tshear, pface,
                               opts[PINCH_REACH] * thick, opts[PINCH_P0] * ys,
                               opts[PINCH_P1] * ys, tadd)
+            # the layers' yield factors of the committed state, for the next increment
+            layer_scales_all(epb, rate, tshear, mesh[7], scales)
             for q in range(el.shape[0]):
                 for k in range(n_tools):
                     ct_act[q, k] = ct_act_t[q, k]
                     ct_t[q, k] = ct_t_t[q, k]
-                    # the point's face position in the tool's frame
-                    fx, fy = point_face(X, phi0, u_trial, el, xi, q, tface[k], 0.5 * thick)
-                    ct_rel[q, k, 0] = fx
-                    ct_rel[q, k, 1] = fy - (pt[0] if towner[k] == 1 else 0.0)
+            # the points' face positions in the tools' frames
+            face_points(X, phi0, u_trial, el, xi, tface, towner, 0.5 * thick, pt[0], ct_rel)
             for i in range(n):
                 du_prev[i] = u_trial[i] - u[i]
                 u[i] = u_trial[i]
