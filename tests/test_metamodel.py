@@ -259,3 +259,44 @@ def test_float32_falls_back_to_float64_when_it_loses_accuracy() -> None:
     # a model whose error is far above float32 rounding stays float32
     coarse = RBF(length_scales="box", n_centres=30).fit(U, f(U))
     assert coarse.dtype == np.float32
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_fused_cubic_kernel_equals_numpy_bit_for_bit(dtype: type) -> None:
+    """The one-pass cubic kernel of the RBF's hot path gives NumPy's five passes' numbers
+    exactly (same float steps in the same precision), NaN and negative squared distances
+    included; and an RBF predicts the same with it as with the NumPy passes."""
+    from formtwin.metamodel._fused import cubic_from_gram
+    from formtwin.metamodel.kernels import kernel_function
+
+    rng = np.random.default_rng(5)
+    Z = rng.random((64, 7)).astype(dtype)
+    C = np.vstack([Z[:3], rng.random((90, 7))]).astype(dtype)  # some zero distances
+    g = Z @ C.T
+    zz, cc = np.einsum("ij,ij->i", Z, Z), np.einsum("ij,ij->i", C, C)
+    g[5, 7] = np.nan
+    g[1, 2] = 10.0  # a squared distance below zero, clipped
+    ref = g.copy()
+    ref *= -2.0
+    ref += zz[:, None]
+    ref += cc[None, :]
+    assert (ref < 0).any()
+    np.maximum(ref, 0.0, out=ref)
+    ref = kernel_function("cubic")(ref)
+    out = cubic_from_gram(g.copy(), zz, cc)
+    assert out.dtype == dtype
+    np.testing.assert_array_equal(out, ref)  # NaN in the same place
+
+    U = rng.random((300, 3))
+    rbf = RBF(kernel="cubic", length_scales="box", n_centres=120, seed=1).fit(
+        U, np.sin(3 * U[:, :2]))
+    X = rng.random((257, 3))
+    fused = rbf.predict(X)
+    rbf.kernel = "cubic_reference"  # not the fused path: NumPy's passes, the same kernel
+    try:
+        from formtwin.metamodel import kernels
+
+        kernels.KERNELS["cubic_reference"] = kernels.KERNELS["cubic"]
+        np.testing.assert_array_equal(rbf.predict(X), fused)
+    finally:
+        kernels.KERNELS.pop("cubic_reference", None)

@@ -248,11 +248,17 @@ class RBF:
         C, cc, W = fast
         Z = (U * self.scales).astype(dtype)
         r2 = Z @ C.T
-        r2 *= -2.0
-        r2 += np.einsum("ij,ij->i", Z, Z)[:, None]
-        r2 += cc[None, :]
-        np.maximum(r2, 0.0, out=r2)
-        out: FloatArray = (kernel_function(self.kernel)(r2) @ W).astype(np.float64)
+        if self.kernel == "cubic" and r2.flags.c_contiguous:  # one pass, the same numbers
+            from formtwin.metamodel._fused import cubic_from_gram
+
+            phi = cubic_from_gram(r2, np.einsum("ij,ij->i", Z, Z), cc)
+        else:
+            r2 *= -2.0
+            r2 += np.einsum("ij,ij->i", Z, Z)[:, None]
+            r2 += cc[None, :]
+            np.maximum(r2, 0.0, out=r2)
+            phi = kernel_function(self.kernel)(r2)
+        out: FloatArray = (phi @ W).astype(np.float64)
         if self.powers.shape[0]:
             out += polynomial(U, self.powers) @ self.poly_coef
         return out
