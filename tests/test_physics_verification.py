@@ -359,7 +359,7 @@ def test_face_contact_tangent_is_the_derivative_of_the_residual(slip: bool, n_su
     ct_rel[:, 1, 1] = T - p
     tshear = np.zeros(sheet.X.shape[0] - 1)
     scales = np.empty((*zeros.shape, 3))
-    layer_scales_all(zeros, zeros, tshear, ELASTIC.array, scales)
+    layer_scales_all(zeros, tshear, ELASTIC.array, scales)
     contact = (np.zeros((n_p, 2)), ct_rel, np.zeros((n_p, 2), np.int64),
                np.zeros((sheet.X.shape[0], 2)), tshear, scales)
     press = np.array([0.0, 0.0, 1.0, 1.0, 10.0, 1.0, 5e-4])

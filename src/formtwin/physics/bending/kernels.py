@@ -101,15 +101,15 @@ def layer_update(de, sig_n, epb_n, rate_n, E, sy, e0, q, hard,  # type: ignore[n
     at the committed hardening and rate (at least :data:`SHEAR_FLOOR`).
     Returns ``(sigma, eps_bar, E_tangent)``.
     """
-    r, fac, s0 = layer_scales(epb_n, rate_n, sy, e0, q, hard, tau)
-    return layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac, s0)
+    r, fac = layer_yield(epb_n, sy, hard, tau)
+    return layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac, math.nan, rate_n, e0, q,
+                        tau)[:3]
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def layer_scales(epb_n, rate_n, sy, e0, q, hard, tau):  # type: ignore[no-untyped-def]
-    """The factors of :func:`layer_update` that depend on the committed state alone:
-    hardening ratio ``r`` at ``epb_n``, shear factor ``fac`` of the rate-free yield surface
-    and the rate-dependent axial yield stress ``s0`` (MPa, times ``r`` at yield).
+def layer_yield(epb_n, sy, hard, tau):  # type: ignore[no-untyped-def]
+    """The factors of :func:`layer_update`'s rate-free yield surface, which depend on the
+    committed state alone: hardening ratio ``r`` at ``epb_n`` and the shear factor ``fac``.
 
     They are constant over a time increment's Newton iterations (:func:`layer_scales_all`
     computes them once per increment); :func:`layer_return` takes them.
@@ -120,39 +120,51 @@ def layer_scales(epb_n, rate_n, sy, e0, q, hard, tau):  # type: ignore[no-untype
     fac = 1.0
     if tau != 0.0:  # von Mises with the shear stress: (s_xx - s_yy)^2/4 + tau^2 = k^2
         fac = math.sqrt(max(1.0 - 3.0 * (tau / (sy * r)) ** 2, SHEAR_FLOOR ** 2))
+    return r, fac
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def layer_s0(rate_n, sy, e0, q, tau, r, fac):  # type: ignore[no-untyped-def]
+    """The rate-dependent axial yield stress ``s0`` (MPa, times ``r`` at yield) of
+    :func:`layer_update` from :func:`layer_yield`'s ``r, fac`` (committed state alone)."""
     rf = 1.0
     if rate_n > 0.0:
         rf = 1.0 + (rate_n / e0) ** q
-    fac_rate = fac
     if tau != 0.0:
-        fac_rate = math.sqrt(max(1.0 - 3.0 * (tau / (rf * sy * r)) ** 2, SHEAR_FLOOR ** 2))
-    return r, fac, SQ * rf * sy * fac_rate
+        fac = math.sqrt(max(1.0 - 3.0 * (tau / (rf * sy * r)) ** 2, SHEAR_FLOOR ** 2))
+    return SQ * rf * sy * fac
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def layer_scales_all(epb, rate, tshear, mat, out):  # type: ignore[no-untyped-def]
-    """:func:`layer_scales` of every layer point ``(n_el, n_g, n_layers)`` into ``out (n_el,
-    n_g, n_layers, 3)``, with element ``e``'s shear stress ``tshear[e]`` (MPa)."""
-    sy, e0, q, hard = mat[1], mat[2], mat[3], mat[4]
+def layer_scales_all(epb, tshear, mat, out):  # type: ignore[no-untyped-def]
+    """:func:`layer_yield` of every layer point ``(n_el, n_g, n_layers)`` into ``out[..., :2]``
+    (``out (n_el, n_g, n_layers, 3)``) with element ``e``'s shear stress ``tshear[e]`` (MPa);
+    ``out[..., 2] = NaN``: :func:`layer_s0` not computed yet (:func:`beam_element` computes
+    it where a point first yields in the increment and keeps it)."""
+    sy, hard = mat[1], mat[4]
     for e in range(epb.shape[0]):
         for g in range(epb.shape[1]):
             for k in range(epb.shape[2]):
-                r, fac, s0 = layer_scales(epb[e, g, k], rate[e, g, k], sy, e0, q, hard,
-                                          tshear[e])
+                r, fac = layer_yield(epb[e, g, k], sy, hard, tshear[e])
                 out[e, g, k, 0] = r
                 out[e, g, k, 1] = fac
-                out[e, g, k, 2] = s0
+                out[e, g, k, 2] = math.nan
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
-def layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac, s0):  # type: ignore[no-untyped-def]
-    """:func:`layer_update` with the factors of :func:`layer_scales` given."""
+def layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac,  # type: ignore[no-untyped-def]
+                 s0, rate_n, e0, q, tau):
+    """:func:`layer_update` with the factors of :func:`layer_yield` given and ``s0`` of
+    :func:`layer_s0` (NaN: computed here if the point yields); returns ``(sigma, eps_bar,
+    E_tangent, s0)``."""
     sig_tr = sig_n + E * de - syy  # the stress difference that yields
     a = abs(sig_tr)
     if a <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
-        return sig_tr + syy, epb_n, E
+        return sig_tr + syy, epb_n, E, s0
+    if math.isnan(s0):
+        s0 = layer_s0(rate_n, sy, e0, q, tau, r, fac)
     if a - s0 * r <= 0.0:
-        return sig_tr + syy, epb_n, E
+        return sig_tr + syy, epb_n, E, s0
     dg = 0.0
     for _ in range(40):
         r, h = hardening(epb_n + SQ * dg, hard)
@@ -164,7 +176,7 @@ def layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac, s0):  # type: ignor
     r, h = hardening(epb_n + SQ * dg, hard)
     H = s0 * SQ * h
     sig = math.copysign(a - E * dg, sig_tr) + syy
-    return sig, epb_n + SQ * dg, E * H / (E + H)
+    return sig, epb_n + SQ * dg, E * H / (E + H), s0
 
 
 # -------------------------------------------------------------------------------- beam
@@ -172,16 +184,17 @@ def layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac, s0):  # type: ignor
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-untyped-def]
-                 sig, epb, eps, sig_t, epb_t, eps_t, f, K, B, pface, scales):
+                 sig, epb, eps, rate, sig_t, epb_t, eps_t, f, K, B, pface, tshear,
+                 scales):
     """Internal force ``f (6,)`` and tangent ``K (6, 6)`` of element ``e`` (nodes e, e+1).
 
-    Reads the committed layer state ``sig, epb, eps [e]`` and writes the trial state
+    Reads the committed layer state ``sig, epb, eps, rate [e]`` and writes the trial state
     into ``sig_t, epb_t, eps_t [e]``; ``B (3, 6)`` is work space; ``pface (n_nodes, 2)``
     the contact pressures (MPa) on the lower and upper face, interpolated linearly along
-    the element, give each layer its through-thickness stress; ``scales (n_el, n_g,
-    n_layers, 3)`` the layers' yield factors of the committed state (:func:`layer_scales_all`
-    with the lagged strain rates and the elements' mean transverse shear stresses of
-    :func:`element_shear`).
+    the element, give each layer its through-thickness stress; ``tshear (n_el,)`` the
+    elements' mean transverse shear stresses (MPa, :func:`element_shear`); ``scales (n_el,
+    n_g, n_layers, 3)`` the layers' yield factors of the committed state
+    (:func:`layer_scales_all`; ``s0`` filled in where a point first yields).
     """
     X1, Y1, X2, Y2 = X[e, 0], X[e, 1], X[e + 1, 0], X[e + 1, 1]
     dX, dY = X2 - X1, Y2 - Y1
@@ -196,7 +209,7 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
     th1 = u[i0 + 2] - alpha
     th2 = u[i0 + 5] - alpha
     ul = (ln * ln - l0 * l0) / (ln + l0)
-    E, sy, hard = mat[0], mat[1], mat[4]
+    E, sy, e0, q, hard = mat[0], mat[1], mat[2], mat[3], mat[4]
     f0 = f1 = f2 = 0.0
     k00 = k01 = k02 = k11 = k12 = k22 = 0.0
     for g in range(xg.shape[0]):
@@ -210,9 +223,11 @@ def beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,  # type: ignore[no-unt
             y = thick * ylay[k]
             ek = ul / l0 - y * kap
             syy = -(p_lo * (0.5 - ylay[k]) + p_up * (0.5 + ylay[k]))
-            sg, eb, et = layer_return(ek - eps[e, g, k], sig[e, g, k], epb[e, g, k], E, sy,
-                                      hard, syy, scales[e, g, k, 0], scales[e, g, k, 1],
-                                      scales[e, g, k, 2])
+            sg, eb, et, s0k = layer_return(ek - eps[e, g, k], sig[e, g, k], epb[e, g, k], E,
+                                           sy, hard, syy, scales[e, g, k, 0],
+                                           scales[e, g, k, 1], scales[e, g, k, 2],
+                                           rate[e, g, k], e0, q, tshear[e])
+            scales[e, g, k, 2] = s0k  # kept for the increment's next assemblies
             sig_t[e, g, k] = sg
             epb_t[e, g, k] = eb
             eps_t[e, g, k] = ek

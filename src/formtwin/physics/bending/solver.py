@@ -77,7 +77,7 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     X, phi0, thick, ylay, wlay, xg, wg, mat = mesh
     sig_t, epb_t, eps_t = trial
     ptype, pdata, tstart, towner, tface, tmu, el, xi, pen = tools[:9]
-    pface, scales = contact[3], contact[5]
+    pface, tshear, scales = contact[3], contact[4], contact[5]
     n_dof = u.shape[0]
     n_el = X.shape[0] - 1
     Kb[:, :] = 0.0
@@ -90,7 +90,8 @@ def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyp
     Bw = np.zeros((3, 6))
     for e in range(n_el):
         beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,
-                     sig, epb, eps, sig_t, epb_t, eps_t, fe, Ke, Bw, pface, scales)
+                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw, pface, tshear,
+                     scales)
         i0 = 3 * e
         for a in range(6):
             R[i0 + a] += fe[a]
@@ -260,7 +261,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     u, pa, sig, epb, eps, rate = state
     towner, tface, el, xi, Xp = tools[3], tools[4], tools[6], tools[7], tools[9]
     ct_t, ct_rel, ct_act, pface, tshear, scales = contact
-    layer_scales_all(epb, rate, tshear, mesh[7], scales)
+    layer_scales_all(epb, tshear, mesh[7], scales)
     press, fref, fix_idx, fix_ref = loads
     rec_u, rec_f, rec_r, counters = record
     n = u.shape[0]
@@ -357,7 +358,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                               opts[PINCH_REACH] * thick, opts[PINCH_P0] * ys,
                               opts[PINCH_P1] * ys, tadd)
             # the layers' yield factors of the committed state, for the next increment
-            layer_scales_all(epb, rate, tshear, mesh[7], scales)
+            layer_scales_all(epb, tshear, mesh[7], scales)
             for q in range(el.shape[0]):
                 for k in range(n_tools):
                     ct_act[q, k] = ct_act_t[q, k]
