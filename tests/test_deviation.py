@@ -121,3 +121,26 @@ def test_row_interpolation_matches_numpy_interp_per_row() -> None:
     np.testing.assert_allclose(G.apply(curves, theta_d), ref, rtol=1e-12, atol=1e-9)
     one = np.array([(1 + a[k]) * np.interp(tau[k], T, curves[0]) for k in range(40)])
     np.testing.assert_allclose(G.apply(curves[:1], theta_d), one, rtol=1e-12, atol=1e-9)
+
+
+def test_fused_apply_equals_the_numpy_steps_bit_for_bit() -> None:
+    """``g`` of curves (N, n_t) with their own theta_d (the tracker's call) takes one Numba
+    pass; it equals the NumPy steps (force scaling, model time, row interpolation) exactly,
+    also for times that leave the window (clipped) and at the bounds of theta_d."""
+    g = DeviationModel.from_spec(load_spec())
+    rng = np.random.default_rng(11)
+    n = 300
+    td = rng.uniform(-0.2, 0.2, (n, g.n_params))
+    td[0] = 0.2
+    td[1] = -0.2
+    td[2, :4] = 0.0
+    curves = np.cumsum(rng.standard_normal((n, g.time.size)), axis=1) * 40.0
+    ref = (1.0 + g.force_scaling(td)) * g._interp_rows(curves, g.model_time(td))
+    out = g.apply(curves, td)
+    np.testing.assert_array_equal(out, ref)
+    tq = g.model_time(td)
+    assert (tq < g.time[0]).any() and (tq > g.time[-1]).any()  # the clipped ends are used
+    # one curve for all rows (and non-finite theta_d) keep the NumPy path
+    np.testing.assert_array_equal(g.apply(curves[0], td[:5]),
+                                  (1.0 + g.force_scaling(td[:5]))
+                                  * g._interp_rows(curves[0], g.model_time(td[:5])))

@@ -27,6 +27,7 @@ True
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -171,13 +172,70 @@ class DeviationModel:
         return out
 
     def apply(self, z_model: FloatArray, theta_d: FloatArray) -> FloatArray:
-        """``g(z~, theta_d)``: modelled curve(s) (n_t,) or (N, n_t) -> real curves (N, n_t)."""
+        """``g(z~, theta_d)``: modelled curve(s) (n_t,) or (N, n_t) -> real curves (N, n_t).
+
+        Curves (N, n_t) with finite ``theta_d`` (N, 2k) (the tracker's particles) take one
+        Numba pass (:func:`_apply_rows`) with the same float operations as the NumPy steps
+        below, bit for bit (``tests/test_deviation.py``).
+        """
+        z = np.asarray(z_model, dtype=np.float64)
+        td = np.atleast_2d(np.asarray(theta_d, dtype=np.float64))
+        if z.ndim == 2 and z.shape == (td.shape[0], self.time.size) and np.isfinite(td).all():
+            a, b = self._split(td)
+            _, tau_base, slope, curv = self._segments(b)
+            out: FloatArray = _fused_apply()(np.ascontiguousarray(z), np.ascontiguousarray(a),
+                                             tau_base, slope, curv, *self._grid_constants())
+            return out
         a = self.force_scaling(theta_d)
-        return (1.0 + a) * self._interp_rows(np.asarray(z_model, dtype=np.float64),
-                                             self.model_time(theta_d))
+        return (1.0 + a) * self._interp_rows(z, self.model_time(theta_d))
+
+    def _grid_constants(self) -> tuple[Any, ...]:
+        """Per grid time: the knot interval and weight of :meth:`_pwl`, the segment and its
+        offset of :meth:`model_time`; the grid's start, step and size."""
+        t, kn = self.time, self.knots
+        idx = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, kn.size - 2)
+        w = np.clip((t - kn[idx]) / (kn[idx + 1] - kn[idx]), 0.0, 1.0)
+        seg = np.searchsorted(kn, t, side="right")
+        u = t - np.concatenate([kn[:1], kn])[seg]
+        return idx, w, seg, u, float(t[0]), float(t[1] - t[0])
 
     def invert(self, z: FloatArray, theta_d: FloatArray) -> FloatArray:
         """``g^-1(z, theta_d)``: real curve(s) (n_t,) or (N, n_t) -> model-time curves (N, n_t)."""
         t_real, a = self._inverse(theta_d)
         out: FloatArray = self._interp_rows(np.asarray(z, dtype=np.float64), t_real) / (1.0 + a)
         return out
+
+
+def _apply_rows(z, a, tau_base, slope, curv, idx, w, seg, u, t0, dt):  # type: ignore[no-untyped-def]
+    """``g`` row by row in one pass (Numba): the operations of ``_pwl``, ``model_time``,
+    ``_interp_rows`` and ``(1 + a) *`` in their order, per entry."""
+    n_rows, n_t = z.shape
+    out = np.empty((n_rows, n_t))
+    for r in range(n_rows):
+        for j in range(n_t):
+            i = idx[j]
+            aj = a[r, i] * (1.0 - w[j]) + a[r, i + 1] * w[j]
+            sj = seg[j]
+            tau = tau_base[r, sj] + slope[r, sj] * u[j] + 0.5 * curv[r, sj] * (u[j] * u[j])
+            pos = (tau - t0) / dt
+            if pos < 0.0:  # np.clip(pos, 0, n - 1)
+                pos = 0.0
+            if pos > n_t - 1.0:
+                pos = n_t - 1.0
+            k = min(int(pos), n_t - 2)
+            lo = z[r, k]
+            out[r, j] = (1.0 + aj) * ((z[r, k + 1] - lo) * (pos - k) + lo)
+    return out
+
+
+_FUSED: list[Any] = []
+
+
+def _fused_apply() -> Any:
+    """:func:`_apply_rows` compiled (once per process, cached on disk; Numba is imported on
+    first use only)."""
+    if not _FUSED:
+        from numba import njit
+
+        _FUSED.append(njit(cache=True)(_apply_rows))
+    return _FUSED[0]
