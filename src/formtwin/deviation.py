@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from formtwin.spec import ProcessSpec
@@ -183,8 +184,8 @@ class DeviationModel:
         if z.ndim == 2 and z.shape == (td.shape[0], self.time.size) and np.isfinite(td).all():
             a, b = self._split(td)
             _, tau_base, slope, curv = self._segments(b)
-            out: FloatArray = _fused_apply()(np.ascontiguousarray(z), np.ascontiguousarray(a),
-                                             tau_base, slope, curv, *self._grid_constants())
+            out: FloatArray = _apply_rows(np.ascontiguousarray(z), np.ascontiguousarray(a),
+                                          tau_base, slope, curv, *self._grid_constants())
             return out
         a = self.force_scaling(theta_d)
         return (1.0 + a) * self._interp_rows(z, self.model_time(theta_d))
@@ -206,6 +207,7 @@ class DeviationModel:
         return out
 
 
+@njit(cache=True)
 def _apply_rows(z, a, tau_base, slope, curv, idx, w, seg, u, t0, dt):  # type: ignore[no-untyped-def]
     """``g`` row by row in one pass (Numba): the operations of ``_pwl``, ``model_time``,
     ``_interp_rows`` and ``(1 + a) *`` in their order, per entry."""
@@ -227,15 +229,3 @@ def _apply_rows(z, a, tau_base, slope, curv, idx, w, seg, u, t0, dt):  # type: i
             out[r, j] = (1.0 + aj) * ((z[r, k + 1] - lo) * (pos - k) + lo)
     return out
 
-
-_FUSED: list[Any] = []
-
-
-def _fused_apply() -> Any:
-    """:func:`_apply_rows` compiled (once per process, cached on disk; Numba is imported on
-    first use only)."""
-    if not _FUSED:
-        from numba import njit
-
-        _FUSED.append(njit(cache=True)(_apply_rows))
-    return _FUSED[0]

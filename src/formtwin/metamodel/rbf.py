@@ -44,6 +44,7 @@ from numpy.typing import DTypeLike, NDArray
 from scipy.optimize import minimize
 from scipy.spatial.distance import cdist
 
+from formtwin.metamodel._fused import cubic_from_gram
 from formtwin.metamodel.kernels import (
     KERNELS,
     SCALE_FREE,
@@ -249,8 +250,6 @@ class RBF:
         Z = (U * self.scales).astype(dtype)
         r2 = Z @ C.T
         if self.kernel == "cubic" and r2.flags.c_contiguous:  # one pass, the same numbers
-            from formtwin.metamodel._fused import cubic_from_gram
-
             phi = cubic_from_gram(r2, np.einsum("ij,ij->i", Z, Z), cc)
         else:
             r2 *= -2.0
