@@ -27,6 +27,7 @@ True
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -64,13 +65,30 @@ class DeviationModel:
             raise ValueError("theta_d speed scaling must be above -1 (time must run forward)")
         return theta_d[:, :k], theta_d[:, k:]
 
+    def _knot_weights(self, t: FloatArray) -> tuple[NDArray[np.intp], FloatArray]:
+        """Knot interval ``idx`` (n,) of times ``t`` (n,) and the weight ``w`` (n,) of its
+        right knot (clipped to [0, 1]: flat outside the knots)."""
+        kn = self.knots
+        idx = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, kn.size - 2)
+        w = np.clip((t - kn[idx]) / (kn[idx + 1] - kn[idx]), 0.0, 1.0)
+        return idx, w
+
     def _pwl(self, t: FloatArray, values: FloatArray) -> FloatArray:
         """Piecewise-linear ``values`` (N, k) at times ``t`` (n,) -> (N, n), flat outside."""
-        idx = np.clip(np.searchsorted(self.knots, t, side="right") - 1, 0, self.knots.size - 2)
-        h = self.knots[idx + 1] - self.knots[idx]
-        w = np.clip((t - self.knots[idx]) / h, 0.0, 1.0)
+        idx, w = self._knot_weights(t)
         out: FloatArray = values[:, idx] * (1.0 - w) + values[:, idx + 1] * w
         return out
+
+    @cached_property
+    def _grid(self) -> tuple[Any, ...]:
+        """Per grid time (n_t,): the knot interval and weight of :meth:`_pwl`, the segment of
+        :meth:`_segments` (0 = left tail) and the offset from its base time; then the grid's
+        start and step (s). Computed once per model."""
+        t, kn = self.time, self.knots
+        idx, w = self._knot_weights(t)
+        seg = np.searchsorted(kn, t, side="right")
+        u = t - np.concatenate([kn[:1], kn])[seg]
+        return idx, w, seg, u, float(t[0]), float(t[1] - t[0])
 
     def force_scaling(self, theta_d: FloatArray) -> FloatArray:
         """``a(t)`` on the grid, ``(N, n_t)``."""
@@ -98,9 +116,8 @@ class DeviationModel:
     def model_time(self, theta_d: FloatArray) -> FloatArray:
         """``tau(t)`` on the grid, ``(N, n_t)`` s."""
         _, b = self._split(theta_d)
-        base, tau_base, slope, curv = self._segments(b)
-        seg = np.searchsorted(self.knots, self.time, side="right")  # 0 = left tail
-        u = self.time - base[seg]
+        _, tau_base, slope, curv = self._segments(b)
+        seg, u = self._grid[2:4]
         out: FloatArray = tau_base[:, seg] + slope[:, seg] * u + 0.5 * curv[:, seg] * u**2
         return out
 
@@ -185,20 +202,10 @@ class DeviationModel:
             a, b = self._split(td)
             _, tau_base, slope, curv = self._segments(b)
             out: FloatArray = _apply_rows(np.ascontiguousarray(z), np.ascontiguousarray(a),
-                                          tau_base, slope, curv, *self._grid_constants())
+                                          tau_base, slope, curv, *self._grid)
             return out
         a = self.force_scaling(theta_d)
         return (1.0 + a) * self._interp_rows(z, self.model_time(theta_d))
-
-    def _grid_constants(self) -> tuple[Any, ...]:
-        """Per grid time: the knot interval and weight of :meth:`_pwl`, the segment and its
-        offset of :meth:`model_time`; the grid's start, step and size."""
-        t, kn = self.time, self.knots
-        idx = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, kn.size - 2)
-        w = np.clip((t - kn[idx]) / (kn[idx + 1] - kn[idx]), 0.0, 1.0)
-        seg = np.searchsorted(kn, t, side="right")
-        u = t - np.concatenate([kn[:1], kn])[seg]
-        return idx, w, seg, u, float(t[0]), float(t[1] - t[0])
 
     def invert(self, z: FloatArray, theta_d: FloatArray) -> FloatArray:
         """``g^-1(z, theta_d)``: real curve(s) (n_t,) or (N, n_t) -> model-time curves (N, n_t)."""

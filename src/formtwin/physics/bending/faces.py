@@ -35,8 +35,9 @@ def hermite_face(xa, ya, pa, xb, yb, pb, s, h, L0, xi, d):  # type: ignore[no-un
     ``dy/dp_b``, ``d2y/dp_a2``, ``d2y/dp_b2``, ``d2y/dp_a dp_b``; ``dy/dx_a = H1``,
     ``dy/dx_b = H3`` (times the identity).
     """
-    return hermite_face_cs(xa, ya, pa, math.cos(pa), math.sin(pa), xb, yb, pb, math.cos(pb),
-                           math.sin(pb), s, h, L0, xi, d)
+    ca, sa, cb, sb = math.cos(pa), math.sin(pa), math.cos(pb), math.sin(pb)
+    cp, sp = face_dir(pa, ca, sa, pb, xi)
+    return hermite_face_dir(xa, ya, ca, sa, xb, yb, cb, sb, cp, sp, s, h, L0, xi, d)
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
@@ -46,14 +47,6 @@ def face_dir(pa, ca, sa, pb, xi):  # type: ignore[no-untyped-def]
         return ca, sa
     ang = (1.0 - xi) * pa + xi * pb
     return math.cos(ang), math.sin(ang)
-
-
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
-def hermite_face_cs(xa, ya, pa, ca, sa, xb, yb, pb, cb, sb, s, h, L0, xi,  # type: ignore[no-untyped-def]
-                    d):
-    """:func:`hermite_face` with the nodes' ``cos, sin`` of their directions given."""
-    cp, sp = face_dir(pa, ca, sa, pb, xi)
-    return hermite_face_dir(xa, ya, ca, sa, xb, yb, cb, sb, cp, sp, s, h, L0, xi, d)
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
@@ -156,12 +149,8 @@ def contact_points(X, phi0, n_sub):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH)
 def point_face(X, phi0, u, el, xi, p, s, h):  # type: ignore[no-untyped-def]
-    """Current face point ``(x, y)`` of contact point ``p`` (face ``s``, offset ``h``)."""
-    e = el[p]
-    L0 = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
-    d = np.zeros((5, 2))
-    yx, yy = hermite_face(X[e, 0] + u[3 * e], X[e, 1] + u[3 * e + 1],
-                          phi0[e] + u[3 * e + 2], X[e + 1, 0] + u[3 * e + 3],
-                          X[e + 1, 1] + u[3 * e + 4], phi0[e + 1] + u[3 * e + 5],
-                          s, h, L0, xi[p], d)
-    return yx, yy
+    """Current face point ``(x, y)`` of contact point ``p`` (face ``s``, offset ``h``), by the
+    solver's own path (:func:`face_trig`, :func:`point_face_trig`)."""
+    trig = np.empty((X.shape[0] + el.shape[0], 2))
+    L0 = face_trig(X, phi0, u, el, xi, trig)
+    return point_face_trig(X, u, el, xi, p, s, h, L0, trig, np.zeros((5, 2)))
