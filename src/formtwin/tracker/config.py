@@ -135,6 +135,9 @@ class TrackerConfig:
         ``c`` (see :meth:`~formtwin.tracker.BendingSSM.update_scale`); the particles are
         weighted by the posterior mixture. Gaussian likelihood only. Off: on the physics
         data it drives ``c`` to the smallest value and hurts (docs/likelihood.md).
+    learn_residuals : with the adaptive likelihood, learn the second moment ``M`` of the
+        line's own residuals online and use ``Sigma + M`` as the likelihood's base
+        covariance (:mod:`formtwin.tracker.learned`, docs/likelihood.md).
     """
 
     n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))
@@ -181,6 +184,8 @@ class TrackerConfig:
         "share of K_res in the adaptive/discrepancy likelihood (default: learned)"))
     discrepancy_memory: float = field(default=math.inf, metadata=_help(
         "memory of the learned discrepancy, products (inf: no forgetting)"))
+    learn_residuals: bool = field(default=False, metadata=_help(
+        "learn the line's residual moment online (adaptive likelihood)"))
     intervals: str = field(default="calibrated_fit", metadata=_help(
         "reported std: cloud (the particles'), cloud_mu (+ the assumed mu's term, which "
         "all but cloud add), calibrated (+ floors learned offline on "
@@ -231,6 +236,9 @@ class TrackerConfig:
             raise ValueError("the discrepancy likelihood is Gaussian (nu = inf)")
         if self.error_share is not None and not 0.0 <= self.error_share <= 1.0:
             raise ValueError(f"error_share = {self.error_share}, expected in [0, 1]")
+        if self.learn_residuals and self.likelihood != "adaptive":
+            raise ValueError(f"learn_residuals needs the adaptive likelihood, not "
+                             f"{self.likelihood!r}")
         if not self.discrepancy_memory >= 1:
             raise ValueError(f"discrepancy_memory = {self.discrepancy_memory}, expected >= 1 "
                              "(inf: no forgetting)")

@@ -10,13 +10,10 @@ The reported ``std`` and ``angles_std`` are the particles' plus what ``config.in
 adds (:mod:`formtwin.tracker.intervals`: fit-gated floors calibrated offline by default); nothing
 else depends on them.
 
-Bad input: :meth:`Tracker.step` validates the curve first (1-D, numeric, length ``n_t``,
-finite) and raises ``ValueError`` naming the problem; the tracker's state, RNG included, is
-untouched. Weight collapse is handled by the filter (see :mod:`formtwin.filters.sir`): the
-step keeps the predictive particles, and the estimate says ``collapsed=True``.
-
-The state goes to bytes (:meth:`Tracker.state_bytes`) or to a checkpoint file
-(:meth:`Tracker.checkpoint`) and back, bit for bit (:mod:`formtwin.tracker.state`).
+Bad input (a curve not 1-D, numeric, of length ``n_t`` and finite) raises ``ValueError``
+naming the problem and leaves the tracker, RNG included, as it was; on weight collapse the
+step keeps the predictive particles and says ``collapsed=True`` (:mod:`formtwin.filters.sir`).
+The state goes to bytes or a checkpoint file and back, bit for bit (:mod:`formtwin.tracker.state`).
 """
 
 from __future__ import annotations
@@ -212,7 +209,7 @@ class Tracker:
         f = self.filter
         saved = (f.x, f.logw, f.t, self.rng.bit_generator.state)
         scale = self.ssm.scale_logpost if self.config.learn_scale else None
-        share = self.ssm.share_logpost
+        share, learned = self.ssm.share_logpost, self.ssm.learned_snapshot()
         sw = None if self.sandwich is None else self.sandwich.snapshot()
         fl = None if self.floors is None else self.floors.state()
         try:
@@ -220,8 +217,9 @@ class Tracker:
             s = f.step(y)
             if scale is not None:
                 self.ssm.update_scale(logw_prev)
-            ratio = getattr(f, "log_ratio", None)  # guided filter: p(x | parent) / q(x)
-            self.ssm.update_share(logw_prev if ratio is None else logw_prev + ratio)
+            lw = logw_prev + getattr(f, "log_ratio", 0.0)  # guided: p(x | parent) / q(x)
+            self.ssm.update_share(lw)
+            self.ssm.update_residuals(lw)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
             return self._estimate(s, np.exp(saved[1]), c, uu, y)
         except BaseException:
@@ -234,6 +232,7 @@ class Tracker:
             if scale is not None:
                 self.ssm.set_scale_logpost(scale)
             self.ssm.set_share_logpost(share)
+            self.ssm.learned_restore(learned)
             raise
 
     def final_angle(self, u: Any) -> FloatArray:
@@ -337,7 +336,7 @@ class Tracker:
             if self.config.learn_scale else {}
         if self.ssm.share_logpost.size > 1:
             model["share_logpost"] = [float(v) for v in self.ssm.share_logpost]
-        for part in (self.sandwich, self.floors):
+        for part in (self.sandwich, self.floors, self.ssm.learned):
             model.update({} if part is None else part.state())
         return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
                                    t=f.t, rng=dict(self.rng.bit_generator.state),
@@ -363,6 +362,7 @@ class Tracker:
             self.sandwich.set_state({k: s.model[k] for k in STATE_KEYS if k in s.model})
         if self.floors is not None:
             self.floors.set_state(s.model)
+        self.ssm.set_learned_state(s.model)
         self.filter.x = s.particles if s.t > 0 and s.particles.size else None
         self.filter.logw = s.logw
         self.filter.t = s.t

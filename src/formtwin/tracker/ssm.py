@@ -55,13 +55,13 @@ from formtwin.evolution import (
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
-from formtwin.tracker.config import SCALES, SHARES, TrackerConfig
+from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.discrepancy import (
     Discrepancy,
     angle_residual_variance,
-    residual_covariance,
 )
 from formtwin.tracker.guide import GuidedProposal
+from formtwin.tracker.learned import LearnedResiduals, ResidualMoment, make_discrepancy
 from formtwin.tracker.moves import MoveHooks
 
 FloatArray = NDArray[np.float64]
@@ -73,7 +73,7 @@ CHUNK = 512
 
 
 @dataclass(frozen=True)
-class BendingSSM(MoveHooks, GuidedProposal):
+class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals):
     """The augmented state-space model ``[x, theta, theta_d]`` for the generic filters.
 
     Parameters
@@ -104,6 +104,8 @@ class BendingSSM(MoveHooks, GuidedProposal):
     _scale: dict[str, FloatArray] = field(init=False, repr=False, default_factory=dict)
     #: the learned discrepancy (``likelihood="discrepancy"``), else None
     discrepancy: Discrepancy | None = field(init=False, repr=False, default=None)
+    #: the line's residual moment (``learn_residuals``), else None
+    learned: ResidualMoment | None = field(init=False, repr=False, default=None)
     # columns [0, _n_bounded) have finite bounds: [x, theta, theta_d]
     _n_bounded: int = field(init=False, repr=False, default=0)
     # the discrepancy's statistics are the columns [_disc, d)
@@ -126,15 +128,10 @@ class BendingSSM(MoveHooks, GuidedProposal):
             hi = np.r_[hi, np.full(2 * len(spec.state), np.inf)]
         object.__setattr__(self, "_disc", lo.size)
         if self.config.likelihood in ("adaptive", "discrepancy"):
-            k_res = residual_covariance(self.model)
-            share = self.config.error_share
-            disc = Discrepancy.from_covariances(
-                self.measurement.covariance(),
-                np.zeros((spec.n_t, spec.n_t)) if k_res is None else k_res,
-                np.array(SHARES) if share is None else share,
-                self.config.discrepancy_memory, self.config.likelihood == "discrepancy",
-                self.config.nu)
+            disc = make_discrepancy(self.model, self.measurement.covariance(), self.config)
             object.__setattr__(self, "discrepancy", disc)
+            if self.config.learn_residuals:
+                object.__setattr__(self, "learned", ResidualMoment(spec.n_t))
             if disc.shared:  # the statistics of the shared part: unbounded columns
                 lo = np.r_[lo, np.full(disc.width, -np.inf)]
                 hi = np.r_[hi, np.full(disc.width, np.inf)]
@@ -285,6 +282,8 @@ class BendingSSM(MoveHooks, GuidedProposal):
                 disc.update(stats, np.concatenate([p[2] for p in parts]))
             self._last["grid"] = ll  # (N, n_k): the mixture over the share's posterior
             ll = self.mix_share(ll)
+            if self.learned is not None:  # for the residual moment's weights
+                self._last["mixed"] = ll
         if not self.config.learn_scale:
             return ll
         self._last["scaled"] = ll  # (N, n_scales): the mixture over the scale posterior
