@@ -74,6 +74,9 @@ OPTIONS: dict[str, tuple[dict[str, Any], tuple[int, ...], str]] = {
     "intervals_sandwich": ({"intervals": "sandwich"}, (1, 3, 5, 6),
                            "+ B = G K_res G^T, the linearised response to a persistent "
                            "metamodel error"),
+    "learn_residuals": ({"learn_residuals": True}, (1, 3, 4, 5, 6),
+                        "the line's own residual moment learned online (tracker.learned); "
+                        "its intervals use the default's calibrated floors"),
     "mu_known": ({"mu_known": True}, (4, 6),
                  "the intervals without the assumed mu's term G_mu E[d d^T] G_mu^T (as "
                  "before session 10)"),
