@@ -154,6 +154,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="products per dataset (the last half are scored)")
     parser.add_argument("--seed", type=int, default=SEED)
     parser.add_argument("--write", default=str(CALIBRATION_PATH))
+    parser.add_argument("--learn-residuals", action="store_true",
+                        help="calibrate trackers with learn_residuals (docs/likelihood.md)")
     args = parser.parse_args(argv)
     if args.seed == StudySettings().seed:
         raise SystemExit("--seed: the study's own seed would calibrate on its data")
@@ -165,7 +167,8 @@ def main(argv: list[str] | None = None) -> None:
                              n_products=args.products, window=args.products // 2,
                              seed=args.seed, series=(GATE_SERIES, *SERIES_OF.values()),
                              paper_repetitions=0,
-                             tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu"))
+                             tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu",
+                                                         learn_residuals=args.learn_residuals))
     result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
     d0, n_gate = gate_d0(result)
     out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
