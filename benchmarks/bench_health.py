@@ -24,7 +24,8 @@ and the share of ``no_fit``/``degraded`` products per series. The physics curves
 6 are computed once and cached in ``benchmarks/.cache`` (about 0.1 s per product).
 
 Run under the shared lock: ``flock /tmp/formtwin-heavy.lock python benchmarks/bench_health.py``
-(``--products 500`` for a quick look).
+(``--products 500`` for a quick look; ``--learn-residuals``: every tracker with the line's
+residual moment learned online, written as ``bench_health_learn_residuals.json``).
 """
 
 from __future__ import annotations
@@ -127,13 +128,16 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3, help="streams per mismatch case")
     ap.add_argument("--detect-products", type=int, default=60,
                     help="products per mismatch stream")
+    ap.add_argument("--learn-residuals", action="store_true",
+                    help="trackers with learn_residuals (bench_health_learn_residuals.json)")
     args = ap.parse_args()
+    opts = {"learn_residuals": args.learn_residuals}
     t0 = time.perf_counter()
     mm, _, info = bundled_metamodel()
     am = analytic_model(mm.spec)
     spec = mm.spec
     rule = HealthRule()
-    base = TrackerConfig(n_particles=args.particles)
+    base = TrackerConfig(n_particles=args.particles, **opts)
     figures: dict[str, Any] = {}
     # -- matched streams: series 1 and 6 -------------------------------------------------
     n = args.products
@@ -142,7 +146,7 @@ def main() -> None:
     tmp = CACHE / "health_stores"
     est1, ep1, veto1 = run_service_health(
         mm, TrackerConfig(n_particles=args.particles, estimate_deviation=False,
-                          mu=tuple(run1.mu)), mm.predict_curves(run1.inputs), rule, tmp)
+                          mu=tuple(run1.mu), **opts), mm.predict_curves(run1.inputs), rule, tmp)
     rng = np.random.default_rng(np.random.SeedSequence([16, 6]))
     run6 = draw_production_run(spec, n, rng)
     fe6 = physics_curves(spec, run6, f"health_series6_{n}")
@@ -194,8 +198,10 @@ def main() -> None:
     figures["plausibility"] = plaus.describe()
     figures["rule"] = f"k = {rule.k} of m = {rule.m} products no_fit"
     figures["particles"] = args.particles
+    figures["learn_residuals"] = args.learn_residuals
     figures["wall_s"] = round(time.perf_counter() - t0, 1)
-    write_result("health", figures, model=info)
+    write_result("health_learn_residuals" if args.learn_residuals else "health", figures,
+                 model=info)
 
 
 if __name__ == "__main__":
