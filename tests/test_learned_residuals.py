@@ -22,16 +22,17 @@ def test_moment_is_the_mean_outer_product_of_the_posterior_mean_residuals() -> N
     ref = np.zeros((n_t, n_t))
     for i in range(steps):
         r, ll, lw = rng.normal(size=(n, n_t)), rng.normal(size=n), rng.normal(size=n)
-        r[3, 2], ll[5] = np.nan, -np.inf  # particles without a likelihood do not count
+        r[3, 2], ll[[3, 5]] = np.nan, -np.inf  # particles without a likelihood do not count
         good = np.ones(n, bool)
         good[[3, 5]] = False
         w = np.exp(lw[good] + ll[good] - logsumexp(lw[good] + ll[good]))
         ref += np.outer(w @ r[good], w @ r[good])
-        assert m.add(r, ll, lw) == (i + 1 == EVERY)  # folded every EVERY products
+        w_filter = np.exp(lw + ll - logsumexp(lw + ll))  # the filter's posterior weights
+        assert m.add(r, w_filter) == (i + 1 == EVERY)  # folded every EVERY products
         if i + 1 < EVERY:
             assert not m.moment.any()  # the likelihood's M: as of the last fold
     np.testing.assert_allclose(m.moment, ref / steps, rtol=1e-12)
-    assert not m.add(np.full((n, n_t), np.nan), ll, lw) and m.n == steps  # nothing counts
+    assert not m.add(np.full((n, n_t), np.nan), w_filter) and m.n == steps  # nothing counts
     back = ResidualMoment(n_t)
     back.set_state(m.state())
     np.testing.assert_array_equal(back.moment, m.moment)

@@ -217,9 +217,9 @@ class Tracker:
             s = f.step(y)
             if scale is not None:
                 self.ssm.update_scale(logw_prev)
-            lw = logw_prev + getattr(f, "log_ratio", 0.0)  # guided: p(x | parent) / q(x)
-            self.ssm.update_share(lw)
-            self.ssm.update_residuals(lw)
+            ratio = getattr(f, "log_ratio", None)  # guided filter: p(x | parent) / q(x)
+            self.ssm.update_share(logw_prev if ratio is None else logw_prev + ratio)
+            self.ssm.update_residuals(s)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
             return self._estimate(s, np.exp(saved[1]), c, uu, y)
         except BaseException:

@@ -8,14 +8,14 @@ second moment of ``physics - metamodel`` at the true inputs has directions with 
 With this option the tracker learns that moment from its own products: after each product
 the posterior mean of the residual,
 
-    r_i = sum_k w_k (z_i - model_k),   w_k ~ w_k,prev p(z_i | particle k),
+    r_i = sum_k w_k (z_i - model_k),   w_k the filter's posterior weights,
 
 (measurement space, the residuals the likelihood compared) joins the mean
 ``M = (1/n) sum_i r_i r_i^T`` (N^2), folded in every :data:`EVERY` products, when the
 likelihood's base covariance becomes ``Sigma + M`` (``kappa K_res`` on top, learned as
-before). On metamodel
-data ``M`` stays small (the filter explains the curves), on physics data it takes the
-line's error. ``M`` and ``n`` are part of the tracker's state (checkpoints, state bytes).
+before). On metamodel data ``M`` stays small (the filter explains the curves), on physics
+data it takes the line's error. ``M`` and ``n`` are part of the tracker's state
+(checkpoints, state bytes).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin.filters import logsumexp
+from formtwin.filters import Step
 from formtwin.tracker.config import SHARES, TrackerConfig
 from formtwin.tracker.discrepancy import Discrepancy, residual_covariance
 
@@ -64,17 +64,15 @@ class ResidualMoment:
         out: FloatArray = self.total / max(self.n, 1)
         return out
 
-    def add(self, residuals: FloatArray, ll: FloatArray, logw_prev: FloatArray) -> bool:
-        """Add the posterior mean of this product's ``residuals`` (N, n_t) N, the particles'
-        log-likelihoods ``ll`` (N,) and predicted log-weights ``logw_prev`` (N,) weighting
-        them; particles with NaN or ``-inf`` do not count, and a product none of whose
-        particles counts is skipped. Returns whether ``M`` was folded (the likelihood is
-        due a refresh)."""
-        good = np.isfinite(ll) & np.all(np.isfinite(residuals), axis=1)
+    def add(self, residuals: FloatArray, w: FloatArray) -> bool:
+        """Add the posterior mean of this product's ``residuals`` (N, n_t) N under the
+        filter's normalised weights ``w`` (N,) (rows with NaN, which have no likelihood and
+        weight 0, do not count; none left: the product is skipped). Returns whether ``M``
+        was folded (the likelihood is due a refresh)."""
+        good = np.all(np.isfinite(residuals), axis=1)
         if not good.any():
             return False
-        lw = logw_prev[good] + ll[good]
-        self.recent.append(np.exp(lw - logsumexp(lw)) @ residuals[good])
+        self.recent.append(w[good] @ residuals[good])
         if len(self.recent) < EVERY:
             return False
         r = np.array(self.recent)
@@ -114,13 +112,13 @@ class LearnedResiduals:
     config: TrackerConfig
     _last: dict[str, FloatArray]
 
-    def update_residuals(self, logw_prev: FloatArray) -> None:
-        """After a step whose predicted particles had normalised log-weights
-        ``logw_prev`` (N,): add the product's posterior mean residual to ``M``, and every
-        :data:`EVERY` products make ``Sigma + M`` the likelihood's base covariance."""
-        mixed = self._last.pop("mixed", None)
-        if self.learned is not None and mixed is not None and \
-                self.learned.add(self._last["r"], mixed, logw_prev):
+    def update_residuals(self, step: Step) -> None:
+        """After a filter ``step`` (its particles before resampling are those of the last
+        likelihood): add the product's posterior mean residual to ``M``, and every
+        :data:`EVERY` products make ``Sigma + M`` the likelihood's base covariance; a
+        collapsed step, which no particle explained, is skipped."""
+        if self.learned is not None and not step.collapsed and \
+                self.learned.add(self._last["r"], step.w):
             self.refresh_likelihood()
 
     def set_learned_state(self, d: dict[str, list[float]]) -> None:

@@ -282,8 +282,6 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals):
                 disc.update(stats, np.concatenate([p[2] for p in parts]))
             self._last["grid"] = ll  # (N, n_k): the mixture over the share's posterior
             ll = self.mix_share(ll)
-            if self.learned is not None:  # for the residual moment's weights
-                self._last["mixed"] = ll
         if not self.config.learn_scale:
             return ll
         self._last["scaled"] = ll  # (N, n_scales): the mixture over the scale posterior
