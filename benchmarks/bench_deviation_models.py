@@ -27,6 +27,7 @@ import xarray as xr
 
 from formtwin._bench import study_metamodel_info, write_result
 from formtwin._threads import single_blas_thread
+from formtwin.defaults import bundled_metamodel
 from formtwin.metamodel import Metamodel
 from formtwin.spec import ProcessSpec, parse_spec
 from formtwin.study.metrics import coverage, normalised_rmse
@@ -94,8 +95,7 @@ def one_run(mm_path: str, data: str, k: int, knots: int) -> dict[str, Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--data", default="benchmarks/.cache/study/data")
-    parser.add_argument("--metamodel",
-                        default="benchmarks/.cache/study/model/metamodel_bending.npz")
+    parser.add_argument("--metamodel", default=str(bundled_metamodel("bending")))
     parser.add_argument("--datasets", type=int, default=5)
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()

@@ -28,7 +28,7 @@ import numpy as np
 import xarray as xr
 
 from formtwin._bench import study_metamodel_info, write_result
-from formtwin.defaults import default_metamodel, physics_model
+from formtwin.defaults import bundled_metamodel, default_metamodel, physics_model
 from formtwin.study.pseudodata import Realisation
 from formtwin.study.run import StudySettings, run_study
 from formtwin.study.series import SERIES
@@ -39,8 +39,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="benchmarks/.cache/improvements")
     parser.add_argument("--data", default="benchmarks/.cache/study/data")
-    parser.add_argument("--metamodel", default="benchmarks/.cache/study/model/"
-                        "metamodel_bending.npz", help="metamodel file (fitted if missing)")
+    parser.add_argument("--metamodel", default=str(bundled_metamodel("bending")),
+                        help="metamodel file (default: the bundled one)")
     parser.add_argument("--series", default="4,7,6,8")
     parser.add_argument("--products", type=int, default=1000)
     parser.add_argument("--window", type=int, default=500)

@@ -64,8 +64,13 @@ def test_metamodel_final_angle_follows_u_and_curves_do_not(metamodel: Metamodel,
     grid = np.array([-0.1, 0.0, 0.1])
     a = metamodel.final_angle(X, grid)
     assert a.shape == (20, 3)
+    # the same float32 model on batches of another size: BLAS blocks the sums differently,
+    # so the two agree to the rounding of an m-term float32 sum (~sqrt(m) eps32, margin 4),
+    # not bit for bit (1.6e-8 relative seen between two x86-64 CPUs)
+    m = metamodel.angle_models[1].centres.shape[0]
+    rtol = 4 * np.sqrt(m) * float(np.finfo(np.float32).eps)
     for k, u in enumerate(grid):
-        np.testing.assert_allclose(a[:, k], metamodel.predict_angles(X, u)[:, 1], rtol=1e-12)
+        np.testing.assert_allclose(a[:, k], metamodel.predict_angles(X, u)[:, 1], rtol=rtol)
     assert metamodel.outside(X, 0.2).all() and not metamodel.outside(X, 0.1).any()
 
 

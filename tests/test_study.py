@@ -156,19 +156,20 @@ def test_cli_quick_study_on_the_embedded_default(tmp_path: Path) -> None:
     assert len(lines) == 1 + 6 * 2 * 1
     s1 = np.array([[float(v) for v in line.split(",")[3:]] for line in lines[1:3]])
     assert np.all(s1[:, 6] < 0.5), s1[:, 6]  # punch end distance is observable in series 1
-    # the shipped interval calibration belongs to this metamodel (the bundled DOE's fit, as
-    # make demo fits it): the default intervals find its floors, no fallback to the cloud
+    # the study ran on the bundled metamodel, and the shipped interval calibration belongs
+    # to it: the default intervals find its floors, no fallback to the cloud; the report
+    # says so on its first page
+    from formtwin.defaults import bundled_metamodel
     from formtwin.metamodel import Metamodel
     from formtwin.tracker import TrackerConfig
     from formtwin.tracker import intervals as iv
 
-    mm = Metamodel.load(tmp_path / "model" / "metamodel_bending.npz")
-    signature = iv.residual_signature(mm)
-    assert signature is not None
+    mm = Metamodel.load(bundled_metamodel("bending"))
+    assert str(bundled_metamodel("bending")) in text
+    assert f"'calibrated_fit', calibrated for fit {mm.fit_id} (interval_calibration.json)" \
+        in text.split("## Settings")[0]
     cal = json.loads(iv.CALIBRATION_PATH.read_text())
-    assert iv.matches(signature, cal["k_res_diag"]), (
-        "interval_calibration.json was learned for another metamodel: run "
-        "python -m formtwin.study.calibrate")
+    assert iv.find_calibration(mm).data == cal, iv.find_calibration(mm).reason
     assert cal["model_version"] == mm.model_version
     for deviation in (False, True):
         floors = iv.Floors(mm, deviation, TrackerConfig().intervals == "calibrated_fit")

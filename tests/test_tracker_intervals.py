@@ -160,6 +160,7 @@ class _ModelWithError:
         k_res = 4.0 * np.exp(-0.5 * ((t[:, None] - t[None, :]) / 6.0) ** 2)
         self.residuals = ResidualModel(k_res, np.zeros(len(k_res)), 0.01 * np.eye(2),
                                        np.zeros(2), k=5, n=100)
+        self.fit_id, self.calibration = "0123456789abcdef", None
 
     def __getattr__(self, name: str) -> object:
         return getattr(self._m, name)
@@ -218,8 +219,8 @@ def test_sandwich_tracker_continues_bit_for_bit() -> None:
 def test_calibrated_intervals_add_the_floors_of_the_metamodels_calibration(
         tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
     """std = sqrt(cloud std^2 + b^2) with the floors b of the calibration learned for this
-    metamodel (its diag(K_res), to rounding: the same fit on another BLAS); another
-    metamodel's calibration adds nothing."""
+    metamodel's fit id (its diag(K_res) to the sanity check's tolerance: the same fit on
+    another BLAS); another fit's calibration, or one whose K_res is off, adds nothing."""
     import json
     from pathlib import Path
 
@@ -229,7 +230,8 @@ def test_calibrated_intervals_add_the_floors_of_the_metamodels_calibration(
     floors = np.linspace(0.01, 0.18, 18)
     signature = intervals.residual_signature(model)
     assert signature is not None
-    cal = {"k_res_diag": list(signature * (1 + 1e-12)), "model_version": "test",
+    cal = {"k_res_diag": list(signature * (1 + 4e-4)), "model_version": "test",
+           "fit_id": model.fit_id,
            "no_deviation": {"floors": list(floors), "angle_floors": [0.2, 0.3]},
            "deviation": {"floors": list(2 * floors), "angle_floors": [0.4, 0.6]}}
     path = Path(str(tmp_path)) / "cal.json"
@@ -242,12 +244,15 @@ def test_calibrated_intervals_add_the_floors_of_the_metamodels_calibration(
         np.testing.assert_allclose(b.std, np.sqrt(a.std**2 + (2 * floors) ** 2), rtol=1e-12)
         np.testing.assert_allclose(b.angles_std, np.sqrt(a.angles_std**2 + [0.16, 0.36]),
                                    rtol=1e-12)
-    cal["k_res_diag"] = list(signature * 1.01)  # another fit of the metamodel
-    path2 = Path(str(tmp_path)) / "other.json"
-    path2.write_text(json.dumps(cal))
-    monkeypatch.setattr(intervals, "CALIBRATION_PATH", path2)
-    _, eo = _run("calibrated", True)
-    np.testing.assert_array_equal(eo[-1].std, ec[-1].std)
+    assert {e.intervals for e in ek} == {"calibrated"} and ec[0].intervals == "cloud"
+    for change in ({"fit_id": "fedcba9876543210"},  # another fit
+                   {"k_res_diag": list(signature * 1.05)}):  # same id, other numbers
+        path2 = Path(str(tmp_path)) / "other.json"
+        path2.write_text(json.dumps(cal | change))
+        monkeypatch.setattr(intervals, "CALIBRATION_PATH", path2)
+        _, eo = _run("calibrated", True)
+        np.testing.assert_array_equal(eo[-1].std, ec[-1].std)
+        assert eo[-1].intervals == "uncalibrated"
 
 
 def test_learned_floors_give_the_target_coverage_on_their_data() -> None:
@@ -304,7 +309,7 @@ def _calibration_file(tmp_path: object, model: object, floors: np.ndarray) -> ob
     assert signature is not None
     entry = {"floors": list(floors), "angle_floors": [0.2, 0.3],
              "fit_floors": list(floors / 2), "fit_angle_floors": [0.1, 0.15], "fit_s_max": 50.0}
-    cal = {"k_res_diag": list(signature), "model_version": "test",
+    cal = {"k_res_diag": list(signature), "model_version": "test", "fit_id": model.fit_id,
            "fit_gate": {"d0": 1.0, "ewma": 0.3}, "no_deviation": entry, "deviation": entry}
     path = Path(str(tmp_path)) / "cal_fit.json"
     path.write_text(json.dumps(cal))

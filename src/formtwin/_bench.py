@@ -3,9 +3,8 @@
 Every benchmark script prints a table and writes
 ``{"figures": {...}, "model": {...}, "machine": {...}, "date": ...}`` through
 :func:`write_result`; ``machine`` records the package versions and the machine's load
-(other jobs share its cores). :func:`bundled_metamodel` is the metamodel of the physics DOE
-bundled with the package (``formtwin/data/doe_bending.h5``), fitted once and cached under
-``benchmarks/.cache`` by the DOE file's content hash and the metamodel's settings, so a
+(other jobs share its cores). :func:`bundled_metamodel` is the fitted metamodel of the
+physics DOE shipped with the package (``formtwin/data/metamodel_bending.npz``), so a
 benchmark measures the product a user gets and never a file from outside the repository.
 """
 
@@ -76,50 +75,33 @@ def file_digest(path: str | Path) -> str:
 
 
 def bundled_metamodel(cache: Path = CACHE) -> tuple[Any, Path, dict[str, Any]]:
-    """The metamodel of the bundled physics DOE: ``(metamodel, file, description)``.
+    """The metamodel of the bundled physics DOE, as a fresh clone gets it:
+    ``(metamodel, file, description)``.
 
-    Fitted on first use (a few minutes) and cached in ``cache`` under a name made of the
-    DOE file's content hash and a hash of the metamodel settings, so a new DOE (a physics
-    change) or new metamodel defaults fit a new one (as does a cached file whose residual
-    statistics are of another rule than the default's). The description (for the result's
-    ``model`` entry) names the physics model and its version, the DOE file and its hash.
+    The fitted file shipped with the package (:func:`formtwin.defaults.bundled_metamodel`;
+    fitted into ``cache`` only if it is of another physics version). The description (for
+    the result's ``model`` entry) names the physics model and its version, the DOE file and
+    its hash, the fit's settings and id.
     """
-    from formtwin.defaults import bundled_doe, default_doe
-    from formtwin.metamodel import RESIDUAL_RULE, Metamodel, calibrate
+    from formtwin.defaults import bundled_doe, default_metamodel
+    from formtwin.metamodel import Metamodel
 
     doe = bundled_doe("bending")
-    digest = file_digest(doe)
-    settings = repr(Metamodel())
-    key = hashlib.sha256(settings.encode()).hexdigest()[:8]
-    path = cache / f"metamodel_bending_doe{digest}_mm{key}.npz"
-    cached = Metamodel.load(path) if path.exists() else None
-    if cached is not None and cached.residuals is not None \
-            and cached.residuals.rows == RESIDUAL_RULE:  # else: another error model
-        mm, n_runs = cached, None
-    else:
-        data = default_doe("bending", cache)  # checks the DOE against the physics version
-        log.warning("fitting the metamodel of %s (%d runs) -> %s", doe, data.n, path)
-        cache.mkdir(parents=True, exist_ok=True)
-        mm = calibrate(Metamodel().fit(data), data)
-        tmp = Path(mm.save(cache / f"{path.stem}.tmp.npz"))
-        tmp.replace(path)
-        n_runs = int(data.n)
-    assert mm.residuals is not None  # calibrate() set them, or the cache check found them
-    info: dict[str, Any] = {
+    mm, path = default_metamodel(cache, "bending")
+    assert mm.residuals is not None  # the bundled fit, or default_metamodel's own fit
+    return mm, path, {
         "name": "metamodel of the bundled physics DOE",
         "physics": "bending",
         "physics_version": mm.model_version,
         "doe": str(doe.relative_to(ROOT)) if doe.is_relative_to(ROOT) else doe.name,
-        "doe_sha256_16": digest,
-        "metamodel": settings,
+        "doe_sha256_16": file_digest(doe),
+        "metamodel": repr(Metamodel()),
+        "fit_id": mm.fit_id,
         "residual_rule": mm.residuals.rows,
         "residual_runs": mm.residuals.n,
         "metamodel_file": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT)
         else str(path),
     }
-    if n_runs is not None:
-        info["doe_runs"] = n_runs
-    return mm, path, info
 
 
 def study_metamodel_info(mm: Any, path: str | Path) -> dict[str, Any]:

@@ -3,9 +3,16 @@
 ``physics_model("bending")`` is formtwin's corotational-beam flap-bending model,
 ``physics_model("analytic")`` the closed-form stand-in, ``physics_model("calculix")``
 the plane-strain CalculiX model (needs ``ccx``). :func:`default_metamodel` loads a
-given metamodel file or fits one from the DOE dataset bundled with the package for that
-model (``formtwin/data/doe_<name>.h5``, made by ``formtwin doe run``), caching the fit.
+given metamodel file, or the fitted metamodel bundled with the package for that model
+(``formtwin/data/metamodel_<name>.npz``: the same file, so the same fit and interval
+calibration, on every machine), or fits one from the bundled DOE dataset
+(``formtwin/data/doe_<name>.h5``, made by ``formtwin doe run``) and caches the fit.
 The analytic model's DOE is cheap and is made on first use instead of being bundled.
+
+The bundled metamodel is the default fit of the bundled DOE with its held-out residual
+statistics, written by ``formtwin metamodel fit src/formtwin/data/doe_bending.h5 --out
+src/formtwin/data/metamodel_bending.npz``; its interval calibration is
+``formtwin/data/interval_calibration.json`` (:mod:`formtwin.tracker.intervals`).
 
 This is the one module (with the command line) that names physics modules; everything
 else reaches a process model through :class:`~formtwin.simulator.Simulator` or a model
@@ -103,6 +110,11 @@ def bundled_doe(name: str) -> Path:
     return Path(str(resources.files("formtwin") / "data" / f"doe_{name}.h5"))
 
 
+def bundled_metamodel(name: str) -> Path:
+    """Path of the fitted metamodel bundled for process model ``name``."""
+    return Path(str(resources.files("formtwin") / "data" / f"metamodel_{name}.npz"))
+
+
 def default_doe(name: str, cache: Path) -> DoeDataset:
     """The DOE of model ``name``: the bundled file, or (analytic only) made in ``cache``."""
     path = bundled_doe(name)
@@ -126,13 +138,23 @@ def default_doe(name: str, cache: Path) -> DoeDataset:
 
 def default_metamodel(cache: Path, physics: str = "bending",
                       path: str | Path | None = None) -> tuple[Metamodel, Path]:
-    """Load the metamodel at ``path``, or fit (once, cached in ``cache``) the default one
-    with the statistics of its 5-fold held-out residuals (:func:`~formtwin.metamodel.calibrate`).
-    A cached file of another model version, without residuals or with residuals of another
-    rule than :data:`~formtwin.metamodel.RESIDUAL_RULE` is refitted (a loaded metamodel
-    keeps its fitted length scales, not the default's settings to refit them)."""
+    """Load the metamodel at ``path``, or the one bundled for ``physics``
+    (:func:`bundled_metamodel`) if it is of the model's current version, or fit (once,
+    cached in ``cache``) the default one with the statistics of its 5-fold held-out
+    residuals (:func:`~formtwin.metamodel.calibrate`). A cached file of another model
+    version, without residuals or with residuals of another rule than
+    :data:`~formtwin.metamodel.RESIDUAL_RULE` is refitted (a loaded metamodel keeps its
+    fitted length scales, not the default's settings to refit them)."""
     if path is not None:
         return Metamodel.load(path), Path(path)
+    bundled = bundled_metamodel(physics)
+    if bundled.exists():
+        mm = Metamodel.load(bundled)
+        if mm.model_version == physics_model(physics, mm.spec).version \
+                and mm.residuals is not None and mm.residuals.rows == RESIDUAL_RULE:
+            return mm, bundled
+        log.warning("%s is of model version %s, not the current one: fitting the "
+                    "metamodel instead", bundled, mm.model_version)
     data = default_doe(physics, cache)
     out = cache / f"metamodel_{physics}.npz"
     if out.exists():

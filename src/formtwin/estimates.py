@@ -80,6 +80,9 @@ class Estimate:
         variables (``spec.state.names`` order, internal units) when the tracker learns mu;
         ``None`` otherwise.
     fit : the absolute goodness of fit (``None`` only for estimates made without one).
+    intervals : what ``std`` and ``angles_std`` are (``TrackerConfig.intervals``), or
+        ``"uncalibrated"`` where a calibrated kind was asked for and the model has no
+        interval calibration (the cloud's std: overconfident under model error).
     """
 
     index: int
@@ -94,6 +97,7 @@ class Estimate:
     mu_mean: FloatArray | None = None
     mu_std: FloatArray | None = None
     fit: Fit | None = None
+    intervals: str = "cloud"
 
     def __getitem__(self, name: str) -> float:
         """Posterior mean of the variable ``name``."""
@@ -119,6 +123,7 @@ class Estimate:
             "collapsed": bool(self.collapsed),
             "loglik": _jsonable(self.loglik),
             "health": self.health,
+            "intervals": self.intervals,
         }
         if self.fit is not None:
             out["fit"] = self.fit.to_dict()
@@ -132,7 +137,8 @@ class Estimate:
 class Estimates:
     """Stacked estimates of ``n`` products: arrays with a leading axis ``n``
     (``mu_mean``, ``mu_std``: (n, 7) when mu is learned, else ``None``; ``fit_distance2``,
-    ``fit_quantile``, ``fit_log10_p``, ``ess_share`` NaN where an estimate has no fit)."""
+    ``fit_quantile``, ``fit_log10_p``, ``ess_share`` NaN where an estimate has no fit;
+    ``intervals`` that of the estimates, :class:`Estimate`)."""
 
     names: tuple[str, ...]
     index: NDArray[np.int64]
@@ -150,6 +156,7 @@ class Estimates:
     fit_quantile: FloatArray | None = None
     fit_log10_p: FloatArray | None = None
     ess_share: FloatArray | None = None
+    intervals: str = "cloud"
 
     def __len__(self) -> int:
         return int(self.index.size)
@@ -185,7 +192,8 @@ class Estimates:
                    mu_std=arr("mu_std", 0) if learned else None,
                    health=np.array([e.health for e in items], dtype=np.str_),
                    fit_distance2=fit("distance2"), fit_quantile=fit("quantile"),
-                   fit_log10_p=fit("log10_p"), ess_share=fit("ess_share"))
+                   fit_log10_p=fit("log10_p"), ess_share=fit("ess_share"),
+                   intervals=items[0].intervals if items else "cloud")
 
     def columns(self) -> dict[str, NDArray[Any]]:
         """Flat table columns: index, mean_<name>, std_<name>, angles, ess, collapsed,

@@ -75,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from formtwin.defaults import default_metamodel, physics_model
     from formtwin.study.report import write_report
     from formtwin.study.run import run_study
+    from formtwin.tracker.intervals import find_calibration
 
     settings = settings_from_args(args)
     out = Path(args.out)
@@ -87,8 +88,13 @@ def run(args: argparse.Namespace) -> int:
           flush=True)
     result = run_study(settings, out, metamodel, mm_path, physics,
                        progress=sys.stderr.isatty())
+    calibrated = settings.tracker.intervals in ("calibrated", "calibrated_fit")
+    calibration = find_calibration(metamodel).describe() if calibrated else ""
+    if calibration.startswith("uncalibrated"):
+        print(f"WARNING: {calibration}; the report's intervals are the particle cloud's")
     report = write_report(result, metamodel.spec, out, sources={
-        "metamodel": str(mm_path), "physics model": f"{args.physics} ({physics.version})"})
+        "metamodel": f"{mm_path} (fit {metamodel.fit_id or 'without id'})",
+        "physics model": f"{args.physics} ({physics.version})"}, calibration=calibration)
     print(f"study done in {result.timings['total_s']:.0f} s; report: {report}")
     print(f"markdown: {out / 'report.md'}; numbers: {out / 'nrmse.csv'}")
     return 0

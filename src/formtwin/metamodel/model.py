@@ -16,12 +16,15 @@ particles at several settings at once (for a controller choosing ``u``).
 
 The file format (:meth:`Metamodel.save`) is a numpy ``.npz`` readable with
 ``allow_pickle=False``: the spec's TOML text, the scaler, the source dataset's model
-version and the arrays of every fitted part.
+version, the fit's identity (:attr:`Metamodel.fit_id`, :mod:`.identity`), the arrays of
+every fitted part and, once learned, its interval calibration as JSON text
+(:attr:`Metamodel.calibration`, ``formtwin metamodel calibrate``).
 """
 
 from __future__ import annotations
 
 import copy
+import json
 import logging
 import time
 from dataclasses import dataclass
@@ -32,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
+from formtwin.metamodel.identity import data_digest, fit_id
 from formtwin.metamodel.pod import POD
 from formtwin.metamodel.protocols import Approximation, Dataset, Reduction
 from formtwin.metamodel.rbf import RBF
@@ -127,6 +131,12 @@ class Metamodel:
         self.fit_seconds = float("nan")
         #: statistics of held-out residuals (:func:`~formtwin.metamodel.calibrate`), or None
         self.residuals: ResidualModel | None = None
+        #: identity of the fit (:func:`~formtwin.metamodel.identity.fit_id`; "" for a file
+        #: written before it was stored)
+        self.fit_id = ""
+        #: the interval calibration learned for this fit (JSON-safe dict, see
+        #: :mod:`formtwin.tracker.intervals`), or None
+        self.calibration: dict[str, Any] | None = None
 
     def __repr__(self) -> str:
         return (f"Metamodel(reduction={self.reduction!r}, approximation={self.approximation!r},"
@@ -171,6 +181,7 @@ class Metamodel:
             raise ValueError(f"Metamodel.fit: inputs {X.shape}, curves {curves.shape}, angles "
                              f"{angles.shape}; expected (n, {n_run}), (n, {spec.n_t}), (n, 2)")
         self._spec, self.spec_text = spec, dataset.spec_text or spec.text
+        self.fit_id = self.identity(dataset)
         self._model_version = str(dataset.model_version)
         self.lo, self.hi = spec.run_inputs.lo, spec.run_inputs.hi
         U = self.scale(X)
@@ -181,11 +192,23 @@ class Metamodel:
             copy.deepcopy(self.angle_approximation).fit(U[:, :n], angles[:, j:j + 1])
             for j, n in enumerate((n_in, n_run)))
         self.n_train = X.shape[0]
-        self.residuals = None  # they described the previous fit
+        self.residuals = None  # they and the calibration described the previous fit
+        self.calibration = None
         self.fit_seconds = time.perf_counter() - t0
         log.info("Metamodel fitted to %d runs (%d excluded) in %.1f s, %d modes",
                  self.n_train, int((~ok).sum()), self.fit_seconds, self.n_modes)
         return self
+
+    def identity(self, dataset: Dataset) -> str:
+        """The :attr:`fit_id` a fit of ``dataset`` with this metamodel's settings has
+        (computed without fitting): the successful runs' bytes, the templates' settings
+        and the file format, nothing the machine's rounding can change."""
+        ok = np.asarray(dataset.ok, dtype=bool)
+        digest = data_digest(np.asarray(dataset.inputs)[ok], np.asarray(dataset.curves)[ok],
+                             np.asarray(dataset.angles)[ok])
+        return fit_id(digest, FORMAT, {"reduction": self.reduction,
+                                       "curves": self.approximation,
+                                       "angles": self.angle_approximation})
 
     # --------------------------------------------------------------- evaluation
     def scale(self, X: FloatArray) -> FloatArray:
@@ -286,6 +309,7 @@ class Metamodel:
             "spec_source": np.array(self.spec.source),
             "model_version": np.array(self._model_version), "scaler_lo": self.lo,
             "scaler_hi": self.hi, "n_train": np.array(self.n_train),
+            "fit_id": np.array(self.fit_id),
             "reduction.kind": np.array(self.reduction.kind),
             "curves.kind": np.array(self.curve_model.kind)}
         arrays.update({f"reduction.{k}": v for k, v in self.reduction.state().items()})
@@ -295,6 +319,8 @@ class Metamodel:
             arrays.update({f"angle{j}.{k}": v for k, v in m.state().items()})
         if self.residuals is not None:
             arrays.update({f"residuals.{k}": v for k, v in self.residuals.state().items()})
+        if self.calibration is not None:
+            arrays["calibration"] = np.array(json.dumps(self.calibration))
         p = Path(path)
         with open(p, "wb") as fh:
             np.savez_compressed(fh, **arrays)
@@ -337,6 +363,9 @@ class Metamodel:
             source = str(arrays["spec_source"])
             if "residuals.curve_cov" in arrays:
                 mm.residuals = ResidualModel.from_state(part("residuals"))
+            mm.fit_id = str(arrays.get("fit_id", ""))
+            if "calibration" in arrays:
+                mm.calibration = json.loads(str(arrays["calibration"]))
         except KeyError as exc:
             raise ValueError(f"{p}: incomplete metamodel file, no array {exc}") from None
         mm._spec = parse_spec(mm.spec_text, source)

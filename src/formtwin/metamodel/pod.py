@@ -17,6 +17,7 @@ True
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,6 +67,10 @@ class POD:
         if self.energy is not None:
             return f"POD(energy={self.energy})"
         return f"POD(n_modes={self.n_modes_requested})"
+
+    def settings(self) -> dict[str, Any]:
+        """The constructor's settings (:func:`~formtwin.metamodel.identity.fit_id`)."""
+        return {"kind": self.kind, "n_modes": self.n_modes_requested, "energy": self.energy}
 
     @property
     def n_modes(self) -> int:

@@ -158,6 +158,17 @@ class RBF:
                 f"degree={self.degree}, smoothing={self.smoothing}, "
                 f"n_centres={self.n_centres}, dtype={self.dtype.name})")
 
+    def settings(self) -> dict[str, Any]:
+        """The constructor's settings (JSON-safe): what a fit with this template is made
+        with (:func:`~formtwin.metamodel.identity.fit_id`)."""
+        scales = self.length_scales if isinstance(self.length_scales, str) \
+            else [float(v) for v in np.asarray(self.length_scales).ravel()]
+        return {"kind": self.kind, "kernels": list(self.kernels), "degree": self.degree,
+                "smoothing": "loo" if self.tune_smoothing else self.smoothing,
+                "length_scales": scales, "epsilon": self.epsilon,
+                "n_centres": self.n_centres, "n_tune": self.n_tune, "seed": self.seed,
+                "dtype": self.dtype.name}
+
     # ------------------------------------------------------------------ fitting
     def fit(self, U: FloatArray, Y: FloatArray) -> RBF:
         """Fit to unit-box inputs ``U`` (n, d) and outputs ``Y`` (n, k) or (n,) (repeated inputs

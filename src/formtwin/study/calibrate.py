@@ -12,8 +12,9 @@ the study or the benchmarks), filtered as series 5 (no deviation model) and seri
 (deviation estimated, mu assumed), the last ``window`` products of each run. The runs'
 std are the cloud's plus, where mu is assumed (series 6), the linearised error of assuming
 it (:mod:`formtwin.tracker.sandwich`), so the floors cover what that term does not. The floors
-are stored with the diagonal of the metamodel's ``K_res``
-(:func:`~formtwin.tracker.intervals.residual_signature`): another metamodel gets none.
+are stored with the metamodel's fit id and, as a sanity check, the diagonal of its
+``K_res`` (:func:`~formtwin.tracker.intervals.find_calibration`): another fit gets none.
+``formtwin metamodel calibrate`` learns and stores them for any metamodel file.
 
 The fit gate of ``intervals="calibrated_fit"`` (:class:`~formtwin.tracker.intervals.Floors`)
 is learned on the same runs: ``d0``, the mean running fit distance on the metamodel's own
@@ -40,11 +41,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.defaults import default_metamodel, physics_model
+from formtwin.metamodel import Metamodel
+from formtwin.simulator import Simulator
 from formtwin.study.metrics import Z90
 from formtwin.study.run import StudyResult, StudySettings, run_study
 from formtwin.study.series import SERIES
 from formtwin.tracker import TrackerConfig
-from formtwin.tracker.intervals import CALIBRATION_PATH, fit_ewma, gate_scale, residual_signature
+from formtwin.tracker.intervals import (
+    CALIBRATION_PATH,
+    fit_ewma,
+    gate_scale,
+    residual_rule,
+    residual_signature,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -140,14 +149,52 @@ def floors_from_study(result: StudyResult, series: int, d0: float,
                 cover(np.sqrt(std**2 + gate * b_fit**2))}
 
 
+def learn_calibration(mm: Metamodel, mm_path: Path, physics: Simulator, folder: Path,
+                      datasets: int = 8, repetitions: int = 2, products: int = 1000,
+                      seed: int = SEED, learn_residuals: bool = False) -> dict[str, Any]:
+    """The interval calibration of the metamodel ``mm`` (file ``mm_path``, fit
+    :attr:`~formtwin.metamodel.Metamodel.fit_id`): ``datasets`` realisations of
+    ``products`` products of physics pseudo-data made with ``physics`` (study seed
+    ``seed``, not the study's), filtered ``repetitions`` times as series 1, 5 and 6 in
+    ``folder``; the floors of the last half of each run (JSON-safe dict, the format of
+    :data:`~formtwin.tracker.intervals.CALIBRATION_PATH`)."""
+    if seed == StudySettings().seed:
+        raise ValueError(f"seed = {seed}: the study's own seed would calibrate on its data")
+    signature = residual_signature(mm)
+    if signature is None:
+        raise ValueError(f"{mm_path}: the metamodel has no held-out residual statistics "
+                         "(fit it with --cv-folds > 0)")
+    settings = StudySettings(n_realisations=datasets, n_repetitions=repetitions,
+                             n_products=products, window=products // 2, seed=seed,
+                             series=(GATE_SERIES, *SERIES_OF.values()), paper_repetitions=0,
+                             tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu",
+                                                         learn_residuals=learn_residuals))
+    result = run_study(settings, folder, mm, mm_path, physics)
+    d0, n_gate = gate_d0(result)
+    return {"what": "floors (internal units; angles degrees) added in quadrature to the "
+                    "cloud's std (plus the assumed mu's term where mu is assumed) by "
+                    "TrackerConfig(intervals='calibrated'), learned on independent physics "
+                    "pseudo-data (formtwin.study.calibrate)",
+            "model_version": mm.model_version, "fit_id": mm.fit_id,
+            "residuals": residual_rule(mm),
+            "physics": physics.version,
+            "k_res_diag": [float(v) for v in signature],
+            "names": list(mm.spec.augmented.names) + ["angle1", "angle2"],
+            "settings": {"seed": seed, "datasets": datasets, "repetitions": repetitions,
+                         "products": settings.n_products, "window": settings.window,
+                         "tracker": settings.tracker.to_dict()},
+            "fit_gate": {"d0": d0, "ewma": FIT_EWMA, "series": GATE_SERIES, "runs": n_gate},
+            **{key: floors_from_study(result, s, d0) for key, s in SERIES_OF.items()}}
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Make the pseudo-data (physics runs: use the heavy-job lock), run series 1, 5 and 6,
-    write the floors (default: the package's calibration file)."""
+    """Make the pseudo-data (physics runs: heavy), run series 1, 5 and 6, write the
+    floors of the bundled metamodel (default: the package's calibration file)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="benchmarks/.cache/calibration",
                         help="folder of the calibration's pseudo-data and filter runs")
     parser.add_argument("--model", default="benchmarks/.cache/study/model",
-                        help="folder of the bundled metamodel (fitted there if missing)")
+                        help="folder of the metamodel's fit where none is bundled")
     parser.add_argument("--datasets", type=int, default=8)
     parser.add_argument("--repetitions", type=int, default=2)
     parser.add_argument("--products", type=int, default=1000,
@@ -157,33 +204,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--learn-residuals", action="store_true",
                         help="calibrate trackers with learn_residuals (docs/likelihood.md)")
     args = parser.parse_args(argv)
-    if args.seed == StudySettings().seed:
-        raise SystemExit("--seed: the study's own seed would calibrate on its data")
     mm, mm_path = default_metamodel(Path(args.model), "bending")
-    signature = residual_signature(mm)
-    if signature is None:
-        raise SystemExit(f"{mm_path}: the metamodel has no held-out residual statistics")
-    settings = StudySettings(n_realisations=args.datasets, n_repetitions=args.repetitions,
-                             n_products=args.products, window=args.products // 2,
-                             seed=args.seed, series=(GATE_SERIES, *SERIES_OF.values()),
-                             paper_repetitions=0,
-                             tracker=dataclasses.replace(TrackerConfig(), intervals="cloud_mu",
-                                                         learn_residuals=args.learn_residuals))
-    result = run_study(settings, Path(args.out), mm, mm_path, physics_model("bending", mm.spec))
-    d0, n_gate = gate_d0(result)
-    out = {"what": "floors (internal units; angles degrees) added in quadrature to the "
-                   "cloud's std (plus the assumed mu's term where mu is assumed) by "
-                   "TrackerConfig(intervals='calibrated'), learned on independent physics "
-                   "pseudo-data (formtwin.study.calibrate)",
-           "model_version": mm.model_version,
-           "k_res_diag": [float(v) for v in signature],
-           "names": list(mm.spec.augmented.names) + ["angle1", "angle2"],
-           "settings": {"seed": args.seed, "datasets": args.datasets,
-                        "repetitions": args.repetitions, "products": settings.n_products,
-                        "window": settings.window,
-                        "tracker": settings.tracker.to_dict()},
-           "fit_gate": {"d0": d0, "ewma": FIT_EWMA, "series": GATE_SERIES, "runs": n_gate},
-           **{key: floors_from_study(result, s, d0) for key, s in SERIES_OF.items()}}
+    try:
+        out = learn_calibration(mm, mm_path, physics_model("bending", mm.spec), Path(args.out),
+                                args.datasets, args.repetitions, args.products, args.seed,
+                                args.learn_residuals)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     Path(args.write).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     print(json.dumps({k: out[k] for k in ("fit_gate", *SERIES_OF)}, indent=1))
 

@@ -78,8 +78,10 @@ def comparison(spec: ProcessSpec, overall: np.ndarray, series: tuple[int, ...]) 
 
 
 def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
-                 sources: dict[str, str]) -> Path:
-    """Write ``report.md``, ``report.html``, ``nrmse.csv``, ``results.json`` and figures."""
+                 sources: dict[str, str], calibration: str = "") -> Path:
+    """Write ``report.md``, ``report.html``, ``nrmse.csv``, ``results.json`` and figures;
+    ``calibration`` says which interval calibration the trackers used
+    (:meth:`~formtwin.tracker.intervals.Calibration.describe`), on the first page."""
     folder.mkdir(parents=True, exist_ok=True)
     st = result.settings
     labels = component_labels(spec)
@@ -119,6 +121,8 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
               f"{result.timings['pseudo_data_s']:.0f} s, "
               f"{int(result.timings['filter_runs_computed'])} filter runs "
               f"{result.timings['filter_runs_s']:.0f} s)."),
+        ("p", f"Reported intervals: '{st.tracker.intervals}'"
+              + (f", {calibration}." if calibration else ".")),
         ("h2", "Settings"),
         ("table", ["setting", "value"], [[k, str(v)] for k, v in result.settings_dict().items()]
          + [[k, v] for k, v in sources.items()]
@@ -196,7 +200,8 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
                     vals = ",".join(f"{v:.6g}" for v in result.nrmse[s - 1, k, r])
                     f.write(f"{s},{k},{r},{vals}\n")
     summary: dict[str, Any] = {"settings": result.settings_dict(), "timings": result.timings,
-               "sources": sources, "components": labels,
+               "sources": sources, "interval_calibration": calibration,
+               "components": labels,
                "data_digest": digest,
                "nrmse_overall": {f"series{s}": dict(zip(labels, map(_json_float,
                                                                      overall[s - 1]), strict=True))

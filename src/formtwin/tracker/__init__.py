@@ -12,10 +12,11 @@
 from formtwin.estimates import HEALTH, Estimate, Estimates, Fit
 from formtwin.tracker.build import build_measurement, build_tracker
 from formtwin.tracker.config import COMPARE, LIKELIHOODS, TrackerConfig
-from formtwin.tracker.core import Tracker, validate_controls, validate_curve
+from formtwin.tracker.core import Tracker
 from formtwin.tracker.fit import FitRule
 from formtwin.tracker.ssm import CHUNK, BendingSSM
 from formtwin.tracker.state import TrackerState
+from formtwin.tracker.validate import validate_controls, validate_curve
 
 __all__ = ["BendingSSM", "CHUNK", "COMPARE", "HEALTH", "LIKELIHOODS", "Estimate", "Estimates",
            "Fit", "FitRule", "Tracker",

@@ -33,13 +33,13 @@ from formtwin.estimates import Estimate, Estimates
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
-from formtwin.spec import ProcessSpec
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
 from formtwin.tracker.intervals import Floors
 from formtwin.tracker.sandwich import STATE_KEYS, Sandwich
 from formtwin.tracker.ssm import BendingSSM
+from formtwin.tracker.validate import validate_controls, validate_curve
 
 FloatArray = NDArray[np.float64]
 
@@ -65,53 +65,6 @@ def heaviest(w: FloatArray, mass: float) -> NDArray[np.intp]:
     if n_drop == 0:
         return np.arange(w.size)
     return np.sort(order[n_drop:])
-
-
-def validate_controls(u: Any, spec: ProcessSpec) -> FloatArray | None:
-    """The press setting ``u`` of a product as (n_controls,) internal units, or None.
-
-    ``None`` stays None (the nominal setting). Raises ``ValueError`` naming the control
-    for a wrong count, a non-number or a value outside its bounds (the metamodel would
-    extrapolate).
-    """
-    if u is None:
-        return None
-    box = spec.controls
-    try:
-        arr = np.asarray(u, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"u = {u!r}: expected a number per control "
-                         f"({', '.join(box.names) or 'none'})") from None
-    if arr.size != len(box):
-        raise ValueError(f"u has {arr.size} values, expected {len(box)} "
-                         f"({', '.join(box.names) or 'no controls in this spec'})")
-    for v, val in zip(box, arr, strict=True):
-        if not (np.isfinite(val) and v.lo - 1e-12 <= val <= v.hi + 1e-12):
-            raise ValueError(f"u: {v.name} = {val / v.scale:g} {v.unit}, expected a value in "
-                             f"[{v.lo / v.scale:g}, {v.hi / v.scale:g}] {v.unit}")
-    return arr
-
-
-def validate_curve(curve: Any, n_t: int) -> FloatArray:
-    """``curve`` as a float array (n_t,), or ``ValueError`` naming what is wrong."""
-    if isinstance(curve, (str, bytes)):
-        raise ValueError(f"curve is a {type(curve).__name__}, expected {n_t} numbers")
-    try:
-        arr = np.asarray(curve)
-    except Exception as exc:  # ragged lists and the like
-        raise ValueError(f"curve cannot be read as an array: {exc}") from exc
-    if arr.dtype.kind not in "iuf":
-        raise ValueError(f"curve has dtype {arr.dtype}, expected real numbers")
-    if arr.ndim != 1:
-        raise ValueError(f"curve has shape {arr.shape}, expected ({n_t},)")
-    if arr.size != n_t:
-        raise ValueError(f"curve has {arr.size} samples, expected {n_t}")
-    arr = arr.astype(np.float64)
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        raise ValueError(f"curve has {int(bad.sum())} non-finite values (NaN/inf), first "
-                         f"at sample {int(np.argmax(bad))}")
-    return arr
 
 
 class Tracker:
@@ -164,6 +117,9 @@ class Tracker:
         self.floors = Floors(model, self.config.estimate_deviation, self.config.intervals
                              == "calibrated_fit") \
             if self.config.intervals in ("calibrated", "calibrated_fit") else None
+        #: what the estimates' std are (:attr:`Estimate.intervals`)
+        self.intervals = "uncalibrated" if self.floors is not None \
+            and self.floors.calibration.data is None else c.intervals
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
@@ -301,7 +257,7 @@ class Tracker:
                         std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
                         collapsed=s.collapsed, loglik=s.loglik,
                         mu_mean=mu[0] if mu else None,
-                        mu_std=mu[1] if mu else None, fit=fit)
+                        mu_std=mu[1] if mu else None, fit=fit, intervals=self.intervals)
 
     def run(self, curves: Iterable[Any], progress: bool = False,
             u: Any = None) -> Estimates:

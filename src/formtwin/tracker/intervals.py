@@ -1,21 +1,33 @@
 """Calibrated intervals (``TrackerConfig(intervals="calibrated")`` and ``"calibrated_fit"``):
-floors learned offline on physics runs of the bundled metamodel
-(:mod:`formtwin.study.calibrate`), added in quadrature to the reported std, constant or
+floors learned offline on physics runs of a metamodel (:mod:`formtwin.study.calibrate`,
+``formtwin metamodel calibrate``), added in quadrature to the reported std, constant or
 gated by the curves' running fit distance (:class:`Floors`). The linearised filter's
 terms (a persistent metamodel error's, an assumed mu's): :mod:`formtwin.tracker.sandwich`.
+
+A calibration belongs to one fit of a metamodel, named by its
+:attr:`~formtwin.metamodel.Metamodel.fit_id` (the same on every machine,
+:mod:`formtwin.metamodel.identity`). :func:`find_calibration` takes the one stored in the
+metamodel's own file, else the package's calibration of the bundled default fit
+(:data:`CALIBRATION_PATH`) when the fit ids agree, in both cases only if the diagonal of
+the metamodel's ``K_res`` agrees with the calibration's within
+:data:`~formtwin.metamodel.identity.SIGNATURE_RTOL`. Without one the tracker reports the
+cloud's std and every estimate says ``intervals = "uncalibrated"``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.metamodel.identity import SIGNATURE_RTOL, signature_matches
 from formtwin.tracker.discrepancy import residual_covariance
 
 FloatArray = NDArray[np.float64]
@@ -25,37 +37,21 @@ log = logging.getLogger(__name__)
 #: ``python -m formtwin.study.calibrate`` on physics runs of its own (not the study's data)
 CALIBRATION_PATH = Path(__file__).parents[1] / "data" / "interval_calibration.json"
 
-#: relative tolerance on ``diag(K_res)`` for a calibration to belong to a metamodel
-SIGNATURE_RTOL = 1e-6
-
-
 
 def residual_signature(model: Any) -> FloatArray | None:
-    """The diagonal (n_t,) of ``model``'s held-out residual covariance ``K_res``: identifies
-    the metamodel fit a calibration was learned for (compared with a tolerance: the same fit
-    made with another BLAS or thread count differs in the last bits), ``None`` without
-    residual statistics."""
+    """The diagonal (n_t,) of ``model``'s held-out residual covariance ``K_res``: the sanity
+    check of a calibration's fit (compared within
+    :data:`~formtwin.metamodel.identity.SIGNATURE_RTOL`: the same fit made on another
+    machine differs in the last bits), ``None`` without residual statistics."""
     k_res = residual_covariance(model)
     return None if k_res is None else np.ascontiguousarray(np.diag(k_res), dtype=np.float64)
 
 
-def matches(signature: FloatArray, stored: Any) -> bool:
-    """Whether a calibration's stored ``k_res_diag`` is that of the metamodel with
-    ``signature`` (:func:`residual_signature`), to :data:`SIGNATURE_RTOL` of each entry or
-    of the largest.
-
-    >>> import numpy as np
-    >>> d = np.array([1.0, 2.0, 3.0])
-    >>> matches(d * (1 + 1e-12), list(d)), matches(d * 1.01, list(d)), matches(d, [1.0])
-    (True, False, False)
-    >>> matches(np.array([3.0, 1e-29]), [3.0, 0.0])   # rounding noise of a zero entry
-    True
-    """
-    ref = np.asarray(stored if stored is not None else [], dtype=np.float64)
-    if ref.shape != signature.shape or ref.size == 0:
-        return False
-    tol = SIGNATURE_RTOL * float(np.abs(ref).max())  # entries near 0 are rounding noise
-    return bool(np.allclose(signature, ref, rtol=SIGNATURE_RTOL, atol=tol))
+def residual_rule(model: Any) -> dict[str, Any]:
+    """How ``model``'s held-out residual statistics were made (``k`` folds, ``rows``): part
+    of what a calibration was learned for ({} without statistics)."""
+    r = getattr(model, "residuals", None)
+    return {} if r is None else {"k": int(r.k), "rows": str(r.rows)}
 
 
 @functools.lru_cache(maxsize=4)
@@ -69,40 +65,86 @@ def _calibration(path: Path) -> dict[str, Any] | None:
     return cal
 
 
-@functools.lru_cache(maxsize=4)
-def _warn_other_model(version: str, path: Path) -> None:
-    """Log once that the calibration at ``path`` was learned for another metamodel."""
-    log.warning("intervals='calibrated': no interval calibration for this metamodel (%s was "
-                "learned for another fit of %s); reporting the cloud's std", path.name, version)
+@dataclass(frozen=True)
+class Calibration:
+    """The interval calibration a tracker on a model uses (:func:`find_calibration`).
+
+    Attributes
+    ----------
+    data : the calibration (JSON-safe dict), ``None`` when there is none for the model.
+    source : where it came from ("metamodel file" or the package's file name); "".
+    fit_id : the model's fit identity ("" for a model without one).
+    reason : why there is none ("" when there is one).
+    """
+
+    data: dict[str, Any] | None
+    source: str
+    fit_id: str
+    reason: str
+
+    def describe(self) -> str:
+        """One line for logs and reports."""
+        if self.data is None:
+            return f"uncalibrated: {self.reason}"
+        return f"calibrated for fit {self.fit_id} ({self.source})"
 
 
-@functools.lru_cache(maxsize=4)
-def _warn_other_layout(n_cal: int, n: int, path: Path) -> None:
-    """Log once that the calibration at ``path`` has floors for ``n_cal`` estimated
-    variables where the tracker has ``n`` (another deviation model: the spec's knots)."""
-    log.warning("intervals='calibrated': %s has floors for %d estimated variables, this "
-                "tracker estimates %d (another [deviation] knots than the calibration's); "
-                "reporting the cloud's std", path.name, n_cal, n)
-
-
-def _entry(model: Any, deviation: bool) -> dict[str, Any] | None:
-    """The calibration's entry for a tracker on ``model`` with (``deviation``) or without
-    theta_d, ``None`` for a model without ``K_res`` and (logged once) for another
-    metamodel's calibration or another layout of the estimated variables."""
+def find_calibration(model: Any) -> Calibration:
+    """The interval calibration of ``model``: its file's own, else the package's for the
+    bundled fit, if the fit ids agree and ``diag(K_res)`` agrees within
+    :data:`~formtwin.metamodel.identity.SIGNATURE_RTOL` of its largest entry."""
+    fid = str(getattr(model, "fit_id", ""))
     signature = residual_signature(model)
-    cal = None if signature is None else _calibration(CALIBRATION_PATH)
-    if cal is None or signature is None:
-        return None
-    if not matches(signature, cal.get("k_res_diag")):
-        _warn_other_model(str(cal.get("model_version")), CALIBRATION_PATH)
-        return None
-    entry: dict[str, Any] = dict(cal["deviation" if deviation else "no_deviation"])
+    if signature is None:
+        return Calibration(None, "", fid, "the model has no held-out residual statistics "
+                           "(K_res): fit it with cross-validation folds")
+    candidates = [(c, s) for c, s in ((getattr(model, "calibration", None), "metamodel file"),
+                                      (_calibration(CALIBRATION_PATH), CALIBRATION_PATH.name))
+                  if c is not None and fid and c.get("fit_id") == fid]
+    for cal, source in candidates:
+        if cal.get("residuals", residual_rule(model)) != residual_rule(model):
+            return Calibration(None, source, fid, f"the calibration of fit {fid} ({source}) "
+                               f"was learned with the residual statistics "
+                               f"{cal.get('residuals')}, the model has "
+                               f"{residual_rule(model)}; run `formtwin metamodel calibrate`")
+        if signature_matches(signature, cal.get("k_res_diag")):
+            return Calibration(cal, source, fid, "")
+        ref = np.asarray(cal.get("k_res_diag"), dtype=np.float64)
+        off = float(np.abs(signature - ref).max() / np.abs(ref).max()) \
+            if ref.shape == signature.shape else float("inf")
+        return Calibration(None, source, fid, f"the calibration of fit {fid} ({source}) has a "
+                           f"residual covariance {off:.2g} of its largest entry away from this "
+                           f"model's (tolerance {SIGNATURE_RTOL:g}): the fit was made by other "
+                           "code; run `formtwin metamodel calibrate`")
+    which = fid or "(none: a file of an older formtwin; refit it)"
+    return Calibration(None, "", fid, f"no interval calibration for fit {which}: run "
+                       "`formtwin metamodel calibrate`")
+
+
+@functools.lru_cache(maxsize=8)
+def _warn(text: str) -> None:
+    """Log ``text`` once."""
+    log.warning("%s", text)
+
+
+def _entry(model: Any, deviation: bool) -> tuple[dict[str, Any] | None, Calibration]:
+    """The calibration's entry for a tracker on ``model`` with (``deviation``) or without
+    theta_d (``None``, logged once, where there is none or it has floors for another
+    layout of the estimated variables), and the calibration found."""
+    cal = find_calibration(model)
+    if cal.data is None:
+        if residual_signature(model) is not None:
+            _warn(f"intervals='calibrated': {cal.describe()}; reporting the cloud's std")
+        return None, cal
+    entry: dict[str, Any] = dict(cal.data["deviation" if deviation else "no_deviation"])
     n, n_cal = len(model.spec.augmented), len(entry.get("floors", ()))
     if n_cal != n:
-        _warn_other_layout(n_cal, n, CALIBRATION_PATH)
-        return None
-    entry["fit_gate"] = cal.get("fit_gate")
-    return entry
+        reason = (f"the calibration has floors for {n_cal} estimated variables, this tracker "
+                  f"estimates {n} (another [deviation] than the calibration's)")
+        _warn(f"intervals='calibrated': {reason}; reporting the cloud's std")
+        return None, dataclasses.replace(cal, data=None, reason=reason)
+    entry["fit_gate"] = cal.data.get("fit_gate")
+    return entry, cal
 
 
 def _floor_arrays(entry: dict[str, Any], prefix: str, n: int) -> tuple[FloatArray, FloatArray]:
@@ -110,7 +152,7 @@ def _floor_arrays(entry: dict[str, Any], prefix: str, n: int) -> tuple[FloatArra
     floors = np.array(entry[f"{prefix}floors"], dtype=np.float64)
     angles = np.array(entry[f"{prefix}angle_floors"], dtype=np.float64)
     if floors.shape != (n,) or angles.shape != (2,):
-        raise ValueError(f"{CALIBRATION_PATH.name}: {prefix}floors of shape {floors.shape} "
+        raise ValueError(f"interval calibration: {prefix}floors of shape {floors.shape} "
                          f"and {angles.shape}, expected ({n},) and (2,)")
     return floors, angles
 
@@ -122,7 +164,7 @@ def calibration_floors(model: Any, deviation: bool) -> tuple[FloatArray, FloatAr
     (no ``K_res``, as the analytic stand-in) and, logged once, when the bundled calibration
     was learned for another metamodel."""
     n = len(model.spec.augmented)
-    entry = _entry(model, deviation)
+    entry, _ = _entry(model, deviation)
     return (np.zeros(n), np.zeros(2)) if entry is None else _floor_arrays(entry, "", n)
 
 
@@ -173,7 +215,7 @@ class Floors:
         """Floors of the bundled calibration for a tracker on ``model`` with
         (``deviation``) or without theta_d; ``gated``: the fit gate."""
         n = len(model.spec.augmented)
-        entry = _entry(model, deviation)
+        entry, self.calibration = _entry(model, deviation)
         self.gated = gated
         self.ewma: tuple[float, float] = (0.0, 0.0)
         self.d0, self.a, self.s_max = 0.0, 1.0, 0.0
@@ -182,8 +224,9 @@ class Floors:
         elif not gated:
             self.b, self.b_angles = _floor_arrays(entry, "", n)
         elif entry.get("fit_gate") is None or "fit_floors" not in entry:
-            log.warning("intervals='calibrated_fit': %s has no fit gate; reporting the "
-                        "cloud's std", CALIBRATION_PATH.name)
+            reason = f"the calibration ({self.calibration.source}) has no fit gate"
+            log.warning("intervals='calibrated_fit': %s; reporting the cloud's std", reason)
+            self.calibration = dataclasses.replace(self.calibration, data=None, reason=reason)
             self.b, self.b_angles = np.zeros(n), np.zeros(2)
         else:
             self.b, self.b_angles = _floor_arrays(entry, "fit_", n)
