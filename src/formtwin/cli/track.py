@@ -231,4 +231,9 @@ def _track(args: argparse.Namespace) -> int:
               "(distance beyond the 99.9 % quantile of the measurement model): the estimates "
               "are not supported by the data. Likely causes: a metamodel of another press or "
               "process, a faulty sensor, curves in other units.")
+    if tracker.intervals == "uncalibrated":
+        from formtwin.tracker.intervals import find_calibration
+
+        print(f"WARNING: the std columns are the particle cloud's (overconfident under model "
+              f"error): {find_calibration(model).reason}")
     return 0
