@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench live-demo system-deps fe-deps clean
+.PHONY: demo test lint docs bench live-demo system-deps fe-deps clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -25,7 +25,12 @@ lint: $(STAMP)
 	    awk '$$2 != "total" && $$1 > 400 {print "over 400 lines: " $$2 " (" $$1 ")"; bad = 1} \
 	    END {exit bad}'
 
-test: $(STAMP) lint system-deps fe-deps
+# the documentation site (Sphinx + MyST): warnings are errors, so a broken link, anchor or
+# reference fails; docs/_build/html/index.html is the site
+docs: $(STAMP)
+	$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs docs/_build/html
+
+test: $(STAMP) lint docs system-deps fe-deps
 	OMP_NUM_THREADS=1 $(BIN)/pytest
 
 # the service tests need a real mosquitto broker and a headless chromium (Debian packages)
@@ -57,4 +62,4 @@ bench: $(STAMP)
 	for f in benchmarks/bench_*.py; do $(BIN)/python $$f || exit 1; done
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info docs/_build

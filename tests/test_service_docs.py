@@ -1,4 +1,4 @@
-"""docs/service.md, followed literally: fit the metamodel of the bundled physics DOE, start
+"""docs/tutorials/live-line.md, followed literally: fit the metamodel of the bundled physics DOE, start
 ``formtwin serve --check 100`` on it, replay a synthetic stream drawn from the same
 metamodel; the service must find that its model explains the first 100 products.
 
@@ -23,12 +23,12 @@ from service_fixtures import (
     wait_for,
 )
 
-DOC = REPO / "docs" / "service.md"
+DOC = REPO / "docs" / "tutorials" / "live-line.md"
 MARK = "<!-- the block below is run by tests/test_service_docs.py -->"
 
 
 def doc_commands() -> list[str]:
-    """The shell lines of the marked block of docs/service.md."""
+    """The shell lines of the marked block of docs/tutorials/live-line.md."""
     text = DOC.read_text(encoding="utf-8")
     block = text.split(MARK, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
     return [line for line in block.splitlines() if line.strip()]

@@ -37,11 +37,12 @@ FloatArray = NDArray[np.float64]
 class ResampleMoveSIR(SIR):
     """:class:`SIR` plus ``n_moves`` random-walk Metropolis-Hastings steps after resampling.
 
+    The parameters not listed here are those of :class:`SIR`.
+
     Parameters
     ----------
     bandwidth : h > 0, the proposal std as a fraction of the cloud's std per column.
     n_moves : Metropolis-Hastings steps per product (>= 1).
-    Other parameters as :class:`SIR`.
 
     Attributes
     ----------

@@ -31,10 +31,11 @@ FloatArray = NDArray[np.float64]
 class RegularisedSIR(SIR):
     """:class:`SIR` plus a moment-preserving Gaussian kernel move after resampling.
 
+    The parameters not listed here are those of :class:`SIR`.
+
     Parameters
     ----------
     bandwidth : h in (0, 1); the kernel std as a fraction of the particle std.
-    Other parameters as :class:`SIR`.
     """
 
     name = "regularised"

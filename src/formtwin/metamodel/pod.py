@@ -39,10 +39,10 @@ class POD:
         Keep the fewest modes whose share of the total variance (sum of squared singular
         values of the centred curves) reaches ``energy``, in (0, 1].
 
-    Attributes (after :meth:`fit`)
-    ------------------------------
+    Attributes
+    ----------
     mean : ndarray, shape (n_t,)
-        Mean curve, N.
+        Mean curve, N (set by :meth:`fit`, like the attributes below).
     modes : ndarray, shape (n_modes, n_t)
         Orthonormal modes (rows).
     singular_values : ndarray, shape (min(n, n_t),)

@@ -97,7 +97,8 @@ class TrackerConfig:
     n_mc : Monte-Carlo curves for the measurement model's ``K_MC`` (paper: 10^4).
     nu : Student-t degrees of freedom of the likelihood; ``inf`` is the paper's Gaussian,
         a finite value the heavy-tailed robust option.
-    likelihood : ``"adaptive"`` (default): covariance ``fraction^2 K_MC + kappa K_res +
+    likelihood : str
+        ``"adaptive"`` (default): covariance ``fraction^2 K_MC + kappa K_res +
         sigma_n^2 I`` with ``K_res`` the metamodel's held-out residual covariance and
         ``kappa`` averaged over :data:`SHARES` by the running evidence (``error_share``
         fixes it), and the predicted angles' variance adds the metamodel's angle error

@@ -75,9 +75,8 @@ class Tracker:
     model : the process model (metamodel) giving curves and angles.
     measurement : the measurement model (likelihood).
     config : settings; default :class:`TrackerConfig()`.
-    fit_rule : thresholds of the estimates' health (:mod:`formtwin.tracker.fit`).
-
-    See :func:`formtwin.tracker.build_tracker` for building one from a config alone.
+    fit_rule : thresholds of the estimates' health (:mod:`formtwin.tracker.fit`); see
+        :func:`formtwin.tracker.build_tracker` for building a tracker from a config alone.
 
     Examples
     --------
