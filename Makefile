@@ -16,7 +16,9 @@ demo: $(STAMP)
 	$(BIN)/formtwin demo
 
 lint: $(STAMP)
-	$(BIN)/ruff check src tests benchmarks examples
+	$(BIN)/ruff check src tests benchmarks examples scripts docs/conf.py docs/_ext docs/figures
+	@# the product's words: no work periods, locks, who ran what, clock times or machine paths
+	$(BIN)/python scripts/check_words.py
 	$(BIN)/mypy
 	$(BIN)/lint-imports
 	$(BIN)/interrogate -c pyproject.toml src/formtwin

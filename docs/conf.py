@@ -15,8 +15,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "src"))
 sys.path.insert(0, str(HERE / "_ext"))
 
-import formtwin  # noqa: E402
 from reference_pages import write_api_pages, write_cli_page  # noqa: E402
+
+import formtwin  # noqa: E402
 
 project = "formtwin"
 author = "formtwin authors"

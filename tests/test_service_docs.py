@@ -1,5 +1,5 @@
-"""docs/tutorials/live-line.md, followed literally: fit the metamodel of the bundled physics DOE, start
-``formtwin serve --check 100`` on it, replay a synthetic stream drawn from the same
+"""docs/tutorials/live-line.md, followed literally: fit the metamodel of the bundled physics
+DOE, start ``formtwin serve --check 100`` on it, replay a synthetic stream drawn from the same
 metamodel; the service must find that its model explains the first 100 products.
 
 Only the broker address changes (a private mosquitto on a free port); the commands run in
