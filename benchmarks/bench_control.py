@@ -1,13 +1,13 @@
 """Benchmark: the closed-loop control study of the final angle (issue 13).
 
-Run ``flock /tmp/formtwin-heavy.lock python benchmarks/bench_control.py`` (heavy: 3 physics
+Run ``python benchmarks/bench_control.py`` (heavy: 3 physics
 runs per product, 1000 products x 5 datasets and a tuning one, cached per physics model
 version; ``--plant-only`` runs only the plants' physics into the cache, so that the
 controllers' part, ~7 min, can run later; ``make control-study`` runs the same study through
 the command line into the same folder, whose per-dataset results this script reuses).
 Plant: the physics model (bending) under series-6 conditions; model: the metamodel of the
 bundled physics DOE (what a fresh clone gets, fitted into the study folder). See
-:mod:`formtwin.study.control` and ``docs/control.md``.
+:mod:`formtwin.study.control` and ``docs/explanation/control.md``.
 
 Figures (``benchmarks/results/bench_control.json``): per controller (fixed, ewma,
 feedforward: the weight learned on the line, the service's default; feedforward_fixed: the

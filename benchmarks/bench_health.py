@@ -23,7 +23,7 @@ Besides, the distribution of the fit under matched conditions: quantiles of the 
 and the share of ``no_fit``/``degraded`` products per series. The physics curves of series
 6 are computed once and cached in ``benchmarks/.cache`` (about 0.1 s per product).
 
-Run under the shared lock: ``flock /tmp/formtwin-heavy.lock python benchmarks/bench_health.py``
+Run ``python benchmarks/bench_health.py`` (heavy)
 (``--products 500`` for a quick look; ``--learn-residuals``: every tracker with the line's
 residual moment learned online, written as ``bench_health_learn_residuals.json``).
 """

@@ -14,7 +14,7 @@ mean curve, ``holdout_angle_nrmse`` (RMSE / std per angle), ``fit_s``; and for s
 inputs and the same 40 POD coefficients + 2 angles: ``scipy_tps_predict_500_ms``,
 ``scipy_tps_holdout_curve_rel_err``, ...
 
-``--tradeoff`` also fits the variants of the accuracy/speed table in docs/metamodel.md.
+``--tradeoff`` also fits the variants of the accuracy/speed table in docs/explanation/metamodel.md.
 
     python benchmarks/bench_metamodel.py [--dataset PATH] [--tradeoff]
 """
@@ -114,7 +114,7 @@ def _scipy(train: _Rows, test: _Rows, mean: np.ndarray, repeat: int) -> dict[str
             "scipy_tps_fit_s": fit_s}
 
 
-#: (label, factory) of the accuracy/speed table in docs/metamodel.md
+#: (label, factory) of the accuracy/speed table in docs/explanation/metamodel.md
 VARIANTS: list[tuple[str, Callable[[], Metamodel]]] = [
     ("TPS, unit box, interpolate all", lambda: Metamodel(
         POD(40), RBF(length_scales="box"))),

@@ -58,8 +58,8 @@ TARGETS = {"s1_state_ratio": ("<=", 1.05), "s5_state_ratio": ("<=", 0.7),
 
 #: options measured against the default (repetition 0 of every dataset, same data): the
 #: guided proposal from the parents' curves and the reported intervals (the resample-move
-#: filter was measured in session 6, the guided proposal with a pilot evaluation in
-#: session 7: docs/likelihood.md; left out to keep the benchmark within its lock time);
+#: filter was measured in 0.1.0.dev6, the guided proposal with a pilot evaluation in
+#: 0.1.0.dev7: docs/notes/guided-filter.md; left out to keep the benchmark's time short);
 #: name: (tracker settings, series, note); an option equal to the default is skipped
 OPTIONS: dict[str, tuple[dict[str, Any], tuple[int, ...], str]] = {
     "guided_lin": ({"filter": "guided_lin"}, (1, 3, 5, 6),
@@ -79,7 +79,7 @@ OPTIONS: dict[str, tuple[dict[str, Any], tuple[int, ...], str]] = {
                         "its intervals use the default's calibrated floors"),
     "mu_known": ({"mu_known": True}, (4, 6),
                  "the intervals without the assumed mu's term G_mu E[d d^T] G_mu^T (as "
-                 "before session 10)"),
+                 "before 0.1.0.dev10)"),
 }
 
 
@@ -214,7 +214,7 @@ def main() -> None:
                if cal is not None else {}),
             "series6": round(state(learned, 6), 4),
             "series8_learned_mu": round(state(learned, 8), 4),
-            "per_repetition": {  # series 8 depends on the run's seed (docs/improvements.md)
+            "per_repetition": {  # series 8 depends on the run's seed (docs/notes/learned-mu.md)
                 f"series{s}": [round(float(_mean(learned.nrmse[s - 1, :, r, :nx])), 4)
                                for r in range(2)] for s in (6, 8)}},
         "state_nrmse_per_dataset": {

@@ -1,8 +1,8 @@
 """Benchmark of the monitoring (EWMA, CUSUM and model-mismatch charts): detection delay
 for known changes and false alarms in control.
 
-Run ``python benchmarks/bench_monitoring.py`` (heavy, ~15 min: run it under
-``flock /tmp/formtwin-heavy.lock``). Model: the metamodel of the bundled physics DOE
+Run ``python benchmarks/bench_monitoring.py`` (heavy, ~15 min: run it when
+the machine is free). Model: the metamodel of the bundled physics DOE
 (:func:`formtwin._bench.bundled_metamodel`, what a fresh clone gets); tracker: the default
 :class:`~formtwin.tracker.TrackerConfig` (its likelihood) with N = ``--particles``, the
 line's state means ``mu`` known (the spec's mid-range), no deviation on the curves and
@@ -46,7 +46,7 @@ by their settings and a hash of the code that makes the estimates, so chart desi
    first alarm and to the first mismatch alarm, and ``signalled_share``: the share of the
    50-product windows after the fault with a mismatch alarm (1: signalled throughout).
 5. Alarm episodes (:mod:`~formtwin.monitoring.episodes`, as the service stores and publishes
-   alarms): per fault run the signals (the service's alarm rows until session 12) and the
+   alarms): per fault run the signals (the service's alarm rows until 0.1.0.dev12) and the
    episodes raised per 1000 products after the fault; in control the episodes per 10^4
    charted products beside the false alarms (signals). The figures above count signals
    (every one in control, the first after a change) and do not depend on the episodes.

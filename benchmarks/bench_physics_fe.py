@@ -14,8 +14,8 @@ angle 1) and ``sensitivity_sign_agreement_final`` (angle 2): the fraction of inp
 CalculiX's own mesh error; the mesh errors; ccx version, meshes, seconds per FE run.
 Targets (issue 12): peak <= 0.05, plateau <= 0.03, angle 1 <= 0.5 deg, agreement 1.0.
 
-Every ccx run takes the shared heavy lock (``--lock``) by itself, so other jobs take turns
-(``--lock ''`` when the whole script runs under ``flock``);
+With ``--lock FILE`` (or ``FORMTWIN_HEAVY_LOCK``) every ccx run takes that lock by itself,
+so other heavy jobs on the machine take turns (no lock by default);
 FE results are cached in ``benchmarks/.cache/fe_runs.json`` by model version, geometry and
 input, so a rerun after a beam-model change only runs the beam model.
 ``--reference PATH`` also writes the 9 cases' stage-1 figures (the FE reference for the
@@ -184,7 +184,7 @@ class FeCache:
         return hashlib.sha256(text.encode()).hexdigest()[:20]
 
     def run(self, fe: CalculixModel, x: np.ndarray, lock: str) -> dict[str, Any]:
-        """Figures of one FE run (cached), the run under the heavy lock."""
+        """Figures of one FE run (cached), the run under ``lock`` if one is given."""
         k = self.key(fe, x)
         if k not in self.data:
             with open(lock or os.devnull, "a") as fh:
@@ -221,10 +221,9 @@ def main() -> None:
                         "point by point (Markdown)")
     parser.add_argument("--beam", default="", help="beam-model variant: Discretisation "
                         "overrides KEY=VALUE,... (written to bench_physics_fe_variant.json)")
-    parser.add_argument("--lock", default=os.environ.get("FORMTWIN_HEAVY_LOCK",
-                                                         "/tmp/formtwin-heavy.lock"),
-                        help="lock file each ccx run takes; '' when the whole script runs "
-                        "under `flock` (default: %(default)s)")
+    parser.add_argument("--lock", default=os.environ.get("FORMTWIN_HEAVY_LOCK", ""),
+                        help="lock file each ccx run takes, to share the machine with other "
+                        "heavy jobs; '' for none (default: $FORMTWIN_HEAVY_LOCK or none)")
     parser.add_argument("--independent", type=int, default=0, metavar="N",
                         help="add N independent DOE points (see the module docstring)")
     parser.add_argument("--independent-seed", default="2026",

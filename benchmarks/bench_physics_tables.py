@@ -1,4 +1,5 @@
-"""The tables of docs/physics.md: sensitivity, mesh convergence and smoothness in ``u``.
+"""The tables of the physics notes (docs/notes/physics-*.md): sensitivity, mesh convergence
+and smoothness in ``u``.
 
 One core, the default :class:`~formtwin.physics.bending.BendingModel`:
 

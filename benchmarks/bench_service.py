@@ -20,7 +20,7 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   its means in the spec's ``[mu_min, mu_max]``, up to 2-4 sigma from the mid-range the
   tracker assumes by default, ``line_mean_offset_sigma``; with ``--unknown-means`` the
   service is not told, and the state charts see the line's own offset from the mid-range
-  as the lasting shift they are built to detect: docs/monitoring.md);
+  as the lasting shift they are built to detect: docs/explanation/monitoring.md);
 * CPU time, which other jobs on the machine disturb far less than wall time:
   ``serve_cpu_ms_per_product`` (the whole serve process: MQTT, validation, tracker, store,
   page; during the full-speed phase), ``tracker_step_cpu_ms`` (thread time of a step), and
@@ -33,7 +33,7 @@ Targets (``targets``/``met``): products_per_s >= 150, latency_p99_ms <= 20,
 serve_overhead_cpu_ms <= 1.0.
 
 The stream carries ``NOISE_N`` (2 N) of white sensor noise and the service is told so
-(``serve --sensor-noise 2``, as docs/service.md asks of a user): with a likelihood that
+(``serve --sensor-noise 2``, as docs/explanation/service.md asks of a user): with a likelihood that
 assumes a quieter sensor (the default 0), ~30 % of the products are ``no_fit`` and the
 model-health check (a bounded least-squares search, ~0.1 s) runs whenever its rule fires.
 

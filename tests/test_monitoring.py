@@ -400,7 +400,8 @@ def _health_line(per_line: bool, level: float, drop_at: int, n: int = 1500,
 
 def test_health_references_from_the_lines_own_phase1() -> None:
     """A line whose filter health sits lower than every calibration line's (as the ESS with
-    the deviation estimated, docs/monitoring.md): against the pooled reference the mismatch
+    the deviation estimated, docs/explanation/monitoring.md): against the pooled reference the
+    mismatch
     chart alarms as soon as it charts; against the line's own Phase-I values (frozen at its
     end) it does not in 1500 products, and a drop of 3 after product 1000 is seen within 10
     products, but not within 4: a reference of 100 values caps a score at

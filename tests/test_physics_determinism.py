@@ -1,5 +1,5 @@
 """The bending model gives bit-identical outputs whether its kernels are freshly compiled or
-loaded from Numba's on-disk cache (session 12: with ``reassoc``/``contract`` fast-math flags
+loaded from Numba's on-disk cache (0.1.0.dev12: with ``reassoc``/``contract`` fast-math flags
 the two differed by up to 0.006 N, because the cached caller runs its own re-optimised copy
 of a callee where the fresh process calls the callee's separately compiled code)."""
 

@@ -131,7 +131,7 @@ CREATE TABLE alarms (
 
 
 def test_a_store_of_the_schema_before_the_episodes_opens(tmp_path: Path) -> None:
-    """An ``alarms`` table without episodes (the schema until session 12) with signals, some
+    """An ``alarms`` table without episodes (the schema until 0.1.0.dev12) with signals, some
     acknowledged: it opens, gets ``episode_id``, and its episodes are the ones a service
     with episodes would have written, linked to their signals, acknowledged where every
     signal was; it then continues as that service."""

@@ -35,7 +35,7 @@ from formtwin.service.mqtt import BrokerConfig, publish_strokes
 from formtwin.service.plausibility import Plausibility
 
 TOPIC = "plant/line1/press1/stroke"
-#: set to write the screenshot shown in docs/service.md
+#: set to write the screenshot shown in docs/explanation/health.md
 SHOT = REPO / "docs" / "figures" / "service_mismatch_banner.png"
 
 

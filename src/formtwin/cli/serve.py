@@ -108,7 +108,7 @@ def _monitor(args: argparse.Namespace, proc: Any) -> Any:
 
 
 def add_check_options(p: argparse.ArgumentParser) -> None:
-    """Plausibility limits, model-health rule and ``--check`` (docs/service.md)."""
+    """Plausibility limits, model-health rule and ``--check`` (docs/explanation/service.md)."""
     g = p.add_argument_group("plausibility of a stroke and model health (default limits "
                              "derived from the spec's ranges through the model)")
     g.add_argument("--min-peak", type=float, metavar="N",

@@ -10,7 +10,7 @@
 
 Generic numerics: the process enters only as a function ``final_angle(u) -> (N, n_u)``
 (the final angle of every particle at each candidate setting), so this package sits beside
-the filters, below the tracker. See ``docs/control.md``.
+the filters, below the tracker. See ``docs/explanation/control.md``.
 """
 
 from formtwin.control.combined import (

@@ -75,7 +75,7 @@ from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray,
 #: ``lam`` and ``rho`` of the closed-loop study's feedforward, the weight learned on the line
 #: (``adaptive``, starting at 0), chosen on all its datasets (least mean within-dataset std
 #: ratio; the last ``benchmarks/results/bench_control.json``'s ``ff_lam`` and ``ff_rho``,
-#: docs/control.md): the service's defaults
+#: docs/explanation/control.md): the service's defaults
 TUNED_LAM = 0.02
 TUNED_RHO = 0.7
 #: ``lam``, ``weight`` and ``rho`` of the study's best fixed weight (``fffixed_lam``,

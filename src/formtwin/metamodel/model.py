@@ -94,7 +94,7 @@ class Metamodel:
     approximation : Approximation
         Template for the interpolation of the mode coefficients; default
         ``RBF("cubic", n_centres=1000)`` (per-dimension length scales by leave-one-out,
-        least squares on 1000 centres; see ``docs/metamodel.md`` for the accuracy/speed
+        least squares on 1000 centres; see ``docs/explanation/metamodel.md`` for the accuracy/speed
         trade-off that chose it). It is copied, never fitted itself.
     angle_approximation : Approximation or None
         Template for each of the two angle models. ``None``: ``RBF("cubic",

@@ -2,7 +2,7 @@
 predicted angles, a model-mismatch chart on the filter's health, and alarms.
 
 Layer: above the tracker (it consumes :class:`~formtwin.estimates.Estimate`), below the
-study, the service and the command line. See ``docs/monitoring.md``.
+study, the service and the command line. See ``docs/explanation/monitoring.md``.
 
 * :mod:`~formtwin.monitoring.charts`: the charts and their run-length design;
 * :mod:`~formtwin.monitoring.glr`: the GLR chart for a level change of an AR quantity;

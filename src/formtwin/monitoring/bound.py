@@ -23,7 +23,7 @@ true state's AR(1) model (:func:`~formtwin.monitoring.glr.level_signature`): the
 
 The approximation knows the machine parameters, the noise law and the model (the particle
 filter learns the first and approximates the rest), so it bounds what a monitor of the
-estimates can reach; the particle filter's estimates lose more (docs/monitoring.md).
+estimates can reach; the particle filter's estimates lose more (docs/explanation/monitoring.md).
 
 >>> f = steady_filter(np.ones((1, 1)), np.eye(1), rho=np.array([0.8]), sigma=np.ones(1))
 >>> s = step_in_filter(f, 0, 2.0, 200)

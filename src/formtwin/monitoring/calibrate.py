@@ -55,7 +55,7 @@ class ChartDesign:
     lam : EWMA smoothing.
     k : CUSUM reference value (sigma units of the residual: half the residual shift it is
         tuned for; 0.5: the lasting residual shift of a 2-sigma step in a state mean is
-        0.6-1.0 residual sigma, docs/monitoring.md).
+        0.6-1.0 residual sigma, docs/explanation/monitoring.md).
     k_mismatch : reference of the one-sided mismatch CUSUM on the health scores.
     arl0_per_chart : in-control ARL of each quantity's CUSUM (two-sided), the charts that
         detect a step; the family of all charts signals about ``sum 1 / ARL0`` per product.
@@ -65,7 +65,7 @@ class ChartDesign:
     arl0_shewhart : in-control ARL of the single-product limit on ``|z|`` that joins each
         CUSUM (combined Shewhart-CUSUM); ``None`` (default): none. (It sees the jump of a
         step at once, but the residuals' extreme tails beyond the calibration sample make
-        it raise false alarms; see docs/monitoring.md.)
+        it raise false alarms; see docs/explanation/monitoring.md.)
     order : AR order of the in-control models.
     tails : standardise residuals through their in-control distribution (heavy tails).
     health_ar : chart the health scores' AR residuals (they are autocorrelated) instead of
@@ -79,11 +79,12 @@ class ChartDesign:
         (frozen at its end) instead of the calibration lines' pooled sample; the scores' AR
         models are fitted on the calibration lines scored the same way (each against its
         own Phase I), about their pooled level. Off by default: on bending-2.4's held-out
-        runs it raised more false alarms than the pooled references (docs/monitoring.md).
+        runs it raised more false alarms than the pooled references
+        (docs/explanation/monitoring.md).
     health_level : the health scores' levels follow the line once charting (an EWMA with
         this weight, :attr:`~formtwin.monitoring.monitor.MonitorConfig.health_level`: 0.01,
         a time constant of 100 products; chosen on bench_monitoring's seed-2026 runs,
-        docs/monitoring.md), paused from a mismatch alarm until its chart has been quiet
+        docs/explanation/monitoring.md), paused from a mismatch alarm until its chart has been quiet
         for 100 products (a persistent mismatch stays signalled); ``None``: the
         calibration lines' level throughout.
     glr : a GLR chart for a level change on each state variable
@@ -94,7 +95,7 @@ class ChartDesign:
     glr_clip : the GLR sees each score clipped to +-this (Huber's bounded influence): the
         particle filter's estimates jump now and then by several residual sigmas for a
         product or a few (its particles thin out), which an unclipped GLR takes for the
-        jump a step makes (docs/monitoring.md); ``None``: unclipped.
+        jump a step makes (docs/explanation/monitoring.md); ``None``: unclipped.
     state_cusum : the CUSUM on the state variables (off: the GLR detects the step).
     widen_margin : raise a chart's limit where charting the calibration runs would have
         come closer than this factor to it (:func:`widen`); ``None``: off.

@@ -76,7 +76,7 @@ class MonitorConfig:
     health_level : the health models' levels follow the line: once charting, each product
         moves a level by this share of its score's deviation from it (clipped to +-3), an
         EWMA whose time constant (1 / share products) is long against a mismatch's
-        detection and short against the filter's health transient (docs/monitoring.md);
+        detection and short against the filter's health transient (docs/explanation/monitoring.md);
         not re-estimated from out-of-control data: a level pauses from its mismatch
         chart's alarm until that chart has been quiet for one time constant, so a
         mismatch that persists stays signalled; ``None``: the levels stay at the

@@ -34,7 +34,7 @@ for the next product; null before the first measured angle); with the learned we
 The suggestion is made before the product's own measured angle is used. The previous
 suggestion (for the maximum step) and the controller's state are those stored with the last
 accepted product, so a restarted service continues from them bit for bit. The closed-loop
-study (``docs/control.md``) measured this controller against the open feedforward, the
+study (``docs/explanation/control.md``) measured this controller against the open feedforward, the
 run-to-run EWMA and an oracle.
 """
 
@@ -77,7 +77,7 @@ class ControlSettings:
     rho : persistence of the last product's deviation from the level, in [0, 1); default:
         the closed-loop study's tuning.
     adaptive : learn the weight on the line (``Combined(adaptive=True)``, starting at
-        ``weight``; the control study's feedforward, docs/control.md).
+        ``weight``; the control study's feedforward, docs/explanation/control.md).
     """
 
     target_deg: float

@@ -3,9 +3,9 @@ physics runs of its own (``python -m formtwin.study.calibrate``).
 
 Under the metamodel's error the posterior is overconfident, and the largest part of the
 error is a bias that neither the particle cloud nor the linear response to ``K_res``
-(:mod:`formtwin.tracker.intervals`) shows (docs/likelihood.md). As ``K_res`` is learned on
-held-out DOE runs, this learns per component the floor ``b`` that, added in quadrature
-to the cloud's std, makes the 90 % interval ``mean +- 1.645 sqrt(std^2 + b^2)`` hold the
+(:mod:`formtwin.tracker.intervals`) shows (docs/explanation/likelihood.md). As ``K_res`` is
+learned on held-out DOE runs, this learns per component the floor ``b`` that, added in
+quadrature to the cloud's std, makes the 90 % interval ``mean +- 1.645 sqrt(std^2 + b^2)`` hold the
 truth in 90 % of the products of independent physics pseudo-data: realisations drawn with
 the study seed :data:`SEED` (the study's default is 0, so they share no realisation with
 the study or the benchmarks), filtered as series 5 (no deviation model) and series 6
@@ -202,7 +202,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=SEED)
     parser.add_argument("--write", default=str(CALIBRATION_PATH))
     parser.add_argument("--learn-residuals", action="store_true",
-                        help="calibrate trackers with learn_residuals (docs/likelihood.md)")
+                        help="calibrate trackers with learn_residuals "
+                        "(docs/notes/likelihood-learn-residuals.md)")
     args = parser.parse_args(argv)
     mm, mm_path = default_metamodel(Path(args.model), "bending")
     try:

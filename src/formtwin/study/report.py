@@ -71,7 +71,7 @@ def comparison(spec: ProcessSpec, overall: np.ndarray, series: tuple[int, ...]) 
     for a, b in ((4, 7), (6, 8)):  # not the paper's: learned mu against assumed mid-range
         if {a, b} <= set(score):
             out.append(f"Learned mu (series {b}) against mid-range mu (series {a}): "
-                       f"{score[b]:.2f} vs {score[a]:.2f} (see docs/improvements.md).")
+                       f"{score[b]:.2f} vs {score[a]:.2f} (see docs/notes/learned-mu.md).")
     for text, holds in checks:
         out.append(f"Paper: {text} — here: {'agrees' if holds else 'DOES NOT agree'}.")
     return out
@@ -158,7 +158,7 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
               f"'{st.tracker.likelihood}' ({st.n_repetitions} repetitions per dataset)"
               + (f" and the paper's eq. 12 ({st.paper_repetitions} per dataset in series "
                  f"{', '.join(map(str, st.paper_series))}, same data)"
-                 if result.paper else "") + "; docs/likelihood.md explains them."),
+                 if result.paper else "") + "; docs/explanation/likelihood.md explains them."),
         ("img", "fig_skill_coverage.png", "skill and coverage per series"),
         ("table", *honest_table(honest)),
         ("h2", "Comparison with the paper"),
@@ -170,7 +170,7 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
               "makes the normalised angle error large even when the error in degrees is "
               "small: our stage-2 angle hardly varies with the inputs, and the metamodel's "
               "own stage-2 angle error is of the same order as that spread "
-              "(docs/metamodel.md)."),
+              "(docs/explanation/metamodel.md)."),
         ("p", "Why ours may differ: our physics model is a corotational-beam model of an "
               "invented flap geometry, not the paper's MSC.Marc model of the real demonstrator; "
               "the sensitivities of the force curve to each parameter, and therefore what is "

@@ -15,7 +15,7 @@ series  data        filter model               statistics mu
 
 Series 7 and 8 are not the paper's: they are series 4 and 6 with the improvement its
 Discussion suggests, the statistics mu estimated as hyperparameters
-(``TrackerConfig(learn_mu=True)``, see ``docs/improvements.md``). Their K_MC is that of
+(``TrackerConfig(learn_mu=True)``, see ``docs/notes/learned-mu.md``). Their K_MC is that of
 series 4 and 6 (mid-range mu), so the pairs differ only in the filter. The default study
 (``StudySettings.series``) stays the paper's six.
 
@@ -139,7 +139,7 @@ def series_config(base: TrackerConfig, series: Series, mu: FloatArray,
     """The filter settings of ``series``: ``base`` with the series' deviation switch,
     learned-mu switch and whether mu is known (else the intervals carry the assumed mu's
     error; ``base.mu_known`` drops that term in every series, the intervals before
-    session 10), the assumed state means ``mu`` (7,) and the tracker ``seed``."""
+    0.1.0.dev10), the assumed state means ``mu`` (7,) and the tracker ``seed``."""
     return dataclasses.replace(base, estimate_deviation=series.deviation,
                                mu=tuple(float(v) for v in mu), seed=seed,
                                learn_mu=series.learn_mu,

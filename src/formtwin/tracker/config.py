@@ -79,7 +79,8 @@ class TrackerConfig:
     ess_threshold : resample when ESS < ess_threshold N (1.0: every step, Algorithm 1).
     compare : ``"measurement"`` (default: the measured curve ``z`` against the deviated model
         curve ``g(z~, theta_d)``, a proper density of ``z``) or ``"model"`` (paper eq. 12:
-        ``g^-1(z, theta_d)`` against ``z~``), see :data:`COMPARE` and docs/likelihood.md.
+        ``g^-1(z, theta_d)`` against ``z~``), see :data:`COMPARE` and
+        docs/explanation/likelihood.md.
     angle_particles : predict the angles from this many particles drawn from the weighted
         cloud by systematic resampling (cuts the cost of the angle models, adds Monte-Carlo
         error of order ``std / sqrt(angle_particles)``; with an ESS of 20-100 of 500, 100
@@ -135,10 +136,10 @@ class TrackerConfig:
         over :data:`SCALES`, updated by each product's innovation likelihood under each
         ``c`` (see :meth:`~formtwin.tracker.BendingSSM.update_scale`); the particles are
         weighted by the posterior mixture. Gaussian likelihood only. Off: on the physics
-        data it drives ``c`` to the smallest value and hurts (docs/likelihood.md).
+        data it drives ``c`` to the smallest value and hurts (docs/explanation/likelihood.md).
     learn_residuals : with the adaptive likelihood, learn the second moment ``M`` of the
         line's own residuals online and use ``Sigma + M`` as the likelihood's base
-        covariance (:mod:`formtwin.tracker.learned`, docs/likelihood.md).
+        covariance (:mod:`formtwin.tracker.learned`, docs/explanation/likelihood.md).
     """
 
     n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))

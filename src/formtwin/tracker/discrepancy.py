@@ -3,9 +3,9 @@
 The calibrated likelihood treats the metamodel's error as independent noise per product,
 ``r_i = z_i - z~(x_i) ~ N(0, Sigma_e + K_res)``. But the error of a metamodel near one
 operating point is mostly *systematic*: the same smooth misfit of the curve for product
-after product (``docs/likelihood.md``). Treating it as fresh noise every time throws away
-information where there is no error (metamodel data: the state error grows) and leaves the
-filter free to absorb a persistent misfit with wrong static parameters.
+after product (``docs/explanation/likelihood.md``). Treating it as fresh noise every time
+throws away information where there is no error (metamodel data: the state error grows)
+and leaves the filter free to absorb a persistent misfit with wrong static parameters.
 
 Here the error is split into a discrepancy ``b`` shared by the products (Kennedy &
 O'Hagan 2001) and a part that changes from product to product, a share ``kappa`` of

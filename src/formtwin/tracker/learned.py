@@ -4,7 +4,8 @@ The adaptive likelihood adds a share of ``K_res``, the metamodel's held-out erro
 DOE's line region, to the paper's covariance. A production line sees the metamodel's error
 at its own inputs only, and there it has its own shape: on the study's physics lines the
 second moment of ``physics - metamodel`` at the true inputs has directions with 12-18 times
-``K_res``'s variance (``benchmarks/bench_model_error_bounds.py``, ``docs/likelihood.md``).
+``K_res``'s variance (``benchmarks/bench_model_error_bounds.py``,
+``docs/notes/likelihood-bounds.md``).
 With this option the tracker learns that moment from its own products: after each product
 the posterior mean of the residual,
 

@@ -42,7 +42,7 @@ the data (the adaptive likelihood's ``P(kappa > 0)``; 1 for the other likelihood
 ``J`` and the angle gradient are refreshed every :data:`EVERY` products (``m + 1`` curve
 and ``n_in + 1`` angle evaluations); the particles, weights, means, ESS, evidence and
 health do not change (the intervals are computed after the step and draw no random
-numbers). What this does and does not explain on the physics data: docs/likelihood.md.
+numbers). What this does and does not explain on the physics data: docs/explanation/likelihood.md.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Two-stage flap bending model: corotational layered beams, rigid tools, crank and press.
 
-:class:`BendingModel` is the :class:`~formtwin.simulator.Simulator`; see ``docs/physics.md``.
+:class:`BendingModel` is the :class:`~formtwin.simulator.Simulator`; see
+``docs/explanation/physics.md``.
 """
 
 from formtwin.physics.bending._cache import sync_cache

@@ -3,7 +3,7 @@
 Numba invalidates a cached function only when its own file changes, and a cached caller
 holds its own copy of the kernels it calls: after an update that changes ``kernels.py`` or
 ``contact.py`` but not ``solver.py``, the solver loaded from the cache runs the old
-kernels' code (session 12: a clone whose solver was cached before the fast-math flags
+kernels' code (0.1.0.dev12: a clone whose solver was cached before the fast-math flags
 changed computed the study's physics pseudo-data up to 0.9 N away from a fresh clone's,
 every run different). :func:`sync_cache`, called when the package is imported, keeps a
 stamp of the package's sources in its ``__pycache__`` and drops the Numba cache files

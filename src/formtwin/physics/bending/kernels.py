@@ -66,7 +66,7 @@ BW = 5  # semi-bandwidth of the stiffness of a chain of 3-dof nodes
 #: those two, LLVM re-optimises a callee linked into its caller differently from the
 #: callee compiled alone; a fresh process calls the latter, a process that loads the
 #: caller from Numba's on-disk cache the former, and the outputs differed by up to 0.3 N
-#: (session 12, docs/physics.md "Determinism")
+#: (0.1.0.dev12, docs/notes/physics-determinism.md)
 FASTMATH = {"nsz", "arcp", "afn"}
 
 # ---------------------------------------------------------------------------- material

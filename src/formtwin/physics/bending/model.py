@@ -5,7 +5,7 @@ spring), stage-1 unload (crank up until the punch is clear: springback), stage 2
 unload with the stroke-controlled punch (depth set by the control ``u``);
 outputs the stage-1 spring force on the spec's time grid and
 the two bend angles after springback. See :mod:`.geometry` for the tools and
-``docs/physics.md`` for the assumptions.
+``docs/explanation/physics.md`` for the assumptions.
 """
 
 from __future__ import annotations

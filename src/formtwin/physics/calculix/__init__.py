@@ -4,7 +4,7 @@ beam model :mod:`formtwin.physics.bending`, behind the same simulator seam.
 
 :class:`CalculixModel` is the :class:`~formtwin.simulator.Simulator`; it needs the
 ``ccx`` executable (Debian package ``calculix-ccx``; ``make fe-deps``). See
-``docs/physics.md``.
+``docs/explanation/physics.md``.
 """
 
 from formtwin.physics.calculix.deck import FeSettings, ProcessPoint

@@ -91,7 +91,7 @@ def run_ccx(text: str, workdir: Path, ccx: str = "ccx", timeout: float = 1800.0)
 
 
 class CalculixModel:
-    """Two-stage flap bending as a plane-strain CalculiX model (see ``docs/physics.md``).
+    """Two-stage flap bending as a plane-strain CalculiX model (``docs/explanation/calculix.md``).
 
     Satisfies :class:`formtwin.simulator.Simulator`; picklable (plain settings), so
     :func:`formtwin.doe.run_design` can run it in a process pool or on a Dask cluster
