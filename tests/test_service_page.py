@@ -3,6 +3,7 @@ running `formtwin serve`: points appear and grow as strokes arrive; rejections a
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import threading
@@ -26,6 +27,9 @@ from formtwin.service.mqtt import BrokerConfig, publish_strokes
 from formtwin.service.streams import make_stream, read_stream
 
 TOPIC = "plant/line1/press1/stroke"
+#: the live page in its normal state, shown in docs/explanation/service.md; written with
+#: FORMTWIN_DOCS_SHOTS=1 set
+SHOT = Path(__file__).resolve().parent.parent / "docs" / "figures" / "service_live_page.png"
 
 
 def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
@@ -64,6 +68,8 @@ def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  #
             # the chart holds the data: the ESS chart has 40 x values
             n_x = page.evaluate("window.formtwinLive.charts.at(-1).plot.data[0].length")
             assert n_x == 40
+            if os.environ.get("FORMTWIN_DOCS_SHOTS"):
+                page.screenshot(path=str(SHOT))
             _publish_raw(mosquitto.url, b"{not json")
             page.wait_for_function(
                 "document.getElementById('n-rejected').textContent === '1'",

@@ -46,12 +46,19 @@ def write_cli_page(path: Path) -> None:
     """Write the reference of every ``formtwin`` command, generated from its parser."""
     from formtwin.cli import build_parser
 
+    columns = os.environ.get("COLUMNS")
     os.environ["COLUMNS"] = "92"  # argparse wraps help to the terminal's width
-    parser = build_parser()
+    try:
+        parser = build_parser()
+        body = _sections(parser, "formtwin", 2)
+    finally:
+        if columns is None:
+            del os.environ["COLUMNS"]
+        else:
+            os.environ["COLUMNS"] = columns
     head = ["# Commands", "",
             "Generated from the argument parser of `formtwin` (`formtwin.cli.build_parser`) "
             "when the documentation is built; `formtwin COMMAND --help` prints the same.", ""]
-    body = _sections(parser, "formtwin", 2)
     _write(path, "\n".join(head + body))
 
 
