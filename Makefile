@@ -1,4 +1,5 @@
-# formtwin: `make demo` runs the main job, `make test` the tests. Both build .venv themselves.
+# formtwin: `make demo` runs the main job, `make test` the tests (lint, the docs site, pytest).
+# Both build .venv themselves; `make docs` builds the documentation site alone.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
