@@ -8,8 +8,9 @@ product ``i`` is
     m_i +- q_i s_i,    q_i = the ceil((n + 1)(1 - alpha_i))-th smallest of the n stored
                        scores |y_j - m_j| / s_j of the products measured so far
 
-(before ``warmup`` scores: the Normal quantile ``z_{1 - alpha_i / 2}``; ``alpha_i <= 0``
-gives an infinite interval, ``alpha_i >= 1`` an empty one), and when the value ``y_j`` of
+(the largest score when that rank exceeds ``n``; before ``warmup`` scores the Normal
+quantile ``z_{1 - alpha_i / 2}``; ``alpha_i <= 0`` gives an infinite interval, ``alpha_i >=
+1`` an empty one: the guarantee below needs only these two), and when the value ``y_j`` of
 product ``j`` arrives, ``alpha`` takes the ACI step with the interval issued for ``j``::
 
     alpha  <-  alpha + gamma (alpha_target - 1{y_j outside its interval})
@@ -80,8 +81,8 @@ class AdaptiveConformal:
         n = len(self.scores)
         if n < self.warmup:
             return float(norm.ppf(1.0 - a / 2.0))
-        k = math.ceil((n + 1) * (1.0 - a))
-        return math.inf if k > n else float(np.partition(np.asarray(self.scores), k - 1)[k - 1])
+        k = min(math.ceil((n + 1) * (1.0 - a)), n)  # beyond the scores: the largest
+        return float(np.partition(np.asarray(self.scores), k - 1)[k - 1])
 
     def interval(self, product: int, mean: float, scale: float) -> tuple[float, float]:
         """The interval ``(lo, hi)`` issued for ``product``'s value, predicted ``mean`` with
