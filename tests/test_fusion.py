@@ -262,3 +262,56 @@ def test_config_names_unknown_sensors_and_a_short_lag() -> None:
         "gauge",)
     with pytest.raises(ValueError, match="given twice"):
         TrackerConfig(sensors=("gauge", "gauge"))
+
+
+def test_posterior_carries_the_camera_calibrated_interval() -> None:
+    """The posterior's final-angle interval is ACI on the fused camera values: the same
+    numbers as a standalone calibrator fed the posterior's predictions (predictive std
+    with the camera's 0.2 deg) and the values; it survives the state bytes."""
+    from formtwin.tracker.conformal import AdaptiveConformal
+
+    tr = _tracker(("camera",))
+    ref = AdaptiveConformal()
+    rng = np.random.default_rng(0)
+    prev = None
+    for k, c in enumerate(_curves(30)):
+        tr.step(c)
+        if prev is not None:  # the camera value of the product before, 1 deg off
+            value = prev + 1.0 + 0.2 * float(rng.standard_normal())
+            tr.fuse(k - 1, "camera", value)
+            ref.update(k - 1, value)
+        p = tr.posterior()
+        sd = math.sqrt(float(p.angles_std[1]) ** 2 + 0.2**2)
+        assert p.final_interval == ref.interval(k, float(p.angles_mean[1]), sd)
+        prev = float(p.angles_mean[1])
+    assert ref.alpha < 0.1  # the offset made it miss: the intervals widened
+    again = Tracker.from_state_bytes(tr.state_bytes(), tr.model, tr.measurement)
+    assert again.fused.conformal == tr.fused.conformal
+    assert again.state_bytes() == tr.state_bytes()
+    gauge_only = _tracker(("gauge",))
+    gauge_only.step(_curves(1)[0])
+    assert all(math.isnan(v) for v in gauge_only.posterior().final_interval)
+
+
+@pytest.mark.parametrize("kw", [{"filter": "move"}, {"filter": "guided_lin"},
+                                {"learn_mu": True}, {"likelihood": "discrepancy"},
+                                {"estimate_deviation": True}])
+def test_lag_columns_with_every_particle_layout(kw: dict[str, object]) -> None:
+    """Whatever else the particles carry (learned mu, the discrepancy's statistics, the
+    parents' curves) and however they move, the lag block holds each particle's parent."""
+    model = analytic_model()
+    config = TrackerConfig(**{"n_particles": 100, "n_mc": 1000, "estimate_deviation": False,
+                              "seed": 1, "sensors": ("gauge", "camera"), **kw})  # type: ignore[arg-type]
+    tr = build_tracker(model, config)
+    curves = _curves(3)
+    tr.step(curves[0])
+    prev = tr.particles.copy()  # type: ignore[union-attr]
+    tr.step(curves[1])
+    x = tr.particles
+    assert x is not None
+    lag = x[:, tr.ssm.lag_start:tr.ssm.lag_start + 10]
+    assert {tuple(r) for r in lag} <= {tuple(r) for r in prev[:, :10]}
+    tr.fuse(0, "camera", 88.0)
+    tr.fuse(1, "gauge", 0.3)
+    tr.step(curves[2])
+    assert np.isfinite(tr.filter.logw).all()

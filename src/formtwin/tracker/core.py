@@ -121,7 +121,7 @@ class Tracker(SensorFusion):
         #: what the estimates' std are (:attr:`Estimate.intervals`)
         self.intervals = "uncalibrated" if self.floors is not None \
             and self.floors.calibration.data is None else c.intervals
-        self.fused = FusedLog(self.config.sensors, set())  # sensor values (fuse)
+        self.fused = FusedLog(self.config.sensors)  # sensor values (fuse)
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 

@@ -26,7 +26,7 @@ likelihood sd of the caller's choice (the control study's what-if), without the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -37,6 +37,7 @@ from formtwin.filters.lagged import lagged, reweight, shift
 from formtwin.spec import ProcessSpec
 from formtwin.spec.sensors import Sensor, line_sensors, output_column
 from formtwin.tracker.config import TrackerConfig
+from formtwin.tracker.conformal import AdaptiveConformal
 from formtwin.tracker.validate import validate_controls
 
 if TYPE_CHECKING:
@@ -44,6 +45,10 @@ if TYPE_CHECKING:
     from formtwin.tracker.ssm import BendingSSM
 
 FloatArray = NDArray[np.float64]
+
+
+#: the model output whose interval the fused camera values calibrate (the final angle)
+FINAL = "angle_stage2"
 
 
 class FusionError(ValueError):
@@ -110,24 +115,40 @@ class LagColumns:
 
 @dataclass
 class FusedLog:
-    """Which (product, sensor) values were fused, over the last ``L + 1`` products.
+    """Which (product, sensor) values were fused, over the last ``L + 1`` products, and the
+    final angle's interval calibration by the fused camera values (:attr:`conformal`).
 
     ``sensors`` are the config's sensor names (the state stores their positions)."""
 
     sensors: tuple[str, ...]
-    done: set[tuple[int, str]]
+    done: set[tuple[int, str]] = field(default_factory=set)
+    conformal: AdaptiveConformal = field(default_factory=AdaptiveConformal)
 
     def state(self) -> dict[str, list[float]]:
-        """The log as JSON numbers ``[product, sensor position, ...]`` (none: no key)."""
-        if not self.done:
-            return {}
-        pairs = sorted((p, self.sensors.index(s)) for p, s in self.done)
-        return {"fused": [float(v) for pair in pairs for v in pair]}
+        """The log as JSON numbers: ``fused`` ``[product, sensor position, ...]``, the
+        calibration's ``aci_alpha``, ``aci_scores`` and ``aci_pending`` ``[product, mean,
+        scale, q, ...]`` (keys only where there is something)."""
+        out: dict[str, list[float]] = {}
+        if self.done:
+            pairs = sorted((p, self.sensors.index(s)) for p, s in self.done)
+            out["fused"] = [float(v) for pair in pairs for v in pair]
+        c = self.conformal
+        if c.scores or c.pending:
+            out["aci_alpha"], out["aci_scores"] = [c.alpha], list(c.scores)
+            out["aci_pending"] = [float(v) for p, t in sorted(c.pending.items())
+                                  for v in (p, *t)]
+        return out
 
     def set_state(self, model: dict[str, list[float]]) -> None:
         """Inverse of :meth:`state`."""
         flat = [int(v) for v in model.get("fused", [])]
         self.done = {(flat[i], self.sensors[flat[i + 1]]) for i in range(0, len(flat), 2)}
+        c, pend = AdaptiveConformal(), model.get("aci_pending", [])
+        c.alpha = float(model.get("aci_alpha", [c.alpha])[0])
+        c.scores = [float(v) for v in model.get("aci_scores", [])]
+        c.pending = {int(pend[i]): (float(pend[i + 1]), float(pend[i + 2]), float(pend[i + 3]))
+                     for i in range(0, len(pend), 4)}
+        self.conformal = c
 
 
 class SensorFusion:
@@ -193,6 +214,8 @@ class SensorFusion:
                              f"{product}")
         self.fused.done = {d for d in self.fused.done if d[0] >= newest - depth}
         self.fused.done.add((int(product), sensor))
+        if s.measures == FINAL:  # how good was the interval issued for it
+            self.fused.conformal.update(int(product), float(value))
         return inc
 
     def _reweight(self, pred: FloatArray, value: float, sd: float, what: str) -> float:
@@ -210,7 +233,11 @@ class SensorFusion:
         """The current particles' weighted summary (after :meth:`fuse`, with what was
         fused): mean and std of ``[x, theta, theta_d]`` and of the angles at ``u``; the
         angles' std adds the metamodel's error as :meth:`Tracker.step`'s estimates do
-        (the reported std here is the cloud's: no interval floors)."""
+        (the reported std here is the cloud's: no interval floors). With a fused camera
+        (a sensor of the final angle), the 90 % interval of the current product's
+        measured final angle, calibrated by adaptive conformal inference on the camera
+        values fused so far (:mod:`formtwin.tracker.conformal`; the interval issued last
+        for a product is the one its camera value scores)."""
         if self.filter.x is None:
             raise RuntimeError("posterior: no particles yet (call step first)")
         na = self.ssm.n_aug
@@ -222,7 +249,13 @@ class SensorFusion:
         a = self.ssm.predict_angles(x, validate_controls(u, self.spec))
         am = w @ a
         astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
-        return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)))
+        camera = [s for s in used_sensors(self.spec, self.config) if s.measures == FINAL]
+        lo = hi = math.nan
+        if camera:  # the measured angle's interval: the camera's noise added
+            col = output_column(self.spec, FINAL)
+            sd = math.sqrt(float(astd[col]) ** 2 + camera[0].noise ** 2)
+            lo, hi = self.fused.conformal.interval(self.filter.t - 1, float(am[col]), sd)
+        return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi))
 
 
 @dataclass(frozen=True)
@@ -234,6 +267,8 @@ class Posterior:
     mean, std : (18,) of ``[x, theta, theta_d]``, internal units.
     angles_mean, angles_std : (2,) degrees.
     ess : effective sample size of the current weights.
+    final_interval : ``(lo, hi)`` degrees, the camera-calibrated 90 % interval of the
+        measured final angle (NaN without a camera among the fused sensors).
     """
 
     mean: FloatArray
@@ -241,6 +276,7 @@ class Posterior:
     angles_mean: FloatArray
     angles_std: FloatArray
     ess: float
+    final_interval: tuple[float, float] = (math.nan, math.nan)
 
 
 def angle_sd(tracker: Any, noise_sd: float = 0.0, stage: int = 1) -> float:
