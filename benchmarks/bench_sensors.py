@@ -30,9 +30,15 @@ study does):
   measured final angle; ``final_coverage90_min/max`` over series 1, 5, 6 with curve +
   camera (targets 0.87 and 0.93).
 
+* ``bound_s1_final[set]``: the linear-Gaussian bound of ``formtwin sensors`` on the
+  study's series-1 lines (their mu and theta, seed 0), for ``curve``, ``gauge_0.5um``,
+  ``camera_0.05deg`` and ``both`` (gauge 0.5 um + camera 0.2 deg, the sets simulated);
+* ``bound_vs_sim[set]``: the simulated series-1 nRMSE over the bound at the same noise
+  (curve, gauge 0.5 um, camera 0.2 deg, both); ``bound_vs_sim_min/max``.
+
 Not measured here: ``state_coverage90_min`` (the default study's intervals, measured by
-``bench_model_error``), the feedforward figures (``ff_vs_ewma_*``, the closed-loop study),
-the bound of ``formtwin sensors`` (``bound_*``) and ``study_s`` (``make demo``).
+``bench_model_error``), the feedforward figures (``ff_vs_ewma_*``, the closed-loop study)
+and ``study_s`` (``make demo``).
 """
 
 from __future__ import annotations
@@ -48,8 +54,10 @@ import numpy as np
 
 from formtwin._bench import study_metamodel_info, write_result
 from formtwin.defaults import default_metamodel, physics_model
+from formtwin.spec.sensors import line_sensors
 from formtwin.study.metrics import Z90, coverage, normalisers
 from formtwin.study.run import StudySettings, _tasks, run_study
+from formtwin.study.sensor_bound import linearise, sensor_rows, set_bound
 from formtwin.study.sensor_study import SENSOR_SETS, ewma_prediction, sensor_run
 from formtwin.study.series import SERIES, Task
 
@@ -79,6 +87,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="benchmarks/.cache/sensors")
     parser.add_argument("--quick", action="store_true", help="smoke test (2 x 200 products)")
+    parser.add_argument("--products", type=int, help="products per dataset (smoke tests)")
+    parser.add_argument("--realisations", type=int, help="datasets (smoke tests)")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     args = parser.parse_args()
     out = Path(args.out)
@@ -86,6 +96,11 @@ def main() -> None:
     mm, mm_path = default_metamodel(out / "model", "bending")
     sizes: dict[str, Any] = {"n_products": 200, "n_realisations": 2, "window": 100} \
         if args.quick else {}
+    if args.products:
+        sizes.update(n_products=args.products, window=args.products // 2)
+    if args.realisations:
+        sizes["n_realisations"] = args.realisations
+    smoke = bool(sizes)
     settings = StudySettings(series=SERIES_RUN, n_repetitions=1, paper_repetitions=0, **sizes)
     study = run_study(settings, out, mm, mm_path, physics_model("bending", mm.spec))
     t_study = time.perf_counter() - t0
@@ -146,6 +161,21 @@ def main() -> None:
              for s in SERIES_RUN}
     cov_cam = [float(np.mean(fcov[s]["camera"])) for s in SERIES_RUN]
     nrmse_report = float(np.nanmean(study.nrmse[0, :, 0, len(spec.augmented) + 1]))
+    gauge, camera = (next(s for s in line_sensors(spec) if s.name == n)
+                     for n in ("gauge", "camera"))
+    bound_sets = {"curve": ([], None), "gauge_0.5um": ([gauge], None),
+                  "camera_0.05deg": ([camera], {"camera": 0.05}),
+                  "camera_0.2deg": ([camera], None), "both": ([gauge, camera], None)}
+    bounds: dict[str, list[float]] = {n: [] for n in bound_sets}
+    for real in study.realisations:
+        lin = linearise(mm, real.mu, real.theta, settings.seed)
+        for n, (chosen, noise) in bound_sets.items():
+            bounds[n].append(set_bound(lin, sensor_rows(lin, chosen, spec.state.names,
+                                                        noise)).final)
+    bound = {n: round(float(np.mean(v)), 4) for n, v in bounds.items()}
+    sim_of = {"curve": "curve", "gauge_0.5um": "gauge", "camera_0.2deg": "camera",
+              "both": "both"}
+    vs = {b: round(fm["1"][s] / bound[b], 4) for b, s in sim_of.items()}
     figures: dict[str, Any] = {
         "s1_final_nrmse_curve": round(nrmse_report, 4),
         "s1_final_nrmse_gauge": fm["1"]["gauge"],
@@ -154,6 +184,11 @@ def main() -> None:
         "final_nrmse_fused_vs_best_single_s6": ratio["6"],
         "final_coverage90_min": round(min(cov_cam), 4),
         "final_coverage90_max": round(max(cov_cam), 4),
+        "bound_s1_final": {k: bound[k] for k in ("curve", "gauge_0.5um", "camera_0.05deg",
+                                                 "both")},
+        "bound_s1_final_camera_0.2deg": bound["camera_0.2deg"],
+        "bound_vs_sim": vs, "bound_vs_sim_min": min(vs.values()),
+        "bound_vs_sim_max": max(vs.values()),
         "final_nrmse": fm, "state_nrmse": mean(state), "state_coverage90": mean(scov),
         "final_coverage90": mean(fcov),
         "ewma_final_nrmse": {str(s): round(v, 4) for s, v in ewma.items()},
@@ -163,11 +198,11 @@ def main() -> None:
                      "products": settings.n_products, "window": w,
                      "n_particles": settings.tracker.n_particles, "seed": settings.seed,
                      "camera_deg": 0.2, "gauge_um": 0.5, "aci_gamma": 0.005,
-                     "quick": bool(args.quick)},
+                     "smoke_test": smoke},
         "study_data_and_curve_runs_s": round(t_study, 1),
         "sensor_runs_s": round(t_runs, 1), "sensor_runs": len(jobs),
     }
-    write_result("sensors" if not args.quick else "sensors_quick", figures,
+    write_result("sensors", figures, directory=out if smoke else None,
                  model=study_metamodel_info(mm, mm_path))
 
 
