@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from formtwin._bench import study_metamodel_info, write_result
+from formtwin._bench import file_digest, study_metamodel_info, write_result
 from formtwin.defaults import default_metamodel, physics_model
 from formtwin.spec.sensors import line_sensors
 from formtwin.study.metrics import Z90, coverage, normalisers
@@ -107,8 +107,12 @@ def main() -> None:
     tasks = [t for t in _tasks(settings, out, mm_path, out / "data") if t.repetition == 0]
     runs_dir = out / "sensor_runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
+    # a run's file is named for its task and the code that makes it
+    import formtwin.study.sensor_study as ss
+    import formtwin.tracker.fusion as fu
+    code = "".join(file_digest(m.__file__ or "")[:6] for m in (ss, fu))
     jobs = [(t, name, str(runs_dir / f"series{t.series}_real{t.realisation}_{name}_"
-                                     f"{t.key[:12]}.npz"))
+                                     f"{t.key[:12]}_{code}.npz"))
             for t in tasks for name in SENSOR_SETS]
     t1 = time.perf_counter()
     with ProcessPoolExecutor(args.workers) as pool:

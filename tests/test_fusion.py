@@ -265,32 +265,38 @@ def test_config_names_unknown_sensors_and_a_short_lag() -> None:
 
 
 def test_posterior_carries_the_camera_calibrated_interval() -> None:
-    """The posterior's final-angle interval is ACI on the fused camera values: the same
-    numbers as a standalone calibrator fed the posterior's predictions (predictive std
-    with the camera's 0.2 deg) and the values; it survives the state bytes."""
+    """The posterior's final angle is the model's plus the bias learned from the camera (an
+    EWMA, weight 0.1, of the issued predictions' errors), its interval ACI on the fused
+    camera values: the same numbers as a standalone calibrator fed the same predictions
+    (predictive std with the camera's 0.2 deg) and values. A model 1 deg off is learned;
+    everything survives the state bytes."""
     from formtwin.tracker.conformal import AdaptiveConformal
 
     tr = _tracker(("camera",))
-    ref = AdaptiveConformal()
+    ref, bias = AdaptiveConformal(), 0.0
     rng = np.random.default_rng(0)
     prev = None
     for k, c in enumerate(_curves(30)):
         tr.step(c)
-        if prev is not None:  # the camera value of the product before, 1 deg off
+        if prev is not None:  # the camera value of the product before: the model + 1 deg
             value = prev + 1.0 + 0.2 * float(rng.standard_normal())
             tr.fuse(k - 1, "camera", value)
+            bias += 0.1 * (value - ref.pending[k - 1][0])
             ref.update(k - 1, value)
         p = tr.posterior()
+        assert p.final_mean == pytest.approx(float(p.angles_mean[1]) + bias, rel=1e-12)
         sd = math.sqrt(float(p.angles_std[1]) ** 2 + 0.2**2)
-        assert p.final_interval == ref.interval(k, float(p.angles_mean[1]), sd)
+        lo, hi = ref.interval(k, p.final_mean, sd)
+        assert p.final_interval == pytest.approx((lo, hi), rel=1e-12)
         prev = float(p.angles_mean[1])
-    assert ref.alpha < 0.1  # the offset made it miss: the intervals widened
+    assert 0.5 < tr.fused.bias < 1.2
     again = Tracker.from_state_bytes(tr.state_bytes(), tr.model, tr.measurement)
-    assert again.fused.conformal == tr.fused.conformal
+    assert again.fused == tr.fused
     assert again.state_bytes() == tr.state_bytes()
     gauge_only = _tracker(("gauge",))
     gauge_only.step(_curves(1)[0])
-    assert all(math.isnan(v) for v in gauge_only.posterior().final_interval)
+    p = gauge_only.posterior()
+    assert math.isnan(p.final_mean) and all(math.isnan(v) for v in p.final_interval)
 
 
 @pytest.mark.parametrize("kw", [{"filter": "move"}, {"filter": "guided_lin"},

@@ -14,7 +14,9 @@ dataset, repetition, measurement model), reads the dataset's sensor pseudo-data
    the camera's noise) from adaptive conformal inference on the camera's residuals
    (:class:`~formtwin.tracker.conformal.AdaptiveConformal`), scored when the camera's value
    arrives one product later. The camera is read in every set (its values calibrate the
-   interval); only the sets with ``camera`` fuse it into the particles.
+   interval); the sets with ``camera`` fuse it into the particles and take the predicted
+   final angle and its interval from the tracker (with the bias it learns from the
+   camera, ``TrackerConfig.sensor_trim``), the others run the same calibration beside it.
 
 :func:`ewma_prediction` is the camera-only predictor the fused twin is compared with: a
 run-to-run EWMA of the measured final angles, known one product late.
@@ -90,9 +92,13 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
             out["mean"][i], out["std"][i] = p.mean, p.std
             out["angles_mean"][i], out["angles_std"][i] = p.angles_mean, p.angles_std
             out["ess"][i] = p.ess
-            sd = math.sqrt(float(p.angles_std[1]) ** 2 + cam_sd**2)
-            out["final_lo"][i], out["final_hi"][i] = aci.interval(k, float(p.angles_mean[1]),
-                                                                  sd)
+            if "camera" in sensors:  # the tracker's own: with the bias it learned
+                out["angles_mean"][i, 1] = p.final_mean
+                out["final_lo"][i], out["final_hi"][i] = p.final_interval
+            else:
+                sd = math.sqrt(float(p.angles_std[1]) ** 2 + cam_sd**2)
+                out["final_lo"][i], out["final_hi"][i] = aci.interval(
+                    k, float(p.angles_mean[1]), sd)
     out["rejected"] = rejected
     return out
 

@@ -13,7 +13,8 @@ ancestor ``j`` (ancestor reweighting)::
 
 with ``h`` the measured state variable (``v_model = 0``) or the model output (the
 metamodel's angle at the product's setting ``u_j``; ``v_model`` its held-out error as the
-predicted angles carry it, :meth:`~formtwin.tracker.BendingSSM.angle_error`). The weights
+predicted angles carry it, :meth:`~formtwin.tracker.BendingSSM.angle_error`; for the final
+angle ``offset`` adds the model's bias learned from the camera, see :meth:`posterior`). The weights
 stay with the particles; the next step multiplies its curve likelihood in and resamples.
 Each (product, sensor) is fused once. Everything is in the particles, their weights and
 the small :class:`FusedLog`, so it is part of the state bytes and checkpoints, and a
@@ -123,6 +124,8 @@ class FusedLog:
     sensors: tuple[str, ...]
     done: set[tuple[int, str]] = field(default_factory=set)
     conformal: AdaptiveConformal = field(default_factory=AdaptiveConformal)
+    #: the model's final-angle bias learned from the camera (``TrackerConfig.sensor_trim``)
+    bias: float = 0.0
 
     def state(self) -> dict[str, list[float]]:
         """The log as JSON numbers: ``fused`` ``[product, sensor position, ...]``, the
@@ -132,6 +135,8 @@ class FusedLog:
         if self.done:
             pairs = sorted((p, self.sensors.index(s)) for p, s in self.done)
             out["fused"] = [float(v) for pair in pairs for v in pair]
+        if self.bias != 0.0:
+            out["final_bias"] = [self.bias]
         c = self.conformal
         if c.scores or c.pending:
             out["aci_alpha"], out["aci_scores"] = [c.alpha], list(c.scores)
@@ -149,6 +154,7 @@ class FusedLog:
         c.pending = {int(pend[i]): (float(pend[i + 1]), float(pend[i + 2]), float(pend[i + 3]))
                      for i in range(0, len(pend), 4)}
         self.conformal = c
+        self.bias = float(model.get("final_bias", [0.0])[0])
 
 
 class SensorFusion:
@@ -210,12 +216,16 @@ class SensorFusion:
         if not sd > 0:
             raise FusionError(f"fuse: {sensor} has noise 0 and the model no error: the "
                               "likelihood is degenerate (give the sensor a noise)")
-        inc = self._reweight(pred + float(offset), float(value), sd, f"{sensor} of product "
-                             f"{product}")
+        bias = self.fused.bias if s.measures == FINAL else 0.0
+        inc = self._reweight(pred + float(offset) + bias, float(value), sd,
+                             f"{sensor} of product {product}")
         self.fused.done = {d for d in self.fused.done if d[0] >= newest - depth}
         self.fused.done.add((int(product), sensor))
-        if s.measures == FINAL:  # how good was the interval issued for it
+        if s.measures == FINAL:  # how good was the prediction issued for it
+            issued = self.fused.conformal.pending.get(int(product))
             self.fused.conformal.update(int(product), float(value))
+            if issued is not None:  # the bias: an EWMA of the issued predictions' errors
+                self.fused.bias += self.config.sensor_trim * (float(value) - issued[0])
         return inc
 
     def _reweight(self, pred: FloatArray, value: float, sd: float, what: str) -> float:
@@ -237,7 +247,10 @@ class SensorFusion:
         (a sensor of the final angle), the 90 % interval of the current product's
         measured final angle, calibrated by adaptive conformal inference on the camera
         values fused so far (:mod:`formtwin.tracker.conformal`; the interval issued last
-        for a product is the one its camera value scores)."""
+        for a product is the one its camera value scores), centred on the model's angle
+        plus the bias learned from the camera: an EWMA (weight ``config.sensor_trim``) of
+        the errors of the issued predictions, also added to the model's angle in the
+        camera's likelihood."""
         if self.filter.x is None:
             raise RuntimeError("posterior: no particles yet (call step first)")
         na = self.ssm.n_aug
@@ -254,8 +267,10 @@ class SensorFusion:
         if camera:  # the measured angle's interval: the camera's noise added
             col = output_column(self.spec, FINAL)
             sd = math.sqrt(float(astd[col]) ** 2 + camera[0].noise ** 2)
-            lo, hi = self.fused.conformal.interval(self.filter.t - 1, float(am[col]), sd)
-        return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi))
+            final = float(am[col]) + self.fused.bias
+            lo, hi = self.fused.conformal.interval(self.filter.t - 1, final, sd)
+        return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi),
+                         final if camera else math.nan)
 
 
 @dataclass(frozen=True)
@@ -269,6 +284,8 @@ class Posterior:
     ess : effective sample size of the current weights.
     final_interval : ``(lo, hi)`` degrees, the camera-calibrated 90 % interval of the
         measured final angle (NaN without a camera among the fused sensors).
+    final_mean : degrees, the predicted final angle with the bias learned from the camera
+        (NaN without a camera).
     """
 
     mean: FloatArray
@@ -277,6 +294,7 @@ class Posterior:
     angles_std: FloatArray
     ess: float
     final_interval: tuple[float, float] = (math.nan, math.nan)
+    final_mean: float = math.nan
 
 
 def angle_sd(tracker: Any, noise_sd: float = 0.0, stage: int = 1) -> float:
