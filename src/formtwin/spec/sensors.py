@@ -23,6 +23,7 @@ layout.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -149,12 +150,19 @@ def line_sensors(spec: ProcessSpec) -> tuple[Sensor, ...]:
     file made before sensors entered the spec) takes the bundled demonstrator's."""
     if spec.sensors:
         return spec.sensors
-    from formtwin.spec import load_spec
     from formtwin.spec.model import DEMONSTRATOR
     if spec.name != DEMONSTRATOR:
         return ()
+    names, sensors = _bundled()
+    return sensors if names == spec.augmented.names else ()
+
+
+@functools.lru_cache(maxsize=1)
+def _bundled() -> tuple[tuple[str, ...], tuple[Sensor, ...]]:
+    """The bundled demonstrator's augmented names and sensors (parsed once)."""
+    from formtwin.spec import load_spec
     bundled = load_spec()
-    return bundled.sensors if bundled.augmented.names == spec.augmented.names else ()
+    return bundled.augmented.names, bundled.sensors
 
 
 def sensor_by_name(sensors: Sequence[Sensor], name: str) -> Sensor:

@@ -210,7 +210,7 @@ class SensorFusion:
             pred, var = x[:, self.spec.state.index[s.measures]], 0.0
         else:
             col = output_column(self.spec, s.measures)
-            pred = self.ssm.predict_angles(x, uu)[:, col]
+            pred = distinct_angles(self.ssm, x, uu)[:, col]
             var = float(self.ssm.angle_error()[col])
         sd = math.sqrt(s.noise**2 + max(var, 0.0))
         if not sd > 0:
@@ -259,7 +259,7 @@ class SensorFusion:
         w /= w.sum()
         mean = w @ x[:, :na]
         std = np.sqrt(np.maximum(w @ (x[:, :na] - mean) ** 2, 0.0))
-        a = self.ssm.predict_angles(x, validate_controls(u, self.spec))
+        a = distinct_angles(self.ssm, x[:, :self.ssm.n_in], validate_controls(u, self.spec))
         am = w @ a
         astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
         camera = [s for s in used_sensors(self.spec, self.config) if s.measures == FINAL]
@@ -271,6 +271,14 @@ class SensorFusion:
             lo, hi = self.fused.conformal.interval(self.filter.t - 1, final, sd)
         return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi),
                          final if camera else math.nan)
+
+
+def distinct_angles(ssm: BendingSSM, x: FloatArray, u: FloatArray | None) -> FloatArray:
+    """The angles (N, 2) of the model inputs ``x`` (N, n_in) at ``u``, the model evaluated
+    once per distinct row (after resampling most rows are copies)."""
+    rows, inverse = np.unique(x, axis=0, return_inverse=True)
+    out: FloatArray = ssm.predict_angles(rows, u)[inverse.reshape(-1)]
+    return out
 
 
 @dataclass(frozen=True)
