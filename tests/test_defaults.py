@@ -16,7 +16,9 @@ def test_bundled_doe_is_the_paper_design_over_the_current_physics_model() -> Non
     assert path.exists(), "regenerate: formtwin doe run --physics bending --out " + str(path)
     data = DoeDataset.load(path)
     spec = load_spec()
-    assert data.spec.text == spec.text, "the bundled DOE was made with another spec"
+    # the line's sensors ([[sensor]], last in the file) do not enter a physics run
+    text = spec.text[:spec.text.index("\n[[sensor]]")] if spec.sensors else spec.text
+    assert data.spec.text == text, "the bundled DOE was made with another spec"
     assert data.model_version == physics_model("bending").version, (
         "the physics model changed since the bundled DOE was made: regenerate it")
     np.testing.assert_array_equal(data.inputs, paper_design(spec))

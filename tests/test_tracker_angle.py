@@ -1,4 +1,4 @@
-"""The measured final angle as a second measurement (formtwin.tracker.angle): the reweighting
+"""The measured final angle as a second measurement (formtwin.tracker.fusion): the reweighting
 against the closed form (Gaussian likelihood times the current weights, normalised; the
 evidence is the normalising constant), the suggestion predicts with the new weights, bad
 inputs leave the tracker untouched."""
@@ -13,7 +13,7 @@ import pytest
 from formtwin.control import Actuator, Feedforward
 from formtwin.defaults import analytic_model
 from formtwin.tracker import TrackerConfig, build_tracker
-from formtwin.tracker.angle import angle_sd, update_angle
+from formtwin.tracker.fusion import angle_sd, update_angle
 
 
 def _tracker():  # type: ignore[no-untyped-def]

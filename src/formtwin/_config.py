@@ -44,14 +44,20 @@ def _floats(text: str) -> tuple[float, ...]:
             from exc
 
 
+def _names(text: str) -> tuple[str, ...]:
+    """A comma-separated list of names as a tuple of strings (empty text: none)."""
+    return tuple(v.strip() for v in text.split(",") if v.strip())
+
+
 def _kind(hint: Any) -> Any:
-    """The flag type of a field's type hint: int, float, str, bool or tuple."""
+    """The flag type of a field's type hint: int, float, str, bool, tuple (of floats) or
+    :func:`_names` (a tuple of strings)."""
     args = [a for a in typing.get_args(hint) if a is not type(None)]
     base = typing.get_origin(hint) or hint
     if base in (typing.Union, getattr(__import__("types"), "UnionType", None)) and args:
         return _kind(args[0])
     if base is tuple:
-        return tuple
+        return _names if str in typing.get_args(hint) else tuple
     if hint in (int, float, str, bool):
         return hint
     return str

@@ -51,9 +51,10 @@ from formtwin.spec.model import (
     Variable,
 )
 from formtwin.spec.reader import Reader
+from formtwin.spec.sensors import Sensor, parse_sensors
 
 __all__ = ["DEMONSTRATOR", "UNITS", "Deviation", "FloatArray", "Group", "ProcessSpec",
-           "SpecError", "Variable", "load_spec", "parse_spec"]
+           "Sensor", "SpecError", "Variable", "load_spec", "parse_spec"]
 
 
 def load_spec(path: str | Path | None = None) -> ProcessSpec:
@@ -76,7 +77,8 @@ def parse_spec(text: str, source: str = "<string>") -> ProcessSpec:
     except tomllib.TOMLDecodeError as exc:
         raise SpecError(f"{source}: not valid TOML ({exc})") from exc
     r = Reader(source)
-    r.keys(doc, "", {"process", "curve", "state", "parameter", "control", "deviation"})
+    r.keys(doc, "", {"process", "curve", "state", "parameter", "control", "deviation",
+                    "sensor"})
     process = r.table(doc, "process")
     curve = r.table(doc, "curve")
     r.keys(curve, "curve", {"unit", "t_start", "t_end", "n_samples", "force_unit"})
@@ -114,4 +116,5 @@ def parse_spec(text: str, source: str = "<string>") -> ProcessSpec:
         source=source,
         text=text,
         controls=controls,
+        sensors=parse_sensors(doc.get("sensor"), state, source),
     )

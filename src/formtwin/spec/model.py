@@ -8,11 +8,15 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+
+if TYPE_CHECKING:
+    from formtwin.spec.sensors import Sensor
 
 #: unit as written in a spec -> (internal unit, factor to multiply by)
 UNITS: dict[str, tuple[str, float]] = {
@@ -183,6 +187,13 @@ class ProcessSpec:
     source: str
     text: str = field(default="", repr=False, compare=False)
     controls: Group = field(default_factory=lambda: Group(()))
+    #: the line's sensors besides the curve (``[[sensor]]``, :mod:`formtwin.spec.sensors`)
+    sensors: tuple[Sensor, ...] = ()
+
+    def sensor(self, name: str) -> Sensor:
+        """The sensor called ``name``; ``KeyError`` naming the known ones."""
+        from formtwin.spec.sensors import sensor_by_name
+        return sensor_by_name(self.sensors, name)
 
     @property
     def inputs(self) -> Group:

@@ -26,7 +26,7 @@ with the deviation estimated. Per dataset (``products`` products):
   time-series model alone gives); ``feedforward_open`` the feedforward without the trim;
 * ``feedforward_angle``: ``feedforward`` with each measured final angle also entering the
   filter as a second measurement of its product's state
-  (:func:`formtwin.tracker.angle.update_angle`, likelihood sd the metamodel's held-out
+  (:func:`formtwin.tracker.fusion.update_angle`, likelihood sd the metamodel's held-out
   error of the final angle, offset the trim);
 * ``oracle``: the same choice knowing the true state and machine parameters (the
   metamodel's angle at the true inputs): what a perfect estimate could give.

@@ -9,7 +9,7 @@ share ``weight`` of the posterior's product-to-product change (1: all of it), wi
 persistence ``rho`` of the last product's deviation. The tracker
 does not depend on the settings chosen, so several controllers can share one pass; with
 ``angle_in_filter`` the one controller's measured angles also enter the filter as a second
-measurement of the state (:func:`formtwin.tracker.angle.update_angle`), so that pass serves
+measurement of the state (:func:`formtwin.tracker.fusion.update_angle`), so that pass serves
 that controller alone.
 """
 
@@ -25,7 +25,7 @@ from formtwin._threads import single_blas_thread
 from formtwin.control import Combined, Feedforward
 from formtwin.measurement import ProcessModel
 from formtwin.tracker import TrackerConfig, build_tracker
-from formtwin.tracker.angle import angle_sd, update_angle
+from formtwin.tracker.fusion import angle_sd, update_angle
 
 FloatArray = NDArray[np.float64]
 

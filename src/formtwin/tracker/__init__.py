@@ -5,6 +5,8 @@
   (evolution, jitter, measurement, deviation; ``simulate`` draws a production run);
 * :mod:`~formtwin.tracker.core`: :class:`Tracker`, one filter step per product;
 * :mod:`~formtwin.tracker.fit`: the absolute goodness of fit and health of an estimate;
+* :mod:`~formtwin.tracker.fusion`: sensor values besides the curve, fused late and in any
+  order (:meth:`Tracker.fuse`);
 * :mod:`~formtwin.tracker.state`: the state as bytes or checkpoint file, bit for bit;
 * :mod:`~formtwin.tracker.build`: :func:`build_tracker`, the one assembly path.
 """
@@ -14,11 +16,12 @@ from formtwin.tracker.build import build_measurement, build_tracker
 from formtwin.tracker.config import COMPARE, LIKELIHOODS, TrackerConfig
 from formtwin.tracker.core import Tracker
 from formtwin.tracker.fit import FitRule
+from formtwin.tracker.fusion import FusionError, Posterior
 from formtwin.tracker.ssm import CHUNK, BendingSSM
 from formtwin.tracker.state import TrackerState
 from formtwin.tracker.validate import validate_controls, validate_curve
 
 __all__ = ["BendingSSM", "CHUNK", "COMPARE", "HEALTH", "LIKELIHOODS", "Estimate", "Estimates",
-           "Fit", "FitRule", "Tracker",
+           "Fit", "FitRule", "FusionError", "Posterior", "Tracker",
            "TrackerConfig", "TrackerState", "build_measurement", "build_tracker",
            "validate_controls", "validate_curve"]

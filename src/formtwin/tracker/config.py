@@ -140,6 +140,13 @@ class TrackerConfig:
     learn_residuals : with the adaptive likelihood, learn the second moment ``M`` of the
         line's own residuals online and use ``Sigma + M`` as the likelihood's base
         covariance (:mod:`formtwin.tracker.learned`, docs/explanation/likelihood.md).
+    sensors : names of the spec's ``[[sensor]]`` entries this run fuses besides the curve
+        (:meth:`~formtwin.tracker.Tracker.fuse`); empty (default): the curve alone.
+    sensor_lag : how many products back a value may arrive, ``L`` (the particles keep
+        their last ``L`` states); ``None`` (default): the largest delay of ``sensors``.
+    sensor_trim : with a fused camera (a sensor of the final angle), the weight of the EWMA
+        of its residuals that learns the metamodel's final-angle bias (added to the model's
+        angle in the camera's likelihood and the prediction); 0: none.
     """
 
     n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))
@@ -188,6 +195,13 @@ class TrackerConfig:
         "memory of the learned discrepancy, products (inf: no forgetting)"))
     learn_residuals: bool = field(default=False, metadata=_help(
         "learn the line's residual moment online (adaptive likelihood)"))
+    sensors: tuple[str, ...] = field(default=(), metadata=_help(
+        "sensors fused besides the curve, comma-separated names of the spec's [[sensor]] "
+        "entries (e.g. gauge,camera)"))
+    sensor_lag: int | None = field(default=None, metadata=_help(
+        "products back a sensor value may arrive (default: the largest delay)"))
+    sensor_trim: float = field(default=0.1, metadata=_help(
+        "EWMA weight learning the final angle's bias from a fused camera (0: none)"))
     intervals: str = field(default="calibrated_fit", metadata=_help(
         "reported std: cloud (the particles'), cloud_mu (+ the assumed mu's term, which "
         "all but cloud add), calibrated (+ floors learned offline on "
@@ -241,6 +255,17 @@ class TrackerConfig:
         if self.learn_residuals and self.likelihood != "adaptive":
             raise ValueError(f"learn_residuals needs the adaptive likelihood, not "
                              f"{self.likelihood!r}")
+        names = self.sensors.split(",") if isinstance(self.sensors, str) else self.sensors
+        object.__setattr__(self, "sensors", tuple(str(v).strip() for v in names
+                                                  if str(v).strip()))
+        if len(set(self.sensors)) != len(self.sensors):
+            raise ValueError(f"sensors = {self.sensors}: a name given twice")
+        if self.sensor_lag is not None and not (isinstance(self.sensor_lag, int)
+                                                and self.sensor_lag >= 0):
+            raise ValueError(f"sensor_lag = {self.sensor_lag!r}, expected a whole number "
+                             ">= 0 or None")
+        if not 0.0 <= self.sensor_trim <= 1.0:
+            raise ValueError(f"sensor_trim = {self.sensor_trim}, expected in [0, 1]")
         if not self.discrepancy_memory >= 1:
             raise ValueError(f"discrepancy_memory = {self.discrepancy_memory}, expected >= 1 "
                              "(inf: no forgetting)")

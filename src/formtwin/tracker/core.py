@@ -36,6 +36,7 @@ from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.fit import FitRule, assess
+from formtwin.tracker.fusion import FusedLog, SensorFusion
 from formtwin.tracker.intervals import Floors
 from formtwin.tracker.sandwich import STATE_KEYS, Sandwich
 from formtwin.tracker.ssm import BendingSSM
@@ -67,7 +68,7 @@ def heaviest(w: FloatArray, mass: float) -> NDArray[np.intp]:
     return np.sort(order[n_drop:])
 
 
-class Tracker:
+class Tracker(SensorFusion):
     """Online state, parameter and deviation estimation for a stream of products.
 
     Parameters
@@ -119,6 +120,7 @@ class Tracker:
         #: what the estimates' std are (:attr:`Estimate.intervals`)
         self.intervals = "uncalibrated" if self.floors is not None \
             and self.floors.calibration.data is None else c.intervals
+        self.fused = FusedLog(self.config.sensors)  # sensor values (fuse)
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
@@ -291,7 +293,7 @@ class Tracker:
             if self.config.learn_scale else {}
         if self.ssm.share_logpost.size > 1:
             model["share_logpost"] = [float(v) for v in self.ssm.share_logpost]
-        for part in (self.sandwich, self.floors, self.ssm.learned):
+        for part in (self.sandwich, self.floors, self.ssm.learned, self.fused):
             model.update({} if part is None else part.state())
         return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
                                    t=f.t, rng=dict(self.rng.bit_generator.state),
@@ -318,6 +320,7 @@ class Tracker:
         if self.floors is not None:
             self.floors.set_state(s.model)
         self.ssm.set_learned_state(s.model)
+        self.fused.set_state(s.model)
         self.filter.x = s.particles if s.t > 0 and s.particles.size else None
         self.filter.logw = s.logw
         self.filter.t = s.t

@@ -56,10 +56,8 @@ from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker.config import SCALES, TrackerConfig
-from formtwin.tracker.discrepancy import (
-    Discrepancy,
-    angle_residual_variance,
-)
+from formtwin.tracker.discrepancy import Discrepancy, angle_residual_variance
+from formtwin.tracker.fusion import LagColumns
 from formtwin.tracker.guide import GuidedProposal
 from formtwin.tracker.learned import LearnedResiduals, ResidualMoment, make_discrepancy
 from formtwin.tracker.moves import MoveHooks
@@ -73,7 +71,7 @@ CHUNK = 512
 
 
 @dataclass(frozen=True)
-class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals):
+class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
     """The augmented state-space model ``[x, theta, theta_d]`` for the generic filters.
 
     Parameters
@@ -126,6 +124,7 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals):
         if self.config.learn_mu:  # m and P of mu: no bounds (m may leave the range)
             lo = np.r_[lo, np.full(2 * len(spec.state), -np.inf)]
             hi = np.r_[hi, np.full(2 * len(spec.state), np.inf)]
+        lo, hi = self.add_lag_columns(lo, hi)  # late sensor values: [lag_start, _disc)
         object.__setattr__(self, "_disc", lo.size)
         if self.config.likelihood in ("adaptive", "discrepancy"):
             disc = make_discrepancy(self.model, self.measurement.covariance(), self.config)
@@ -229,6 +228,7 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals):
             out[:, self._disc:] = 0.0  # its statistics: nothing seen yet
         if self._curve:
             out[:, self._curve:] = np.nan  # no curve evaluated yet
+        out[:, self.lag_start:self._disc] = np.nan  # no ancestors yet
         return out
 
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
@@ -255,6 +255,7 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals):
                                  self.config.alpha)
         out[:, stop:na] = x[:, stop:na]
         out[:, self._disc:] = x[:, self._disc:]
+        self.shift_lags(x, out)
         return out
 
     def loglik(self, x: FloatArray, y: FloatArray) -> FloatArray:

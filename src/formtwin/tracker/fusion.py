@@ -1,0 +1,349 @@
+"""Sensor values besides the curve, fused when they arrive: late and in any order.
+
+A line's sensors (:mod:`formtwin.spec.sensors`: a strip gauge reading a state variable, a
+camera reading the final angle one product later) give scalar values of a product ``j``
+that arrive after its curve, up to ``L`` products late (``TrackerConfig.sensor_lag``,
+default: the largest delay of the sensors used). The particles keep the model inputs
+``[x, theta]`` of their last ``L`` ancestors in extra columns (:class:`LagColumns`, the
+generic pieces in :mod:`formtwin.filters.lagged`), and :meth:`SensorFusion.fuse`
+multiplies the current weights by the likelihood of the value at each particle's
+ancestor ``j`` (ancestor reweighting)::
+
+    l_k = log N(s; h(x_j^k, theta_j^k, u_j) + offset, noise^2 + v_model)
+
+with ``h`` the measured state variable (``v_model = 0``) or the model output (the
+metamodel's angle at the product's setting ``u_j``; ``v_model`` its held-out error as the
+predicted angles carry it, :meth:`~formtwin.tracker.BendingSSM.angle_error`; for the final
+angle ``offset`` adds the model's bias learned from the camera, see :meth:`posterior`). The weights
+stay with the particles; the next step multiplies its curve likelihood in and resamples.
+Each (product, sensor) is fused once. Everything is in the particles, their weights and
+the small :class:`FusedLog`, so it is part of the state bytes and checkpoints, and a
+failed step or fusion leaves the tracker as it was.
+
+:func:`update_angle` is the special case of an angle of the product just stepped with a
+likelihood sd of the caller's choice (the control study's what-if), without the log.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import norm
+
+from formtwin.filters.lagged import lagged, reweight, shift
+from formtwin.spec import ProcessSpec
+from formtwin.spec.sensors import Sensor, line_sensors, output_column
+from formtwin.tracker.config import TrackerConfig
+from formtwin.tracker.conformal import AdaptiveConformal
+from formtwin.tracker.validate import validate_controls
+
+if TYPE_CHECKING:
+    from formtwin.filters import SIR
+    from formtwin.tracker.ssm import BendingSSM
+
+FloatArray = NDArray[np.float64]
+
+
+#: the model output whose interval the fused camera values calibrate (the final angle)
+FINAL = "angle_stage2"
+
+
+class FusionError(ValueError):
+    """A sensor value the tracker refuses (it is left untouched); the message names the
+    sensor, the product and the reason."""
+
+
+def used_sensors(spec: ProcessSpec, config: TrackerConfig) -> tuple[Sensor, ...]:
+    """The sensors ``config.sensors`` of the spec's line (:func:`line_sensors`), in the
+    config's order; ``ValueError`` naming an unknown one and the known ones."""
+    known = {s.name: s for s in line_sensors(spec)}
+    for name in config.sensors:
+        if name not in known:
+            raise ValueError(f"sensors: {name!r} is not a sensor of spec {spec.name!r}; "
+                             f"known: {', '.join(known) or 'none'}")
+    return tuple(known[n] for n in config.sensors)
+
+
+def lag_depth(spec: ProcessSpec, config: TrackerConfig) -> int:
+    """``L``: ``config.sensor_lag``, or the largest delay of the sensors used (0: none);
+    ``ValueError`` if ``sensor_lag`` is below a used sensor's delay."""
+    delays = [s.delay for s in used_sensors(spec, config)]
+    need = max(delays, default=0)
+    if config.sensor_lag is None:
+        return need
+    if config.sensor_lag < need:
+        raise ValueError(f"sensor_lag = {config.sensor_lag}, below the largest delay "
+                         f"{need} of the sensors {', '.join(config.sensors)}")
+    return int(config.sensor_lag)
+
+
+class LagColumns:
+    """Mixin of :class:`~formtwin.tracker.BendingSSM`: ``L`` blocks of ``[x, theta]``
+    (``n_in`` columns each) of the particles' ancestors, columns ``[lag_start, lag_start +
+    L n_in)``."""
+
+    spec: ProcessSpec
+    config: TrackerConfig
+    #: the first lag column and ``L`` (0: no lag columns)
+    lag_start: int = 0
+    lag_depth: int = 0
+
+    def add_lag_columns(self, lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Place the lag blocks after the columns bounded by ``lo, hi`` (d,); return the
+        bounds extended by unbounded columns."""
+        depth = lag_depth(self.spec, self.config)
+        object.__setattr__(self, "lag_start", lo.size)
+        object.__setattr__(self, "lag_depth", depth)
+        k = depth * self.spec.n_inputs
+        return np.r_[lo, np.full(k, -np.inf)], np.r_[hi, np.full(k, np.inf)]
+
+    def shift_lags(self, parent: FloatArray, out: FloatArray) -> None:
+        """At a transition from ``parent`` (N, d) to ``out`` (N, d): fill ``out``'s lag
+        blocks (:func:`formtwin.filters.lagged.shift`)."""
+        shift(parent, out, self.spec.n_inputs, self.lag_start, self.lag_depth)
+
+    def lagged_inputs(self, x: FloatArray, lag: int) -> FloatArray:
+        """``[x, theta]`` (N, n_in) of the particles ``x``'s ancestors ``lag`` products back
+        (0: their own)."""
+        if not 0 <= lag <= self.lag_depth:
+            raise ValueError(f"lag = {lag}, expected 0..{self.lag_depth}")
+        return lagged(x, self.spec.n_inputs, self.lag_start, lag)
+
+
+@dataclass
+class FusedLog:
+    """Which (product, sensor) values were fused, over the last ``L + 1`` products, and the
+    final angle's interval calibration by the fused camera values (:attr:`conformal`).
+
+    ``sensors`` are the config's sensor names (the state stores their positions)."""
+
+    sensors: tuple[str, ...]
+    done: set[tuple[int, str]] = field(default_factory=set)
+    conformal: AdaptiveConformal = field(default_factory=AdaptiveConformal)
+    #: the model's final-angle bias learned from the camera (``TrackerConfig.sensor_trim``)
+    bias: float = 0.0
+
+    def state(self) -> dict[str, list[float]]:
+        """The log as JSON numbers: ``fused`` ``[product, sensor position, ...]``, the
+        calibration's ``aci_alpha``, ``aci_scores`` and ``aci_pending`` ``[product, mean,
+        scale, q, ...]`` (keys only where there is something)."""
+        out: dict[str, list[float]] = {}
+        if self.done:
+            pairs = sorted((p, self.sensors.index(s)) for p, s in self.done)
+            out["fused"] = [float(v) for pair in pairs for v in pair]
+        if self.bias != 0.0:
+            out["final_bias"] = [self.bias]
+        c = self.conformal
+        if c.scores or c.pending:
+            out["aci_alpha"], out["aci_scores"] = [c.alpha], list(c.scores)
+            out["aci_pending"] = [float(v) for p, t in sorted(c.pending.items())
+                                  for v in (p, *t)]
+        return out
+
+    def set_state(self, model: dict[str, list[float]]) -> None:
+        """Inverse of :meth:`state`."""
+        flat = [int(v) for v in model.get("fused", [])]
+        self.done = {(flat[i], self.sensors[flat[i + 1]]) for i in range(0, len(flat), 2)}
+        c, pend = AdaptiveConformal(), model.get("aci_pending", [])
+        c.alpha = float(model.get("aci_alpha", [c.alpha])[0])
+        c.scores = [float(v) for v in model.get("aci_scores", [])]
+        c.pending = {int(pend[i]): (float(pend[i + 1]), float(pend[i + 2]), float(pend[i + 3]))
+                     for i in range(0, len(pend), 4)}
+        self.conformal = c
+        self.bias = float(model.get("final_bias", [0.0])[0])
+
+
+class SensorFusion:
+    """Mixin of :class:`~formtwin.tracker.Tracker`: :meth:`fuse` and :meth:`posterior`."""
+
+    filter: SIR
+    ssm: BendingSSM
+    spec: ProcessSpec
+    config: TrackerConfig
+    fused: FusedLog
+
+    def fuse(self, product: int, sensor: str, value: float, u: Any = None,
+             offset: float = 0.0) -> float:
+        """Fuse sensor ``sensor``'s ``value`` (internal units: mm for thickness, degrees
+        for an angle) of product ``product`` (0-based, as :attr:`Estimate.index`): the
+        current product or one of the last ``L`` before it, in any order, each (product,
+        sensor) once. ``u`` is the product's press setting (None: nominal) for a model
+        output, ``offset`` a known bias of the model output (degrees). Returns the log
+        evidence increment ``log p(value | everything fused so far)``.
+
+        Raises :class:`FusionError` (a ``ValueError``) for a sensor this tracker does not
+        fuse, a non-finite value or offset, a product not yet stepped or older than ``L``,
+        a second value of the same (product, sensor), a bad setting, or a value no
+        particle explains; the tracker is then untouched.
+        """
+        used = {s.name: s for s in used_sensors(self.spec, self.config)}
+        if sensor not in used:
+            raise FusionError(f"fuse: sensor {sensor!r} is not fused by this tracker "
+                              f"(config.sensors: {', '.join(used) or 'none'})")
+        s = used[sensor]
+        for name, v in (("value", value), ("offset", offset)):
+            if isinstance(v, bool) or not isinstance(v, int | float | np.number) \
+                    or not math.isfinite(float(v)):
+                raise FusionError(f"fuse: {sensor} {name} = {v!r}, expected a finite number")
+        newest, depth = self.filter.t - 1, self.ssm.lag_depth
+        if isinstance(product, bool) or not isinstance(product, int | np.integer):
+            raise FusionError(f"fuse: product = {product!r}, expected a whole number")
+        if self.filter.x is None or product > newest:
+            raise FusionError(f"fuse: {sensor} of product {product}, not yet seen (the "
+                              f"newest is {newest})")
+        if product < newest - depth or product < 0:
+            raise FusionError(f"fuse: {sensor} of product {product} is older than the "
+                              f"tracker keeps (L = {depth}: products {max(newest - depth, 0)}"
+                              f"..{newest})")
+        if (int(product), sensor) in self.fused.done:
+            raise FusionError(f"fuse: {sensor} of product {product} was fused already")
+        try:
+            uu = validate_controls(u, self.spec)
+        except ValueError as exc:
+            raise FusionError(f"fuse: {exc}") from None
+        x = self.ssm.lagged_inputs(self.filter.x, newest - int(product))
+        if s.kind == "state":
+            pred, var = x[:, self.spec.state.index[s.measures]], 0.0
+        else:
+            col = output_column(self.spec, s.measures)
+            pred = distinct_angles(self.ssm, x, uu)[:, col]
+            var = float(self.ssm.angle_error()[col])
+        sd = math.sqrt(s.noise**2 + max(var, 0.0))
+        if not sd > 0:
+            raise FusionError(f"fuse: {sensor} has noise 0 and the model no error: the "
+                              "likelihood is degenerate (give the sensor a noise)")
+        bias = self.fused.bias if s.measures == FINAL else 0.0
+        inc = self._reweight(pred + float(offset) + bias, float(value), sd,
+                             f"{sensor} of product {product}")
+        self.fused.done = {d for d in self.fused.done if d[0] >= newest - depth}
+        self.fused.done.add((int(product), sensor))
+        if s.measures == FINAL:  # how good was the prediction issued for it
+            issued = self.fused.conformal.pending.get(int(product))
+            self.fused.conformal.update(int(product), float(value))
+            if issued is not None:  # the bias: an EWMA of the issued predictions' errors
+                self.fused.bias += self.config.sensor_trim * (float(value) - issued[0])
+        return inc
+
+    def _reweight(self, pred: FloatArray, value: float, sd: float, what: str) -> float:
+        """Multiply the current weights by ``N(value; pred, sd^2)`` (pred (N,)); return the
+        log evidence increment; :class:`FusionError` (weights untouched) if no particle
+        gives a finite likelihood."""
+        ll = norm.logpdf(value, loc=pred, scale=sd)
+        try:
+            self.filter.logw, inc = reweight(self.filter.logw, ll)
+        except ValueError as exc:
+            raise FusionError(f"fuse: {what} = {value:g}: {exc}") from None
+        return float(inc)
+
+    def posterior(self, u: Any = None) -> Posterior:
+        """The current particles' weighted summary (after :meth:`fuse`, with what was
+        fused): mean and std of ``[x, theta, theta_d]`` and of the angles at ``u``; the
+        angles' std adds the metamodel's error as :meth:`Tracker.step`'s estimates do
+        (the reported std here is the cloud's: no interval floors). With a fused camera
+        (a sensor of the final angle), the 90 % interval of the current product's
+        measured final angle, calibrated by adaptive conformal inference on the camera
+        values fused so far (:mod:`formtwin.tracker.conformal`; the interval issued last
+        for a product is the one its camera value scores), centred on the model's angle
+        plus the bias learned from the camera: an EWMA (weight ``config.sensor_trim``) of
+        the errors of the issued predictions, also added to the model's angle in the
+        camera's likelihood."""
+        if self.filter.x is None:
+            raise RuntimeError("posterior: no particles yet (call step first)")
+        na = self.ssm.n_aug
+        x = self.filter.x
+        w = np.exp(self.filter.logw - np.max(self.filter.logw))
+        w /= w.sum()
+        mean = w @ x[:, :na]
+        std = np.sqrt(np.maximum(w @ (x[:, :na] - mean) ** 2, 0.0))
+        a = distinct_angles(self.ssm, x[:, :self.ssm.n_in], validate_controls(u, self.spec))
+        am = w @ a
+        astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
+        camera = [s for s in used_sensors(self.spec, self.config) if s.measures == FINAL]
+        lo = hi = math.nan
+        if camera:  # the measured angle's interval: the camera's noise added
+            col = output_column(self.spec, FINAL)
+            sd = math.sqrt(float(astd[col]) ** 2 + camera[0].noise ** 2)
+            final = float(am[col]) + self.fused.bias
+            lo, hi = self.fused.conformal.interval(self.filter.t - 1, final, sd)
+        return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi),
+                         final if camera else math.nan)
+
+
+def distinct_angles(ssm: BendingSSM, x: FloatArray, u: FloatArray | None) -> FloatArray:
+    """The angles (N, 2) of the model inputs ``x`` (N, n_in) at ``u``, the model evaluated
+    once per distinct row (after resampling most rows are copies)."""
+    rows, inverse = np.unique(x, axis=0, return_inverse=True)
+    out: FloatArray = ssm.predict_angles(rows, u)[inverse.reshape(-1)]
+    return out
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """Weighted summary of the current particles (:meth:`SensorFusion.posterior`).
+
+    Attributes
+    ----------
+    mean, std : (18,) of ``[x, theta, theta_d]``, internal units.
+    angles_mean, angles_std : (2,) degrees.
+    ess : effective sample size of the current weights.
+    final_interval : ``(lo, hi)`` degrees, the camera-calibrated 90 % interval of the
+        measured final angle (NaN without a camera among the fused sensors).
+    final_mean : degrees, the predicted final angle with the bias learned from the camera
+        (NaN without a camera).
+    """
+
+    mean: FloatArray
+    std: FloatArray
+    angles_mean: FloatArray
+    angles_std: FloatArray
+    ess: float
+    final_interval: tuple[float, float] = (math.nan, math.nan)
+    final_mean: float = math.nan
+
+
+def angle_sd(tracker: Any, noise_sd: float = 0.0, stage: int = 1) -> float:
+    """The default ``sd`` of :func:`update_angle`, degrees: the metamodel's held-out error of
+    the angle after ``stage`` (0: the first bending stage, 1: the final angle) and the angle
+    sensor's noise ``noise_sd`` added in quadrature."""
+    var = float(np.asarray(tracker.ssm.angle_error_var)[stage])
+    return math.sqrt(max(var, 0.0) + noise_sd ** 2)
+
+
+def update_angle(tracker: Any, angle: float, u: float, sd: float | None = None,
+                 offset: float = 0.0, stage: int = 1) -> float:
+    """Reweight the tracker's particles by the measured ``angle`` (degrees) of the product
+    last stepped, made at setting ``u`` (the spec's one control, internal units): the
+    lag-0 case of :meth:`SensorFusion.fuse` with the likelihood ``N(angle; a_mm(x, u) +
+    offset, sd^2)``, ``sd`` the caller's (None: :func:`angle_sd`), ``stage`` 0 the angle
+    after the first bending stage instead; not entered in the tracker's :class:`FusedLog`.
+    Returns the log evidence increment.
+
+    Raises ``ValueError`` for a non-finite angle, setting or offset, or a bad ``sd``, and
+    ``RuntimeError`` before the first step; the tracker is then untouched. If no particle
+    gives a finite likelihood, the weights are left as they were and ``-inf`` is returned.
+    """
+    if tracker.filter.x is None:
+        raise RuntimeError("update_angle: no particles yet (step a curve first)")
+    for name, v in (("angle", angle), ("u", u), ("offset", offset)):
+        if not math.isfinite(float(v)):
+            raise ValueError(f"update_angle: {name} = {v}, expected a finite number")
+    if stage not in (0, 1):
+        raise ValueError(f"update_angle: stage = {stage}, expected 0 or 1")
+    s = angle_sd(tracker, stage=stage) if sd is None else float(sd)
+    if not (math.isfinite(s) and s > 0):
+        raise ValueError(f"update_angle: sd = {sd}, expected a positive number of degrees "
+                         "(the metamodel has no held-out angle error: give sd)")
+    a = tracker.final_angle(np.array([float(u)]))[:, 0] if stage == 1 else \
+        tracker.ssm.predict_angles(tracker.filter.x, float(u))[:, 0]
+    try:
+        return float(tracker._reweight(a + float(offset), float(angle), s, "angle"))
+    except FusionError:
+        return -math.inf
+
+
+__all__ = ["FusedLog", "FusionError", "LagColumns", "Posterior", "SensorFusion", "angle_sd",
+           "lag_depth", "update_angle", "used_sensors"]

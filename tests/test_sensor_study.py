@@ -1,0 +1,65 @@
+"""The study with sensors on the analytic stand-in (formtwin.study.sensor_study): the gauge
+pins the thickness where the Kalman filter of its AR(1) says it can, the camera's readings
+are the data's angles plus noise, the interval is issued for every tracked product, and
+the camera-only EWMA predictor is what it says."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formtwin.doe import latin_hypercube, run_design
+from formtwin.metamodel import Metamodel
+from formtwin.physics.analytic import AnalyticBending
+from formtwin.spec import load_spec
+from formtwin.study.run import StudySettings, _tasks, run_study
+from formtwin.study.sensor_study import ewma_prediction, sensor_run
+from formtwin.tracker import TrackerConfig
+
+SPEC = load_spec()
+
+
+def _kalman_rmse(rho: float, sigma: float, noise: float) -> float:
+    """Steady-state filtering std of an AR(1) (rho, stationary sigma) observed with noise."""
+    p = sigma**2
+    for _ in range(200):
+        pred = rho**2 * p + (1 - rho**2) * sigma**2
+        p = 1.0 / (1.0 / pred + 1.0 / noise**2)
+    return math.sqrt(p)
+
+
+def test_gauge_pins_the_thickness_and_the_camera_calibrates(tmp_path: Path) -> None:
+    sim = AnalyticBending(SPEC)
+    data = run_design(sim, latin_hypercube(SPEC, 600, seed=11), tmp_path / "doe.h5",
+                      executor="serial")
+    mm = Metamodel().fit(data)
+    mm_path = mm.save(tmp_path / "mm.npz")
+    settings = StudySettings(n_products=300, window=200, n_realisations=1, n_repetitions=1,
+                             series=(1,), paper_repetitions=0, workers=1, seed=5,
+                             tracker=TrackerConfig(n_particles=300))
+    study = run_study(settings, tmp_path, mm, mm_path, sim)
+    task = _tasks(settings, tmp_path, mm_path, tmp_path / "data")[0]
+    curve, both = sensor_run(task, ()), sensor_run(task, ("gauge", "camera"))
+    real = study.realisations[0]
+    col, sigma = SPEC.state.index["thickness"], SPEC.state["thickness"].sigma
+    err = {k: np.sqrt(np.mean((r["mean"][-200:, col] - real.x[-200:, col]) ** 2)) / sigma
+           for k, r in (("curve", curve), ("both", both))}
+    bound = _kalman_rmse(0.7, 1.0, 0.5)  # the gauge alone, in units of sigma: 0.42
+    assert bound == pytest.approx(0.42, abs=0.01)
+    assert err["both"] < 1.3 * bound < err["curve"], err
+    cam = both["camera"] - real.angles["MM"][:, 1]
+    assert abs(cam.std() - 0.2) < 4 * 0.2 / math.sqrt(2 * cam.size)
+    np.testing.assert_array_equal(curve["camera"], both["camera"])  # the same readings
+    lo, hi = both["final_lo"], both["final_hi"]
+    assert not np.isnan(lo).any() and np.all(lo < hi)
+    assert np.isfinite(lo).mean() > 0.95  # infinite only where ACI's alpha fell to <= 0
+    assert both["rejected"] == 0
+
+
+def test_ewma_prediction() -> None:
+    y = np.array([1.0, np.nan, 3.0, 5.0])
+    np.testing.assert_allclose(ewma_prediction(y, 0.5), [np.nan, 1.0, 1.0, 2.0])
+    np.testing.assert_allclose(ewma_prediction(y, 1.0)[1:], [1.0, 1.0, 3.0])
