@@ -43,6 +43,23 @@ def _git_commit() -> str | None:
     return out.stdout.strip() or None
 
 
+def _cpu_and_blas() -> dict[str, Any]:
+    """The CPU model (Linux: /proc/cpuinfo) and the BLAS libraries with their kernels."""
+    from threadpoolctl import threadpool_info
+
+    model = None
+    try:
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    blas = [f"{i.get('internal_api')} {i.get('version')} {i.get('architecture')}"
+            for i in threadpool_info() if i.get("user_api") == "blas"]
+    return {"cpu_model": model, "blas": blas}
+
+
 def machine() -> dict[str, Any]:
     """Facts about the machine a figure was measured on: platform, package versions, load."""
     versions: dict[str, str | None] = {}
@@ -58,6 +75,7 @@ def machine() -> dict[str, Any]:
         "commit": _git_commit(),
         "packages": versions,
         "machine": platform.machine(),
+        **_cpu_and_blas(),
         "processor": platform.processor() or platform.machine(),
         "cpus": os.cpu_count(),
         "system": platform.system(),
