@@ -1,13 +1,15 @@
 """DOE datasets: inputs, force curves, angles, failures and their provenance, in HDF5.
 
 A dataset file is self-describing HDF5 (h5py): datasets ``inputs (n, 10)``,
-``curves (n, n_t)``, ``angles (n, 2)``, ``time (n_t,)``, ``ok (n,)``, ``done (n,)`` and
+``curves (n, n_t)``, ``angles (n, n_outputs)`` (the spec's scalar outputs), ``time (n_t,)``,
+``ok (n,)``, ``done (n,)`` and
 ``reason (n,)``, each with its units and names as attributes; the root attributes hold
 the process spec's TOML text, the model version and the formtwin version. ``done`` marks
 rows already evaluated, so the DOE runner appends results as they arrive and resumes an
 interrupted run. Nothing is pickled.
 
-A user's own FE results come in through :func:`import_csv`.
+A user's own FE results come in through :func:`import_csv`; :func:`export_design` writes
+the design an external FE code is to run (the input columns of that CSV).
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 import formtwin
-from formtwin.simulator import ANGLE_NAMES
 from formtwin.spec import ProcessSpec, parse_spec
 
 FloatArray = NDArray[np.float64]
@@ -39,7 +40,7 @@ class DoeDataset:
     """Results of a design of experiments, internal units (mm, N, s, MPa; degrees).
 
     ``inputs (n, n_run_inputs)`` the run inputs ``(x, theta, u)``, ``curves (n, n_t)``
-    N, ``angles (n, 2)`` degrees,
+    N, ``angles (n, n_outputs)`` the spec's scalar outputs (``spec.output_names``),
     ``ok (n,)`` run succeeded, ``reason (n,)`` why not, ``time (n_t,)`` s.
     """
 
@@ -116,8 +117,9 @@ def _layout(f: h5py.File, spec: ProcessSpec, inputs: FloatArray, model_version: 
     f.create_dataset("time", data=spec.time).attrs["units"] = "s"
     f.create_dataset("curves", shape=(n, spec.n_t), dtype="f8", fillvalue=np.nan,
                      compression="gzip", shuffle=True).attrs["units"] = "N"
-    a = f.create_dataset("angles", shape=(n, 2), dtype="f8", fillvalue=np.nan)
-    a.attrs.update({"names": json.dumps(ANGLE_NAMES), "units": "degree"})
+    a = f.create_dataset("angles", shape=(n, spec.n_outputs), dtype="f8", fillvalue=np.nan)
+    a.attrs.update({"names": json.dumps(spec.output_names),
+                    "units": json.dumps([o.unit for o in spec.outputs])})
     f.create_dataset("ok", shape=(n,), dtype="bool")
     f.create_dataset("done", shape=(n,), dtype="bool")
     f.create_dataset("reason", shape=(n,), dtype=h5py.string_dtype())
@@ -152,10 +154,13 @@ def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "import
     """Read a user's FE results: one row per run.
 
     Columns: the spec's input names (in the spec file's units, as in Table 1), optionally
-    its control names (missing: the nominal setting), ``angle_stage1``
-    and ``angle_stage2`` (degrees), an optional ``status`` (``ok`` or a failure reason), and
-    the force curve as columns ``F@<time in ms>`` (N). The curve is linearly interpolated
-    onto the spec's grid, which its times must cover.
+    its control names (missing: the nominal setting), one column per output of the spec
+    (``spec.output_names``, e.g. ``angle_stage1`` and ``angle_stage2`` in degrees), an
+    optional ``status`` (``ok`` or a failure reason), and the force curve as columns
+    ``F@<axis value>`` (N) with the axis value in the spec's ``[curve] unit`` (ms for the
+    demonstrator, mm for a stroke axis). The curve is linearly interpolated onto the
+    spec's grid, which its axis values must cover. :func:`curve_columns` names the columns
+    of the spec's own grid (what :func:`export_design` writes).
     """
     p = Path(path)
     try:
@@ -167,24 +172,28 @@ def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "import
         raise DatasetError(f"{p}: needs a header and at least one row")
     header = [h.strip() for h in rows[0]]
     col = {h: i for i, h in enumerate(header)}
-    missing = [n for n in (*spec.inputs.names, *ANGLE_NAMES) if n not in col]
+    outputs = spec.output_names
+    missing = [n for n in (*spec.inputs.names, *outputs) if n not in col]
     if missing:
         raise DatasetError(f"{p}: missing column(s) {missing}")
     curve_cols = [h for h in header if h.startswith("F@")]
     try:
-        t_csv = np.array([float(h[2:]) for h in curve_cols]) * 1e-3
+        t_csv = np.array([float(h[2:]) for h in curve_cols]) * spec.axis_scale
     except ValueError as exc:
-        raise DatasetError(f"{p}: curve column names must be F@<time in ms> ({exc})") from exc
+        raise DatasetError(f"{p}: curve column names must be F@<{spec.axis} in "
+                           f"{spec.axis_unit}> ({exc})") from exc
+    unit, sc = spec.axis_unit, spec.axis_scale
     if t_csv.size < 2 or np.any(np.diff(t_csv) <= 0):
-        raise DatasetError(f"{p}: the F@<ms> columns must be at least 2 increasing times")
-    if t_csv[0] > spec.time[0] + 1e-12 or t_csv[-1] < spec.time[-1] - 1e-12:
-        raise DatasetError(f"{p}: curve times [{t_csv[0] * 1e3:g}, {t_csv[-1] * 1e3:g}] ms do "
-                           f"not cover the spec window [{spec.time[0] * 1e3:g}, "
-                           f"{spec.time[-1] * 1e3:g}] ms")
+        raise DatasetError(f"{p}: the F@<{unit}> columns must be at least 2 increasing values")
+    tol = 1e-9 * float(spec.time[-1] - spec.time[0])
+    if t_csv[0] > spec.time[0] + tol or t_csv[-1] < spec.time[-1] - tol:
+        raise DatasetError(f"{p}: curve {spec.axis}s [{t_csv[0] / sc:g}, {t_csv[-1] / sc:g}] "
+                           f"{unit} do not cover the spec window [{spec.time[0] / sc:g}, "
+                           f"{spec.time[-1] / sc:g}] {unit}")
     box = spec.run_inputs
     scale = np.array([v.scale for v in box])
     n = len(rows) - 1
-    inputs, angles = np.empty((n, len(box))), np.empty((n, 2))
+    inputs, angles = np.empty((n, len(box))), np.empty((n, len(outputs)))
     curves = np.empty((n, spec.n_t))
     ok = np.ones(n, dtype=bool)
     reason = np.full(n, "", dtype=object)
@@ -207,9 +216,9 @@ def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "import
             ok[r], reason[r] = False, status or "failed"
             angles[r], curves[r] = np.nan, np.nan
             continue
-        angles[r] = [number(name) for name in ANGLE_NAMES]
+        angles[r] = [number(name) for name in outputs]
         values = np.array([number(h) for h in curve_cols])
-        bad = [name for name, v in zip((*ANGLE_NAMES, *curve_cols),
+        bad = [name for name, v in zip((*outputs, *curve_cols),
                                        np.r_[angles[r], values], strict=True)
                if not np.isfinite(v)]
         if bad:
@@ -225,3 +234,29 @@ def import_csv(path: str | Path, spec: ProcessSpec, model_version: str = "import
                            f"{v.unit} is outside [{v.lo / v.scale:g}, {v.hi / v.scale:g}]")
     return DoeDataset(spec=spec, inputs=inputs, curves=curves, angles=angles, ok=ok,
                       reason=reason.astype(str), model_version=model_version)
+
+
+def curve_columns(spec: ProcessSpec) -> list[str]:
+    """The ``F@<axis value>`` column names of the spec's own curve grid (file units)."""
+    return [f"F@{v / spec.axis_scale:.10g}" for v in spec.time]
+
+
+def export_design(spec: ProcessSpec, X: FloatArray, path: str | Path) -> Path:
+    """Write the design ``X`` (n, n_run_inputs), internal units, as a CSV for an external
+    FE code: a ``run`` number and one column per run input in the spec file's units (as
+    :func:`import_csv` reads them back). The FE code adds the output columns, ``status``
+    and the curve (:func:`curve_columns`)."""
+    X = np.asarray(X, dtype=np.float64)
+    box = spec.run_inputs
+    if X.ndim != 2 or X.shape[1] != len(box):
+        raise DatasetError(f"design of shape {X.shape}, expected (n, {len(box)}) "
+                           f"({', '.join(box.names)})")
+    scale = np.array([v.scale for v in box])
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with open(p, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["run", *box.names])
+        for i, row in enumerate(X / scale):
+            w.writerow([i, *(f"{v:.12g}" for v in row)])
+    return p

@@ -41,29 +41,36 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class DeviationModel:
-    """``g`` on a uniform time grid ``time`` (n_t,) s with knots ``knots`` (k,) s."""
+    """``g`` on a uniform grid ``time`` (n_t,) (s, or mm of stroke) with knots ``knots``
+    (k,) in the same unit. ``kinds`` (the spec's ``[deviation] kinds``) are the parts of
+    ``theta_d``, in the order force scaling, speed scaling; a kind left out is held at 0
+    (no kinds: ``g`` is the identity and ``theta_d`` has no columns)."""
 
     time: FloatArray
     knots: FloatArray
+    kinds: tuple[str, ...] = ("force_scaling", "speed_scaling")
 
     @classmethod
     def from_spec(cls, spec: ProcessSpec) -> DeviationModel:
-        """The deviation model of ``spec``: its knots on the spec's time grid."""
-        return cls(spec.time, spec.deviation.knots)
+        """The deviation model of ``spec``: its kinds and knots on the spec's curve grid."""
+        return cls(spec.time, spec.deviation.knots, spec.deviation.kinds)
 
     @property
     def n_params(self) -> int:
-        """Length of ``theta_d``: force then speed scaling, ``2 k``."""
-        return 2 * int(self.knots.size)
+        """Length of ``theta_d``: ``k`` per kind (``2 k`` with force and speed scaling)."""
+        return len(self.kinds) * int(self.knots.size)
 
     def _split(self, theta_d: FloatArray) -> tuple[FloatArray, FloatArray]:
         theta_d = np.atleast_2d(np.asarray(theta_d, dtype=np.float64))
-        k = self.knots.size
-        if theta_d.shape[-1] != 2 * k:
-            raise ValueError(f"theta_d has {theta_d.shape[-1]} columns, expected {2 * k}")
-        if np.any(theta_d[:, k:] <= -1.0):
+        k, n = self.knots.size, self.n_params
+        if theta_d.shape[-1] != n:
+            raise ValueError(f"theta_d has {theta_d.shape[-1]} columns, expected {n}")
+        zero = np.zeros((theta_d.shape[0], k))
+        a = theta_d[:, :k] if "force_scaling" in self.kinds else zero
+        b = theta_d[:, n - k:] if "speed_scaling" in self.kinds else zero
+        if np.any(b <= -1.0):
             raise ValueError("theta_d speed scaling must be above -1 (time must run forward)")
-        return theta_d[:, :k], theta_d[:, k:]
+        return a, b
 
     def _knot_weights(self, t: FloatArray) -> tuple[NDArray[np.intp], FloatArray]:
         """Knot interval ``idx`` (n,) of times ``t`` (n,) and the weight ``w`` (n,) of its
@@ -189,6 +196,14 @@ class DeviationModel:
         out += lo
         return out
 
+    def _identity(self, z: FloatArray, td: FloatArray) -> FloatArray:
+        """Curves (N, n_t) unchanged: a copy of ``z`` (n_t,) or (N, n_t), N rows of ``td``."""
+        if td.shape[-1] != 0:
+            raise ValueError(f"theta_d has {td.shape[-1]} columns, expected 0 (no deviation "
+                             "kinds)")
+        out: FloatArray = np.array(np.broadcast_to(z, (td.shape[0], self.time.size)))
+        return out
+
     def apply(self, z_model: FloatArray, theta_d: FloatArray) -> FloatArray:
         """``g(z~, theta_d)``: modelled curve(s) (n_t,) or (N, n_t) -> real curves (N, n_t).
 
@@ -198,6 +213,8 @@ class DeviationModel:
         """
         z = np.asarray(z_model, dtype=np.float64)
         td = np.atleast_2d(np.asarray(theta_d, dtype=np.float64))
+        if not self.kinds:  # no deviation model: g is the identity
+            return self._identity(z, td)
         if z.ndim == 2 and z.shape == (td.shape[0], self.time.size) and np.isfinite(td).all():
             a, b = self._split(td)
             _, tau_base, slope, curv = self._segments(b)
@@ -209,6 +226,9 @@ class DeviationModel:
 
     def invert(self, z: FloatArray, theta_d: FloatArray) -> FloatArray:
         """``g^-1(z, theta_d)``: real curve(s) (n_t,) or (N, n_t) -> model-time curves (N, n_t)."""
+        if not self.kinds:
+            return self._identity(np.asarray(z, dtype=np.float64),
+                                  np.atleast_2d(np.asarray(theta_d, dtype=np.float64)))
         t_real, a = self._inverse(theta_d)
         out: FloatArray = self._interp_rows(np.asarray(z, dtype=np.float64), t_real) / (1.0 + a)
         return out

@@ -79,7 +79,8 @@ def _run_chunk(simulator: Simulator, rows: NDArray[np.intp], X: FloatArray
         try:
             out.append(simulator.run(x))
         except Exception as exc:  # one bad point must not stop the DOE
-            out.append(RunResult.failure(simulator.spec.n_t, f"{type(exc).__name__}: {exc}"))
+            out.append(RunResult.failure(simulator.spec.n_t, f"{type(exc).__name__}: {exc}",
+                                         simulator.spec.n_outputs))
     return rows, out
 
 

@@ -20,12 +20,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.spec import DEFAULT_OUTPUTS
+
 FloatArray = NDArray[np.float64]
 
 
 #: health of one estimate, best first: the curve is explained / explained with a warning
 #: (fit in the tail, or few effective particles) / not explained (see formtwin.tracker.fit)
 HEALTH = ("ok", "degraded", "no_fit")
+#: output names of an estimate made without them: the demonstrator's two angles
+DEFAULT_OUTPUT_NAMES = tuple(o.name for o in DEFAULT_OUTPUTS)
 
 
 def _jsonable(v: float) -> float | None:
@@ -72,7 +76,8 @@ class Estimate:
     index : 0-based number of the product in the tracker's stream.
     names : (18,) names of the augmented state (``spec.augmented.names``).
     mean, std : (18,) weighted posterior mean and std.
-    angles_mean, angles_std : (2,) posterior predictive mean and std of the angles, degrees.
+    angles_mean, angles_std : (n_outputs,) posterior predictive mean and std of the spec's
+        scalar outputs (the demonstrator: its two bend angles, degrees).
     ess : effective sample size before resampling.
     collapsed : no particle explained the curve (estimate = predictive).
     loglik : log marginal-likelihood increment of the curve (``-inf`` if collapsed).
@@ -83,6 +88,7 @@ class Estimate:
     intervals : what ``std`` and ``angles_std`` are (``TrackerConfig.intervals``), or
         ``"uncalibrated"`` where a calibrated kind was asked for and the model has no
         interval calibration (the cloud's std: overconfident under model error).
+    output_names : names of the outputs in ``angles_mean`` (``spec.output_names``).
     """
 
     index: int
@@ -98,6 +104,7 @@ class Estimate:
     mu_std: FloatArray | None = None
     fit: Fit | None = None
     intervals: str = "cloud"
+    output_names: tuple[str, ...] = DEFAULT_OUTPUT_NAMES
 
     def __getitem__(self, name: str) -> float:
         """Posterior mean of the variable ``name``."""
@@ -119,6 +126,7 @@ class Estimate:
             "std": {n: _jsonable(v) for n, v in zip(self.names, self.std, strict=True)},
             "angles_mean": [_jsonable(v) for v in self.angles_mean],
             "angles_std": [_jsonable(v) for v in self.angles_std],
+            "output_names": list(self.output_names),
             "ess": _jsonable(self.ess),
             "collapsed": bool(self.collapsed),
             "loglik": _jsonable(self.loglik),
@@ -157,6 +165,7 @@ class Estimates:
     fit_log10_p: FloatArray | None = None
     ess_share: FloatArray | None = None
     intervals: str = "cloud"
+    output_names: tuple[str, ...] = DEFAULT_OUTPUT_NAMES
 
     def __len__(self) -> int:
         return int(self.index.size)
@@ -170,6 +179,7 @@ class Estimates:
     def stack(cls, items: Sequence[Estimate], names: tuple[str, ...]) -> Estimates:
         """Stack single estimates (possibly none) into arrays."""
         d = len(names)
+        n_out = len(items[0].angles_mean) if items else 2
 
         def arr(attr: str, width: int) -> FloatArray:
             if not items:
@@ -183,8 +193,8 @@ class Estimates:
                              for e in items], dtype=np.float64)
 
         return cls(names=names, index=np.array([e.index for e in items], dtype=np.int64),
-                   mean=arr("mean", d), std=arr("std", d), angles_mean=arr("angles_mean", 2),
-                   angles_std=arr("angles_std", 2),
+                   mean=arr("mean", d), std=arr("std", d), angles_mean=arr("angles_mean", n_out),
+                   angles_std=arr("angles_std", n_out),
                    ess=np.array([e.ess for e in items], dtype=np.float64),
                    collapsed=np.array([e.collapsed for e in items], dtype=bool),
                    loglik=np.array([e.loglik for e in items], dtype=np.float64),
@@ -193,7 +203,8 @@ class Estimates:
                    health=np.array([e.health for e in items], dtype=np.str_),
                    fit_distance2=fit("distance2"), fit_quantile=fit("quantile"),
                    fit_log10_p=fit("log10_p"), ess_share=fit("ess_share"),
-                   intervals=items[0].intervals if items else "cloud")
+                   intervals=items[0].intervals if items else "cloud",
+                   output_names=items[0].output_names if items else DEFAULT_OUTPUT_NAMES)
 
     def columns(self) -> dict[str, NDArray[Any]]:
         """Flat table columns: index, mean_<name>, std_<name>, angles, ess, collapsed,
@@ -204,7 +215,7 @@ class Estimates:
             cols[f"mean_{n}"] = self.mean[:, j]
         for j, n in enumerate(self.names):
             cols[f"std_{n}"] = self.std[:, j]
-        for j in range(2):
+        for j in range(self.angles_mean.shape[1]):  # the spec's outputs, in their order
             cols[f"angle{j + 1}_mean"] = self.angles_mean[:, j]
             cols[f"angle{j + 1}_std"] = self.angles_std[:, j]
         cols.update(ess=self.ess, collapsed=self.collapsed, loglik=self.loglik)

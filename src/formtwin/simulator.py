@@ -2,8 +2,9 @@
 
 A simulator maps one point of the input box (state ``x``, parameters ``theta`` and the
 press settings ``u``, in internal units, shape ``(n_run_inputs,)``) to the stage-1 force
-curve on the spec's time grid (N, shape ``(n_t,)``) and the bend angles after stage 1 and
-stage 2 (degrees, after springback, shape ``(2,)``). A run that fails returns ``ok=False``
+curve on the spec's curve grid (N, shape ``(n_t,)``) and the spec's scalar outputs
+(``spec.outputs``, shape ``(n_outputs,)``: for the demonstrator the bend angles after stage 1
+and stage 2, degrees, after springback). A run that fails returns ``ok=False``
 and a reason instead of raising, so one bad point never stops a design of experiments.
 
 :class:`SimulatorModel` makes any simulator a process model for the tracker (curves and
@@ -22,12 +23,10 @@ from formtwin.spec import ProcessSpec
 
 FloatArray = NDArray[np.float64]
 
-ANGLE_NAMES = ("angle_stage1", "angle_stage2")
-
-
 @dataclass(frozen=True)
 class RunResult:
-    """Outcome of one simulator run: curve ``(n_t,)`` in N, angles ``(2,)`` in degrees."""
+    """Outcome of one simulator run: curve ``(n_t,)`` in N, outputs ``angles``
+    ``(n_outputs,)`` in their spec units."""
 
     curve: FloatArray
     angles: FloatArray
@@ -36,9 +35,9 @@ class RunResult:
     info: dict[str, float] = field(default_factory=dict)
 
     @classmethod
-    def failure(cls, n_t: int, reason: str) -> RunResult:
-        """A failed run: NaN outputs and the reason."""
-        return cls(np.full(n_t, np.nan), np.full(2, np.nan), ok=False, reason=reason)
+    def failure(cls, n_t: int, reason: str, n_outputs: int = 2) -> RunResult:
+        """A failed run: NaN curve ``(n_t,)`` and outputs ``(n_outputs,)``, and the reason."""
+        return cls(np.full(n_t, np.nan), np.full(n_outputs, np.nan), ok=False, reason=reason)
 
 
 class Simulator(Protocol):
@@ -92,7 +91,8 @@ class SimulatorModel:
         else:
             runs = [self.simulator.run(x) for x in X]
             curves = np.array([r.curve for r in runs]).reshape(len(runs), -1)
-            angles = np.array([r.angles for r in runs]).reshape(len(runs), 2)
+            angles = np.array([r.angles for r in runs]).reshape(len(runs),
+                                                                self.spec.n_outputs)
         self._last = (X.copy(), curves, angles)
         return curves, angles
 
@@ -102,6 +102,7 @@ class SimulatorModel:
         return self._run(X)[0]
 
     def predict_angles(self, X: FloatArray, u: FloatArray | float | None = None) -> FloatArray:
-        """Bend angles after stage 1 and 2 (N, 2), degrees, for inputs ``X`` (N, 10) at the
-        controls ``u`` (scalar or (N,); None: nominal), or ``X`` (N, 11) with ``u`` None."""
+        """Scalar outputs (N, n_outputs) (the demonstrator: bend angles, degrees) for inputs
+        ``X`` (N, 10) at the controls ``u`` (scalar or (N,); None: nominal), or ``X``
+        (N, 11) with ``u`` None."""
         return self._run(self.spec.run_columns(X, u))[1]

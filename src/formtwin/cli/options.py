@@ -24,6 +24,24 @@ def add_tracker_options(p: argparse.ArgumentParser, exclude: tuple[str, ...] = (
     add_arguments(group, TrackerConfig, exclude=exclude)
 
 
+def spec_defaults(spec: Any) -> dict[str, Any]:
+    """Tracker settings a spec sets: the force sensor's std (``[curve] noise_sd``, N)."""
+    noise = float(getattr(spec, "noise_sd", 0.0))
+    return {"sensor_noise": noise} if noise > 0 else {}
+
+
+def noise_note(config: TrackerConfig, spec: Any) -> str:
+    """Why a poor fit may be the sensor noise's fault: the noise in use and where it came
+    from (the spec's ``[curve] noise_sd``, a flag, or the default 0)."""
+    given = float(getattr(spec, "noise_sd", 0.0))
+    src = ("the spec's [curve] noise_sd" if given > 0 and config.sensor_noise == given
+           else "the default: no noise_sd in the spec's [curve]"
+           if given == 0 and config.sensor_noise == 0 else "--sensor-noise / --config")
+    return (f"sensor noise in use: {config.sensor_noise:g} N ({src}). A sensor noise below "
+            "the real sensor's makes every curve look like a model mismatch: set [curve] "
+            "noise_sd in the spec or pass --sensor-noise with the sensor's std.")
+
+
 def tracker_config(args: argparse.Namespace, base: Mapping[str, Any] | None = None
                    ) -> TrackerConfig:
     """The :class:`TrackerConfig` of defaults < ``base`` < ``--config`` < flags; given the

@@ -10,7 +10,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from formtwin.cli.options import add_tracker_options, tracker_config
+from formtwin.cli.options import add_tracker_options, spec_defaults, tracker_config
 from formtwin.service.plausibility import CLIP_SAMPLES
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
@@ -118,7 +118,8 @@ def add_check_options(p: argparse.ArgumentParser) -> None:
                    help="K consecutive samples at the maximum are a clipped sensor "
                    "(default: %(default)s)")
     g.add_argument("--peak-window", metavar="LO,HI",
-                   help="accepted times of the peak force, ms (default: the model's range "
+                   help="accepted positions of the peak force on the curve axis, in the "
+                   "spec's [curve] unit (ms for the demonstrator; default: the model's range "
                    "over the spec's ranges, widened by 5 samples)")
     g.add_argument("--mismatch-k", type=int, default=5, metavar="K",
                    help="model_mismatch when K of the last M products are not explained "
@@ -137,7 +138,8 @@ def _window(text: str | None) -> tuple[float, float] | None:
     try:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
-        raise ValueError(f"--peak-window {text!r}: expected LO,HI in ms, e.g. -50,5") from None
+        raise ValueError(f"--peak-window {text!r}: expected LO,HI in the spec's curve unit, "
+                         "e.g. -50,5 (ms)") from None
     return lo, hi
 
 
@@ -197,7 +199,8 @@ def register(sub: Any) -> None:
     p.add_argument("--errors-topic", help="default: sibling 'errors' of --topic")
     p.add_argument("--alarms-topic", help="default: sibling 'alarms' of --topic")
     p.add_argument("--client-id", default="formtwin-serve",
-                   help="persistent MQTT session id; keep it across restarts")
+                   help="persistent MQTT session id; keep it across restarts (--check runs "
+                   "on a clean session <id>-check-<pid> of its own)")
     p.add_argument("--store", default="formtwin-serve.sqlite",
                    help="SQLite store (default: %(default)s)")
     p.add_argument("--sync", choices=("normal", "full"), default="normal",
@@ -248,8 +251,24 @@ def register(sub: Any) -> None:
     p.set_defaults(run=_serve)
 
 
+def _model_spec(args: argparse.Namespace) -> Any:
+    """The spec the service will run (read from the metamodel file without loading its
+    models; the analytic stand-in: the demonstrator)."""
+    import numpy as np
+
+    from formtwin.spec import load_spec, parse_spec
+
+    if args.analytic or not args.metamodel or Path(args.metamodel).is_dir():
+        return load_spec()
+    try:
+        with np.load(args.metamodel, allow_pickle=False) as z:
+            return parse_spec(str(z["spec_text"]), str(args.metamodel))
+    except (OSError, ValueError, KeyError):
+        return load_spec()  # the processor reports the file's problem when it loads it
+
+
 def _serve(args: argparse.Namespace) -> int:
-    from formtwin.service.mqtt import MqttService, Topics
+    from formtwin.service.mqtt import MqttService, Topics, check_client_id
     from formtwin.service.runtime import ServiceSettings, open_processor
 
     broker = broker_config(args)
@@ -257,9 +276,10 @@ def _serve(args: argparse.Namespace) -> int:
                                args.alarms_topic)
     if args.metamodel and not Path(args.metamodel).exists():
         raise ValueError(f"--metamodel {args.metamodel}: no such file")
+    defaults = spec_defaults(_model_spec(args))
     settings = ServiceSettings(
         model="analytic" if args.analytic else str(Path(args.metamodel).resolve()),
-        tracker=tracker_config(args), gate_k=args.gate, max_bytes=args.max_bytes,
+        tracker=tracker_config(args, defaults), gate_k=args.gate, max_bytes=args.max_bytes,
         min_force_N=args.min_force, max_force_N=args.max_force, min_peak_N=args.min_peak,
         clip_samples=args.clip_samples, peak_window_ms=_window(args.peak_window),
         health_k=args.mismatch_k, health_m=args.mismatch_m)
@@ -286,13 +306,20 @@ def _serve(args: argparse.Namespace) -> int:
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
-        service = MqttService(proc, broker, topics, client_id=args.client_id)
+        # --check: a clean session of its own id, gone when the check disconnects
+        service = MqttService(proc, broker, topics, persistent=check is None,
+                              client_id=args.client_id if check is None
+                              else check_client_id(args.client_id))
         if not args.no_page:
             from formtwin.service.web import LiveFeed, PageServer
             from formtwin.spec import load_spec
 
-            units = {v.name: v.internal_unit for v in load_spec().augmented}
-            feed = LiveFeed(proc.tracker_names(), units=units)
+            # units and outputs of the running spec (the tracker's), else the demonstrator's
+            spec = getattr(proc.tracker, "spec", None) or load_spec()
+            units = {v.name: v.internal_unit for v in spec.augmented}
+            outputs = [{"name": o.name, "label": o.label, "unit": o.unit}
+                       for o in spec.outputs]
+            feed = LiveFeed(proc.tracker_names(), units=units, outputs=outputs)
             feed.seed(proc.store)
             feed.health_state = getattr(proc.health, "state", None)
             feed.n_particles = getattr(getattr(proc.tracker, "config", None), "n_particles",

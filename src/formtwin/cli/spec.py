@@ -40,8 +40,20 @@ def format_table(spec: ProcessSpec) -> str:
                          f"{cell(v.mu_min, v.scale, 9)}{cell(v.mu_max, v.scale, 9)}"
                          f"{cell(v.sigma, v.scale, 8)}{cell(v.rho, 1.0, 6)}")
     notes = [f"note ({v.name}): {v.note}" for v in spec.augmented if v.note]
-    t = spec.time
-    lines += ["", f"force curve: {t.size} samples on [{t[0] * 1e3:g}, {t[-1] * 1e3:g}] ms; "
-              f"deviation knots at {', '.join(f'{k * 1e3:.4g}' for k in spec.deviation.knots)}"
-              " ms"] + notes
+    for v in spec.controls:
+        lines.append(f"{'u':<10}{v.name:<22}{v.unit:<12}{cell(v.lo, v.scale, 9)}"
+                     f"{cell(v.hi, v.scale, 9)}   nominal {v.nominal / v.scale:g}")
+    for o in spec.outputs:
+        lines.append(f"{'output':<10}{o.name:<22}{o.unit:<12}  {o.label}"
+                     + ("" if o.uses_controls or not len(spec.controls) else
+                        " (before the controls act)"))
+    t, sc, unit = spec.time, spec.axis_scale, spec.axis_unit
+    dev = spec.deviation
+    knots = (f"deviation {', '.join(dev.kinds)} at knots "
+             f"{', '.join(f'{k / sc:.4g}' for k in dev.knots)} {unit}" if dev.kinds
+             else "no deviation model (g = identity)")
+    noise = (f"sensor noise sd {spec.noise_sd:g} N" if spec.noise_sd > 0 else
+             "sensor noise sd not given ([curve] noise_sd; the tracker then assumes 0 N)")
+    lines += ["", f"force curve over {spec.axis}: {t.size} samples on [{t[0] / sc:g}, "
+              f"{t[-1] / sc:g}] {unit}; {noise}", knots] + notes
     return "\n".join(lines)

@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from formtwin.cli.options import add_tracker_options, tracker_config
 from formtwin.study.run import StudySettings
 
@@ -26,6 +28,11 @@ def register(sub: Any) -> None:
     p.add_argument("--physics", choices=("bending", "analytic"), default="bending",
                    help="process model behind the DOE and the FE data (default: %(default)s)")
     p.add_argument("--metamodel", help="metamodel file (default: fitted from the bundled DOE)")
+    p.add_argument("--fe-data", metavar="DATASET.h5",
+                   help="your own FE dataset (formtwin doe import) as the physics data of "
+                   "the sources FE and gFE (series 5, 6): interpolated with a thin-plate RBF "
+                   "independent of the metamodel (docs/howto_own_process.md); needed for "
+                   "a spec the built-in --physics models do not know")
     p.add_argument("--products", type=int, help="products per realisation (paper: 1000)")
     p.add_argument("--realisations", type=int, help="dataset realisations (paper: 5)")
     p.add_argument("--repetitions", type=int, help="filter repetitions per dataset (paper: 5)")
@@ -70,9 +77,38 @@ def settings_from_args(args: argparse.Namespace) -> StudySettings:
                          tracker=tracker, **values)
 
 
+def _physics(args: argparse.Namespace, spec: Any) -> tuple[Any, str]:
+    """The study's physics data source and its label: the FE dataset of ``--fe-data``
+    (checked against the metamodel's spec), else the ``--physics`` model, which must be
+    able to run this spec (else ``ValueError`` naming what is missing)."""
+    from formtwin.defaults import physics_model
+    from formtwin.study.fe_data import DatasetSimulator, check_physics
+
+    if args.fe_data:
+        from formtwin.dataset import DoeDataset
+
+        data = DoeDataset.load(args.fe_data)
+        same = (data.spec.run_inputs.names == spec.run_inputs.names
+                and data.spec.output_names == spec.output_names
+                and data.spec.n_t == spec.n_t and np.allclose(data.spec.time, spec.time))
+        if not same:
+            raise ValueError(f"--fe-data {args.fe_data}: its spec {data.spec.name!r} has "
+                             f"other inputs, outputs or curve grid than the metamodel's "
+                             f"{spec.name!r}")
+        return DatasetSimulator(data), f"FE dataset {args.fe_data} (thin-plate RBF)"
+    try:
+        physics = physics_model(args.physics, spec)
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"study: the {args.physics} model cannot run spec {spec.name!r} "
+                         f"(missing {exc}); pass --fe-data with the spec's own FE dataset "
+                         "(formtwin doe import)") from None
+    check_physics(physics, spec, f"the {args.physics} model")
+    return physics, args.physics
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``formtwin study``: the metamodel, the study and its report; returns the exit code."""
-    from formtwin.defaults import default_metamodel, physics_model
+    from formtwin.defaults import default_metamodel
     from formtwin.study.report import write_report
     from formtwin.study.run import run_study
     from formtwin.tracker.intervals import find_calibration
@@ -80,9 +116,10 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     out = Path(args.out)
     metamodel, mm_path = default_metamodel(out / "model", args.physics, args.metamodel)
-    physics = physics_model(args.physics, metamodel.spec)
+    physics, label = _physics(args, metamodel.spec)
+    runs = label if args.fe_data else f"{label} model"
     print(f"study into {out}: {settings.n_realisations} datasets x {settings.n_products} "
-          f"products ({args.physics} model runs, cached), then {settings.n_filter_runs} "
+          f"products ({runs} runs, cached), then {settings.n_filter_runs} "
           f"filter runs with N = {settings.tracker.n_particles} (progress bars on a "
           "terminal; -v logs the steps)",
           flush=True)
@@ -94,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"WARNING: {calibration}; the report's intervals are the particle cloud's")
     report = write_report(result, metamodel.spec, out, sources={
         "metamodel": f"{mm_path} (fit {metamodel.fit_id or 'without id'})",
-        "physics model": f"{args.physics} ({physics.version})"}, calibration=calibration)
+        "physics model": f"{label} ({physics.version})"}, calibration=calibration)
     print(f"study done in {result.timings['total_s']:.0f} s; report: {report}")
     print(f"markdown: {out / 'report.md'}; numbers: {out / 'nrmse.csv'}")
     return 0

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin.cli.options import add_tracker_options, tracker_config
+from formtwin.cli.options import add_tracker_options, noise_note, spec_defaults, tracker_config
 
 log = logging.getLogger(__name__)
 
@@ -24,14 +24,19 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "track", help="estimate state, parameters and angles from a file of force curves",
         description="Run the particle-filter tracker over the curves of FILE, one product a "
-                    "row, and write per-product estimates (mean and std of the 18 augmented "
-                    "variables in internal units, predicted angles, ESS, and the absolute goodness "
-                    "of fit: health ok/degraded/no_fit, fit_distance2, fit_quantile).")
+                    "row, and write per-product estimates (mean and std of the augmented "
+                    "variables in internal units, the predicted outputs of the spec as "
+                    "angle<k>_mean/_std in its [[output]] order, ESS, and the absolute goodness "
+                    "of fit: health ok/degraded/no_fit, fit_distance2, fit_quantile). The "
+                    "force sensor's std defaults to the spec's [curve] noise_sd (0 without "
+                    "it: then any real sensor's noise reads as a model mismatch).")
     p.add_argument("--metamodel", required=True,
                    help="metamodel file, or 'analytic' for the closed-form stand-in")
     p.add_argument("--curves", required=True, type=Path,
-                   help="curves (n, n_t) in N: .npz (key 'curves'), .csv (one curve a row, "
-                        "optional header), a DOE dataset .h5 (formtwin.dataset) or a "
+                   help="curves (n, n_t) in N: .npz (key 'curves'), .csv (one curve a row: "
+                        "bare numbers, or the stream layout part_id, cycle, f0 .. f<n_t-1>, "
+                        "angle<k> of replay; docs/reference_csv.md), a DOE dataset .h5 "
+                        "(formtwin.dataset) or a "
                         "NetCDF file with a variable 'curves' (study realisations: --source)")
     p.add_argument("--out", required=True, type=Path,
                    help="estimates: .csv, or .parquet (needs pyarrow)")
@@ -67,12 +72,19 @@ def read_curves(path: Path, n_t: int, source: str | None = None) -> NDArray[np.f
     elif suffix in (".csv", ".txt"):
         with open(path, encoding="utf-8") as fh:
             first = fh.readline()
+        header = [h.strip() for h in first.split(",")]
+        fcols = [i for i, h in enumerate(header) if h[:1] == "f" and h[1:].isdigit()]
         try:
-            [float(v) for v in first.split(",")]
+            [float(v) for v in header]
             skip = 0
         except ValueError:
             skip = 1  # a header line
-        arr = np.loadtxt(path, delimiter=",", skiprows=skip, ndmin=2)
+        if skip and fcols:  # the stream layout of replay: part_id, cycle, f0 .., angle<k>
+            order = sorted(fcols, key=lambda i: int(header[i][1:]))
+            arr = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, usecols=order,
+                             dtype=np.float64)
+        else:
+            arr = np.loadtxt(path, delimiter=",", skiprows=skip, ndmin=2)
     elif suffix in (".h5", ".hdf5") and _is_doe_dataset(path):
         from formtwin.dataset import DoeDataset
 
@@ -208,7 +220,7 @@ def _track(args: argparse.Namespace) -> int:
                 validate_controls(u[i], spec)
             except ValueError as exc:
                 raise ValueError(f"row {i}: {exc}") from None
-    config = tracker_config(args)
+    config = tracker_config(args, spec_defaults(spec))
     measurement = MeasurementModel.load(args.measurement) if args.measurement else None
     tracker = build_tracker(model, config, measurement)
     with single_blas_thread():
@@ -229,8 +241,9 @@ def _track(args: argparse.Namespace) -> int:
     if len(est) and counts["no_fit"] > len(est) // 2:
         print(f"WARNING: the model does not explain {counts['no_fit']} of {len(est)} curves "
               "(distance beyond the 99.9 % quantile of the measurement model): the estimates "
-              "are not supported by the data. Likely causes: a metamodel of another press or "
-              "process, a faulty sensor, curves in other units.")
+              "are not supported by the data. Likely causes: a sensor noise set too small, "
+              "a metamodel of another press or process, a faulty sensor, curves in other "
+              "units.\n" + noise_note(config, spec))
     if tracker.intervals == "uncalibrated":
         from formtwin.tracker.intervals import find_calibration
 

@@ -3,15 +3,17 @@
 Composed like an estimator: ``Metamodel(reduction=POD(...), approximation=RBF(...))``
 ``.fit(dataset)`` returns itself and ``.predict(X)`` evaluates it. The curves of the
 dataset's successful runs are reduced to mode coefficients; one approximation (a copy of
-``approximation``) interpolates all coefficients, and two more copies interpolate the two
-bend angles separately (as the paper does). Inputs are first mapped per dimension to the
+``approximation``) interpolates all coefficients, and one more copy per scalar output of the
+spec (``spec.outputs``; the demonstrator's two bend angles) interpolates it separately (as
+the paper does for its angles). Inputs are first mapped per dimension to the
 unit design box ``(x - lo) / (hi - lo)`` of the spec (the scaler); the approximation may
 then learn its own per-dimension length scales.
 
 The DOE spans the run inputs ``(x, theta, u)`` (``spec.run_inputs``; ``u`` the press
-settings, e.g. the stage-2 depth). The curves and the stage-1 angle happen before the
-settings act, so their models take ``(x, theta)`` only; the final angle's model takes
-``(x, theta, u)``. :meth:`Metamodel.final_angle` evaluates the final angle of a cloud of
+settings, e.g. the stage-2 depth). The curves and the outputs with ``uses_controls =
+false`` (the stage-1 angle) happen before the settings act, so their models take ``(x,
+theta)`` only; the other outputs' models (the final angle) take ``(x, theta, u)``.
+:meth:`Metamodel.final_angle` evaluates the last output (the final angle) of a cloud of
 particles at several settings at once (for a controller choosing ``u``).
 
 The file format (:meth:`Metamodel.save`) is a numpy ``.npz`` readable with
@@ -73,8 +75,8 @@ class Prediction:
     ----------
     curves : ndarray, shape (N, n_t)
         Stage-1 force curves on ``spec.time``, N.
-    angles : ndarray, shape (N, 2)
-        Bend angles after stage 1 and stage 2, degrees.
+    angles : ndarray, shape (N, n_outputs)
+        The spec's scalar outputs (the demonstrator: bend angles after stage 1 and 2, degrees).
     outside : ndarray of bool, shape (N,)
         True where the input lies outside the DOE box (the metamodel extrapolates there).
     """
@@ -177,9 +179,11 @@ class Metamodel:
         if X.shape[0] < n_run + 2:
             raise ValueError(f"Metamodel.fit: {X.shape[0]} successful runs, expected at "
                              f"least {n_run + 2}")
-        if X.shape[1] != n_run or curves.shape[1] != spec.n_t or angles.shape[1] != 2:
+        n_out = spec.n_outputs
+        if X.shape[1] != n_run or curves.shape[1] != spec.n_t or angles.shape[1] != n_out:
             raise ValueError(f"Metamodel.fit: inputs {X.shape}, curves {curves.shape}, angles "
-                             f"{angles.shape}; expected (n, {n_run}), (n, {spec.n_t}), (n, 2)")
+                             f"{angles.shape}; expected (n, {n_run}), (n, {spec.n_t}), "
+                             f"(n, {n_out}) (outputs {', '.join(spec.output_names)})")
         self._spec, self.spec_text = spec, dataset.spec_text or spec.text
         self.fit_id = self.identity(dataset)
         self._model_version = str(dataset.model_version)
@@ -187,10 +191,10 @@ class Metamodel:
         U = self.scale(X)
         coeffs = self.reduction.fit(curves).transform(curves)
         self.curve_model = copy.deepcopy(self.approximation).fit(U[:, :n_in], coeffs)
-        # stage 1 (curve, first angle) before the press settings act; the final angle after
+        # outputs before the press settings act take (x, theta); those after, (x, theta, u)
         self.angle_models = tuple(
             copy.deepcopy(self.angle_approximation).fit(U[:, :n], angles[:, j:j + 1])
-            for j, n in enumerate((n_in, n_run)))
+            for j, n in enumerate(self._output_dims(spec)))
         self.n_train = X.shape[0]
         self.residuals = None  # they and the calibration described the previous fit
         self.calibration = None
@@ -243,10 +247,17 @@ class Metamodel:
         assert self.curve_model is not None
         return self.reduction.inverse_transform(self.curve_model.predict(U[:, :self.spec.n_inputs]))
 
+    @staticmethod
+    def _output_dims(spec: ProcessSpec) -> tuple[int, ...]:
+        """Input columns of each output's model: ``n_run_inputs`` if it uses the controls."""
+        return tuple(spec.n_run_inputs if o.uses_controls else spec.n_inputs
+                     for o in spec.outputs)
+
     def _angles(self, U: FloatArray) -> FloatArray:
-        n_in = self.spec.n_inputs
-        return np.hstack([self.angle_models[0].predict(U[:, :n_in]),
-                          self.angle_models[1].predict(U)])
+        if not self.angle_models:
+            return np.empty((U.shape[0], 0))
+        return np.hstack([m.predict(U[:, :n]) for m, n in
+                          zip(self.angle_models, self._output_dims(self.spec), strict=True)])
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
         """Force curves (N, n_t), N, at inputs ``X`` (N, 10) ``[x, theta]`` or (N, 11)
@@ -257,8 +268,9 @@ class Metamodel:
             return self.reduction.inverse_transform(self.curve_model.predict(U))
 
     def predict_angles(self, X: FloatArray, u: FloatArray | float | None = None) -> FloatArray:
-        """Bend angles (N, 2), degrees, at inputs ``X`` (N, 10) and controls ``u`` (scalar,
-        (N,) or (N, n_controls); None: nominal), or at ``X`` (N, 11) with ``u`` None."""
+        """Scalar outputs (N, n_outputs) (the demonstrator: bend angles, degrees) at inputs
+        ``X`` (N, 10) and controls ``u`` (scalar, (N,) or (N, n_controls); None: nominal),
+        or at ``X`` (N, 11) with ``u`` None."""
         U = self.scale(self._inputs(X, u))
         with single_blas_thread():
             return self._angles(U)
@@ -277,9 +289,10 @@ class Metamodel:
         """
         Xi = np.asarray(X, dtype=np.float64)
         uu = np.asarray(u, dtype=np.float64).reshape(-1)
-        if len(self.spec.controls) != 1:
-            raise ValueError(f"final_angle needs exactly one control input; the spec has "
-                             f"{len(self.spec.controls)}")
+        if len(self.spec.controls) != 1 or not self.spec.outputs[-1].uses_controls:
+            raise ValueError(f"final_angle needs exactly one control input and a last output "
+                             f"that uses it; the spec has {len(self.spec.controls)} control(s)"
+                             f" and outputs {', '.join(self.spec.output_names)}")
         if Xi.ndim != 2 or Xi.shape[1] != self.spec.n_inputs:
             raise ValueError(f"X of shape {Xi.shape}, expected (N, {self.spec.n_inputs})")
         n, k = Xi.shape[0], uu.size
@@ -287,7 +300,7 @@ class Metamodel:
         full[:, :-1] = np.repeat(Xi, k, axis=0)
         full[:, -1] = np.tile(uu, n)
         with single_blas_thread():
-            out: FloatArray = self.angle_models[1].predict(self.scale(full)).reshape(n, k)
+            out: FloatArray = self.angle_models[-1].predict(self.scale(full)).reshape(n, k)
         return out
 
     def predict(self, X: FloatArray, u: FloatArray | float | None = None) -> Prediction:
@@ -353,14 +366,15 @@ class Metamodel:
         try:
             mm.reduction = kind("reduction", REDUCTIONS).from_state(part("reduction"))
             mm.curve_model = kind("curves", APPROXIMATIONS).from_state(part("curves"))
-            mm.angle_models = tuple(kind(f"angle{j}", APPROXIMATIONS).from_state(
-                part(f"angle{j}")) for j in range(2))
             mm.spec_text = str(arrays["spec_text"])
+            source = str(arrays["spec_source"])
+            mm._spec = parse_spec(mm.spec_text, source)
+            mm.angle_models = tuple(kind(f"angle{j}", APPROXIMATIONS).from_state(
+                part(f"angle{j}")) for j in range(mm._spec.n_outputs))
             mm._model_version = str(arrays["model_version"])
             mm.lo = np.asarray(arrays["scaler_lo"], dtype=np.float64)
             mm.hi = np.asarray(arrays["scaler_hi"], dtype=np.float64)
             mm.n_train = int(arrays["n_train"])
-            source = str(arrays["spec_source"])
             if "residuals.curve_cov" in arrays:
                 mm.residuals = ResidualModel.from_state(part("residuals"))
             mm.fit_id = str(arrays.get("fit_id", ""))
@@ -368,7 +382,7 @@ class Metamodel:
                 mm.calibration = json.loads(str(arrays["calibration"]))
         except KeyError as exc:
             raise ValueError(f"{p}: incomplete metamodel file, no array {exc}") from None
-        mm._spec = parse_spec(mm.spec_text, source)
         # the fitted parts stand in for the templates (repr, validate(), refitting)
-        mm.approximation, mm.angle_approximation = mm.curve_model, mm.angle_models[0]
+        mm.approximation = mm.curve_model
+        mm.angle_approximation = mm.angle_models[0] if mm.angle_models else mm.curve_model
         return mm

@@ -37,8 +37,8 @@ class ResidualModel:
     ----------
     curve_cov : (n_t, n_t) ``E[r r^T]`` of the force-curve residuals, N^2 (bias included).
     curve_mean : (n_t,) mean curve residual, N (diagnostic).
-    angle_cov : (2, 2) ``E[r r^T]`` of the angle residuals, deg^2.
-    angle_mean : (2,) mean angle residual, deg (diagnostic).
+    angle_cov : (n_outputs, n_outputs) ``E[r r^T]`` of the output (angle) residuals, deg^2.
+    angle_mean : (n_outputs,) mean output (angle) residual, deg (diagnostic).
     k : number of folds of the cross-validation.
     n : number of runs behind the statistics.
     rows : which runs they are of (:func:`~formtwin.metamodel.validate.residual_model`'s
@@ -60,9 +60,10 @@ class ResidualModel:
         if c.shape != (n_t, n_t) or np.shape(self.curve_mean) != (n_t,):
             raise ValueError(f"curve_cov {c.shape} and curve_mean {np.shape(self.curve_mean)} "
                              "do not match (n_t, n_t), (n_t,)")
-        if a.shape != (2, 2) or np.shape(self.angle_mean) != (2,):
+        m = np.shape(self.angle_mean)[0] if np.ndim(self.angle_mean) == 1 else -1
+        if a.shape != (m, m):
             raise ValueError(f"angle_cov {a.shape}, angle_mean {np.shape(self.angle_mean)}: "
-                             "expected (2, 2), (2,)")
+                             "expected (n_outputs, n_outputs), (n_outputs,)")
         if not (np.all(np.isfinite(c)) and np.all(np.isfinite(a))):
             raise ValueError("residual covariances must be finite")
         object.__setattr__(self, "curve_cov", c)
@@ -71,14 +72,14 @@ class ResidualModel:
     @classmethod
     def from_residuals(cls, curves: FloatArray, angles: FloatArray, k: int, rows: str = ""
                        ) -> ResidualModel:
-        """Statistics of residual curves ``(n, n_t)`` N and angles ``(n, 2)`` deg.
+        """Statistics of residual curves ``(n, n_t)`` N and outputs ``(n, n_outputs)`` (deg).
 
         Rows with a non-finite value are dropped (a failed run has no residual).
         """
         rc, ra = np.asarray(curves, np.float64), np.asarray(angles, np.float64)
-        if rc.ndim != 2 or ra.shape != (rc.shape[0], 2):
+        if rc.ndim != 2 or ra.ndim != 2 or ra.shape[0] != rc.shape[0]:
             raise ValueError(f"residuals of shape {rc.shape} and {ra.shape}, expected "
-                             "(n, n_t) and (n, 2)")
+                             "(n, n_t) and (n, n_outputs)")
         good = np.all(np.isfinite(rc), axis=1) & np.all(np.isfinite(ra), axis=1)
         rc, ra = rc[good], ra[good]
         n = rc.shape[0]

@@ -240,14 +240,16 @@ def plot_validation(cv: CrossValidation, directory: str | Path, n_worst: int = 3
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     ang = angle_errors(cv.predicted_angles, cv.angles)
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4.2), layout="constrained")
-    for j, ax in enumerate(axes):
+    outputs = cv.spec.outputs
+    fig, axes = plt.subplots(1, max(len(outputs), 1), figsize=(4.5 * max(len(outputs), 1), 4.2),
+                             layout="constrained", squeeze=False)
+    for j, (ax, o) in enumerate(zip(axes[0], outputs, strict=False)):
         t, p = cv.angles[:, j], cv.predicted_angles[:, j]
         ax.plot(t, p, ".", ms=2, alpha=0.5)
         lim = [min(t.min(), p.min()), max(t.max(), p.max())]
         ax.plot(lim, lim, "k-", lw=0.8)
-        ax.set(xlabel="actual angle, deg", ylabel="predicted angle, deg",
-               title=f"stage {j + 1}: RMSE {ang['angle_rmse_deg'][j]:.3g} deg, "
+        ax.set(xlabel=f"actual, {o.unit}", ylabel=f"predicted, {o.unit}",
+               title=f"{o.label}: RMSE {ang['angle_rmse_deg'][j]:.3g} {o.unit}, "
                      f"nRMSE {ang['angle_nrmse'][j]:.3g}")
     paths = [out / "angles.png"]
     fig.savefig(paths[0], dpi=120)
@@ -258,12 +260,13 @@ def plot_validation(cv: CrossValidation, directory: str | Path, n_worst: int = 3
                       / np.sum(cv.curves**2, axis=1))[::-1][:n_worst]
     fig, axes = plt.subplots(1, len(runs), figsize=(4 * len(runs), 3.6), layout="constrained",
                              squeeze=False)
-    t_ms = cv.spec.time * 1e3
+    t_ms = cv.spec.time / cv.spec.axis_scale
     for ax, i in zip(axes[0], runs, strict=True):
         ax.plot(t_ms, cv.curves[i], "k-", lw=1.2, label="truth")
         ax.plot(t_ms, cv.predicted_curves[i], "C3--", lw=1.2, label="metamodel")
         rel = np.linalg.norm(cv.predicted_curves[i] - cv.curves[i]) / np.linalg.norm(cv.curves[i])
-        ax.set(xlabel="time, ms", ylabel="punch force, N", title=f"run {i}: rel. L2 {rel:.3g}")
+        ax.set(xlabel=f"{cv.spec.axis}, {cv.spec.axis_unit}", ylabel="punch force, N",
+               title=f"run {i}: rel. L2 {rel:.3g}")
         ax.legend(fontsize=8)
     fig.suptitle(f"worst held-out curves (pooled rel. L2 error {worst['curve_rel_err']:.3g})")
     paths.append(out / "worst_curves.png")

@@ -179,7 +179,7 @@ def measurement_noise(measurement: MeasurementModel, n: int, rng: np.random.Gene
 def series(est: Estimates) -> dict[str, FloatArray]:
     """The monitored values of a run by name, each (n,)."""
     out = {n: est.mean[:, j] for j, n in enumerate(est.names)}
-    out.update({a: est.angles_mean[:, j] for j, a in enumerate(ANGLES)})
+    out.update({a: est.angles_mean[:, j] for j, a in enumerate(est.output_names)})
     out.update(loglik=est.loglik, ess=est.ess)
     if est.fit_log10_p is not None:
         out["fit"] = est.fit_log10_p
@@ -191,14 +191,17 @@ def calibrate(runs: Sequence[Estimates], state_names: Sequence[str], mu: FloatAr
               ) -> MonitorConfig:
     """A monitor for a line whose state means are ``mu`` (7,), from in-control ``runs``
     (see :func:`calibrate_series`)."""
-    return calibrate_series([series(r) for r in runs], state_names, mu, design, truths)
+    outputs = runs[0].output_names if runs else ANGLES
+    return calibrate_series([series(r) for r in runs], state_names, mu, design, truths,
+                            outputs)
 
 
 def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequence[str],
                      mu: FloatArray, design: ChartDesign | None = None,
-                     truths: Sequence[FloatArray] | None = None) -> MonitorConfig:
+                     truths: Sequence[FloatArray] | None = None,
+                     outputs: Sequence[str] = ANGLES) -> MonitorConfig:
     """A monitor for a line whose state means are ``mu`` (7,), from the :func:`series` of
-    in-control runs.
+    in-control runs; ``outputs`` the names of the predicted outputs (``spec.output_names``).
 
     State variables get an AR model about ``mu`` (the in-control mean is the spec's or the
     user's); the angles about a Phase-I level; the health statistics a reference from the
@@ -219,7 +222,7 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
     for j, name in enumerate(state_names):
         quantities[name] = fit_in_control([v[name] for v in values], d.order,
                                           mean=float(mu[j]), tails=d.tails)
-    for name in (a for a in ANGLES if all(a in v for v in values)):
+    for name in (a for a in outputs if all(a in v for v in values)):
         quantities[name] = fit_in_control([v[name] for v in values], d.order, mean=None,
                                           keep_mean=False, tails=d.tails)
     pooled = {name: np.concatenate([v[name] for v in values]) for name in HEALTH
@@ -240,7 +243,7 @@ def calibrate_series(runs: Sequence[Mapping[str, FloatArray]], state_names: Sequ
     shewhart = (None if d.arl0_shewhart is None
                 else float(ndtri(1.0 - 0.5 / d.arl0_shewhart)))
     cusum_on = [n for n in quantities if (n in state_names and d.state_cusum)
-                or (n in ANGLES and d.angle_cusum)]
+                or (n in outputs and d.angle_cusum)]
     glr = {}
     for j, n in enumerate(state_names if d.glr else ()):
         q = quantities[n]

@@ -3,7 +3,8 @@ chart for a level change (:mod:`~formtwin.monitoring.glr`) on those configured, 
 model-mismatch chart on the filter's health; alarms: :class:`~formtwin.monitoring.charts.Alarm`.
 
 Quantities: the posterior means of the state variables (``spec.state.names``) and the
-predicted angles (``angle_stage1``, ``angle_stage2``), each standardised by its in-control
+predicted outputs (``spec.output_names``: the demonstrator's ``angle_stage1``,
+``angle_stage2``), each standardised by its in-control
 AR model (:class:`~formtwin.monitoring.incontrol.InControl`) into a residual ``z`` that is
 N(0, 1) and independent in control. Health: the log-evidence increment ``loglik`` and the
 ESS of each step, as normal scores against their simulated in-control distribution
@@ -37,7 +38,8 @@ from formtwin.monitoring.charts import Alarm, Cusum, CusumState, Ewma, EwmaState
 from formtwin.monitoring.glr import Glr, GlrState
 from formtwin.monitoring.incontrol import InControl, Reference
 
-#: names of the predicted angles as monitored quantities
+#: names of the demonstrator's predicted angles as monitored quantities (a spec's own are
+#: ``spec.output_names``, carried by every estimate as ``output_names``)
 ANGLES = ("angle_stage1", "angle_stage2")
 #: health statistics of a step that the mismatch chart can watch, with their bad side:
 #: the log-evidence increment, the ESS, and the absolute fit's log10 p-value
@@ -176,7 +178,8 @@ def observe(estimate: Estimate) -> dict[str, float]:
     """The monitored values of one estimate: state posterior means, predicted angles and
     the health statistics, by name."""
     out = {n: float(v) for n, v in zip(estimate.names, estimate.mean, strict=True)}
-    out.update({n: float(v) for n, v in zip(ANGLES, estimate.angles_mean, strict=True)})
+    out.update({n: float(v) for n, v in zip(estimate.output_names, estimate.angles_mean,
+                                            strict=True)})
     out.update(loglik=float(estimate.loglik), ess=float(estimate.ess),
                fit=math.nan if estimate.fit is None else float(estimate.fit.log10_p))
     return out

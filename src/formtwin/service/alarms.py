@@ -117,9 +117,10 @@ def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> Mon
 def values_of(message: dict[str, Any], config: MonitorConfig) -> dict[str, float]:
     """The monitored values of an estimate message (``None`` -> NaN, i.e. worst health)."""
     mean = message.get("mean") or {}
-    angles = message.get("angles_mean") or [None, None]
-    raw: dict[str, Any] = {n: mean.get(n) for n in config.quantities if n not in ANGLES}
-    raw.update({a: angles[k] for k, a in enumerate(ANGLES)})
+    names = message.get("output_names") or ANGLES
+    angles = message.get("angles_mean") or [None] * len(names)
+    raw: dict[str, Any] = {n: mean.get(n) for n in config.quantities if n not in names}
+    raw.update({a: angles[k] for k, a in enumerate(names)})
     raw.update(loglik=message.get("loglik"), ess=message.get("ess"),
                fit=(message.get("fit") or {}).get("log10_p"))
     return {k: math.nan if v is None else float(v) for k, v in raw.items()}

@@ -17,13 +17,17 @@ from formtwin.service.store import Store
 
 
 def product_table(store: Store, curves: bool = False) -> dict[str, list[Any]]:
-    """Column name -> values, one row per stored product (in commit order)."""
+    """Column name -> values, one row per stored product (in commit order); the outputs
+    (``angle<k>_mean/_std/_measured``, k = 1.. in the spec's ``[[output]]`` order)."""
     cols: dict[str, list[Any]] = {}
     rows = list(store.products())
     names: list[str] = []
+    n_out = 2  # an estimate without output names: the demonstrator's two angles
     for r in rows:
         if r.estimate is not None:
             names = list(r.estimate.get("mean", {}))
+            n_out = len(r.estimate.get("output_names") or r.estimate.get("angles_mean")
+                        or [None, None])
             break
     n_t = rows[0].curve.size if rows else 0
 
@@ -43,9 +47,10 @@ def product_table(store: Store, curves: bool = False) -> dict[str, list[Any]]:
             put(f"mean_{n}", (e.get("mean") or {}).get(n))
         for n in names:
             put(f"std_{n}", (e.get("std") or {}).get(n))
-        am, asd = e.get("angles_mean") or [None, None], e.get("angles_std") or [None, None]
-        ma: list[Any] = [None, None] if r.measured_angles is None else r.measured_angles
-        for k in range(2):
+        none = [None] * n_out
+        am, asd = e.get("angles_mean") or none, e.get("angles_std") or none
+        ma: list[Any] = none if r.measured_angles is None else r.measured_angles
+        for k in range(n_out):
             put(f"angle{k + 1}_mean", am[k])
             put(f"angle{k + 1}_std", asd[k])
             put(f"angle{k + 1}_measured", ma[k])

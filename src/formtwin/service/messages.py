@@ -5,7 +5,8 @@ Stroke (press -> formtwin), schema ``formtwin.stroke/1``::
     {"schema": "formtwin.stroke/1", "part_id": "P-000123", "cycle": 123,
      "timestamp": "2026-11-21T23:59:59.123Z",
      "force_N": [101 numbers: stage-1 punch force on the spec's time grid, N],
-     "angles_deg": [a1, a2],            # optional, measured angles, monitoring only
+     "angles_deg": [a1, a2],            # optional, measured outputs (one per spec output,
+                                        # in its unit; the demonstrator's two angles)
      "u": 0.05}                         # optional, the product's press setting(s) in
                                         # internal units (mm): a number or one per control;
                                         # absent: the nominal setting
@@ -103,17 +104,21 @@ class Limits:
         Most negative force sample accepted (sensor offset tolerance), N.
     max_force_N : float
         Largest force sample accepted, N.
+    n_outputs : int
+        Number of values of ``angles_deg`` (the spec's outputs).
     """
 
     n_t: int
     max_bytes: int = 65536
     min_force_N: float = -50.0
     max_force_N: float = 1.0e4
+    n_outputs: int = 2
 
 
 @dataclass(frozen=True)
 class Stroke:
-    """One validated stroke: ``force_N`` has shape ``(n_t,)``, ``angles_deg`` ``(2,)`` or None,
+    """One validated stroke: ``force_N`` has shape ``(n_t,)``, ``angles_deg`` ``(n_outputs,)``
+    or None,
     ``u`` the press settings ``(n_controls,)`` or None (nominal)."""
 
     part_id: str
@@ -252,9 +257,9 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
     angles = None
     if doc.get("angles_deg") is not None:
         angles = _number_list(doc, "angles_deg", part_id)
-        if angles.size != 2:
+        if angles.size != limits.n_outputs:
             raise MessageError("wrong_length", f"angles_deg has {angles.size} values, "
-                               "expected 2", part_id)
+                               f"expected {limits.n_outputs} (the spec's outputs)", part_id)
     u = None
     if doc.get("u") is not None:
         raw = doc["u"]

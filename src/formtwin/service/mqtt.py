@@ -8,11 +8,20 @@ unacknowledged stroke again from the broker when it restarts; the store recognis
 it had already committed (same part id, same curve) and answers them with the stored
 estimate instead of counting them twice. Answers are published with QoS 1: a kill can
 double an answer but never lose one, and consumers de-duplicate by ``part_id``.
+
+Only its own stroke topic. A persistent session keeps its subscriptions and queued
+messages across runs: a session id once used on another topic (a ``serve --check`` on a
+test topic, an older configuration) would deliver that topic's strokes to this service.
+A message on any other topic than :attr:`Topics.strokes` is acknowledged (so the broker
+drops it), never processed, counted in :attr:`MqttService.foreign`, and its topic is
+unsubscribed from the session. ``serve --check`` runs on a clean session of its own id
+(:func:`check_client_id`), which the broker discards when the check disconnects.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import ssl
 import threading
 import time
@@ -128,10 +137,14 @@ class MqttService:
     """
 
     def __init__(self, processor: Processor, broker: BrokerConfig, topics: Topics,
-                 client_id: str = "formtwin-serve") -> None:
+                 client_id: str = "formtwin-serve", persistent: bool = True) -> None:
         self.processor = processor
         self.topics = topics
-        self.client = make_client(broker, client_id, persistent=True, manual_ack=True)
+        self.client_id = client_id
+        self.client = make_client(broker, client_id, persistent=persistent, manual_ack=True)
+        #: messages on other topics than the stroke topic: acknowledged, not processed
+        self.foreign = 0
+        self._dropped: set[str] = set()
         self.client.on_connect = self._on_connect
         self.client.on_message = self._on_message
         self.client.on_subscribe = self._on_subscribe
@@ -186,6 +199,17 @@ class MqttService:
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         if self.fatal is not None:
             return  # stopping: leave the stroke unacknowledged for the next start
+        if msg.topic != self.topics.strokes:  # an old subscription of a persistent session
+            if msg.qos > 0:
+                client.ack(msg.mid, msg.qos)
+            if self.foreign == 0 or msg.topic not in self._dropped:
+                log.warning("ignoring messages on %s (not the stroke topic %s: an earlier "
+                            "subscription of session %s); unsubscribing", msg.topic,
+                            self.topics.strokes, self.client_id)
+                client.unsubscribe(msg.topic)
+                self._dropped.add(msg.topic)
+            self.foreign += 1
+            return
         t0 = time.perf_counter()
         try:
             out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
@@ -247,6 +271,13 @@ class MqttService:
         finally:
             self.client.disconnect()
             self.client.loop_stop()
+
+
+def check_client_id(client_id: str) -> str:
+    """The session id of ``serve --check``: its own (``<client_id>-check-<pid>``), on a
+    clean session, so the check neither takes over nor leaves behind a persistent session
+    of the service."""
+    return f"{client_id}-check-{os.getpid()}"
 
 
 def publish_strokes(strokes: Iterable[Stroke], broker: BrokerConfig, topic: str,

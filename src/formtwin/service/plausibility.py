@@ -12,8 +12,9 @@ the service refuses such strokes first, each with its own reason
     at least ``clip_samples`` consecutive samples equal (to ``clip_rel_tol`` of the peak)
     to the curve's maximum: a clipped or saturated sensor, or a flat curve;
 ``peak_outside_window``
-    the time of the peak force outside ``peak_window_s`` (or at the first or last sample):
-    the trigger or the time base is wrong.
+    the time of the peak force outside ``peak_window_s`` (or at the first or last sample,
+    unless the model's own curves peak there: on a stroke axis the force often peaks at
+    the end of the stroke): the trigger or the time base is wrong.
 
 Limits from the spec's ranges (:meth:`Plausibility.from_model`): the model's curves at the
 ``2^d`` corners of the input box and 1000 points inside it (seeded), each distorted by the
@@ -74,6 +75,10 @@ class Plausibility:
     clip_rel_tol : samples within this share of the peak count as equal to it.
     expected_peak_N : (lo, hi) range of the model's peak forces over the spec's ranges, N
         (for messages; ``None`` when the limits were given by hand).
+    edge_peaks : (first, last): a peak at the first / last sample is plausible (the model's
+        curves peak there).
+    axis_unit, axis_scale : the curve axis' unit for messages and its factor to the
+        internal one (the spec's ``[curve] unit``; ms for the demonstrator).
     """
 
     min_peak_N: float
@@ -82,6 +87,9 @@ class Plausibility:
     time: FloatArray = field(repr=False)
     clip_rel_tol: float = 1e-6
     expected_peak_N: tuple[float, float] | None = None
+    edge_peaks: tuple[bool, bool] = (False, False)
+    axis_unit: str = "ms"
+    axis_scale: float = 1e-3
 
     def __post_init__(self) -> None:
         if self.clip_samples < 2:
@@ -108,20 +116,25 @@ class Plausibility:
         g = DeviationModel.from_spec(spec)
         dev, k = spec.deviation.group, g.knots.size
         peaks, times = [], []
-        for a, b in itertools.product((dev.lo[0], dev.hi[0]), (dev.lo[-1], dev.hi[-1])):
-            z = g.apply(curves, np.tile(np.r_[np.full(k, a), np.full(k, b)], (len(curves), 1)))
+        # every corner of the chosen kinds, each held constant over its knots
+        ends = [(dev.lo[j * k], dev.hi[j * k]) for j in range(len(g.kinds))]
+        for corner in itertools.product(*ends):
+            td = np.concatenate([np.full(k, c) for c in corner]) if corner else np.zeros(0)
+            z = g.apply(curves, np.tile(td, (len(curves), 1)))
             peaks.append(z.max(axis=1))
             times.append(spec.time[np.argmax(z, axis=1)])
         p, t = np.concatenate(peaks), np.concatenate(times)
         dt = float(spec.time[1] - spec.time[0])
         window = (float(t.min()) - WINDOW_MARGIN_SAMPLES * dt,
                   float(t.max()) + WINDOW_MARGIN_SAMPLES * dt)
-        if peak_window_ms is not None:
-            window = (peak_window_ms[0] * 1e-3, peak_window_ms[1] * 1e-3)
+        if peak_window_ms is not None:  # in the spec's curve unit (ms for the demonstrator)
+            window = (peak_window_ms[0] * spec.axis_scale, peak_window_ms[1] * spec.axis_scale)
         return cls(min_peak_N=PEAK_FLOOR_SHARE * float(p.min()) if min_peak_N is None
                    else float(min_peak_N), clip_samples=int(clip_samples),
                    peak_window_s=window, time=np.asarray(spec.time, dtype=np.float64),
-                   expected_peak_N=(float(p.min()), float(p.max())))
+                   expected_peak_N=(float(p.min()), float(p.max())),
+                   edge_peaks=(bool(t.min() <= spec.time[0]), bool(t.max() >= spec.time[-1])),
+                   axis_unit=spec.axis_unit, axis_scale=spec.axis_scale)
 
     def check(self, force: FloatArray, part_id: str | None = None) -> MessageError | None:
         """The rejection of curve ``force`` (n_t,) N, or None if it is plausible."""
@@ -140,9 +153,12 @@ class Plausibility:
                                 "sensor)", part_id)
         t = float(self.time[i])
         lo, hi = self.peak_window_s
-        if not lo <= t <= hi or i in (0, f.size - 1):
-            return MessageError("peak_outside_window", f"peak force at {t * 1e3:.4g} ms, "
-                                f"outside {lo * 1e3:.4g} .. {hi * 1e3:.4g} ms", part_id)
+        edge = (i == 0 and not self.edge_peaks[0]) or (i == f.size - 1 and not self.edge_peaks[1])
+        if not lo <= t <= hi or edge:
+            u, sc = self.axis_unit, self.axis_scale
+            return MessageError("peak_outside_window", f"peak force at {t / sc:.4g} {u}, "
+                                f"outside {lo / sc:.4g} .. {hi / sc:.4g} {u}"
+                                + (" (at the curve's edge)" if edge else ""), part_id)
         return None
 
     def __call__(self, stroke: Stroke) -> None:
@@ -154,8 +170,9 @@ class Plausibility:
     def describe(self) -> str:
         """One line for the service's start-up output."""
         lo, hi = self.peak_window_s
+        u, sc = self.axis_unit, self.axis_scale
         return (f"plausibility: peak >= {self.min_peak_N:.4g} N, < {self.clip_samples} "
-                f"samples at the maximum, peak time in {lo * 1e3:.4g} .. {hi * 1e3:.4g} ms")
+                f"samples at the maximum, peak time in {lo / sc:.4g} .. {hi / sc:.4g} {u}")
 
 
 def _longest_run(mask: NDArray[np.bool_]) -> int:

@@ -88,10 +88,11 @@ class ServiceSettings:
             d["peak_window_ms"] = tuple(d["peak_window_ms"])
         return cls(**d)
 
-    def limits(self, n_t: int) -> Limits:
-        """The message limits for curves of ``n_t`` samples."""
+    def limits(self, n_t: int, n_outputs: int = 2) -> Limits:
+        """The message limits for curves of ``n_t`` samples and ``n_outputs`` measured
+        outputs (the spec's)."""
         return Limits(n_t=n_t, max_bytes=self.max_bytes, min_force_N=self.min_force_N,
-                      max_force_N=self.max_force_N)
+                      max_force_N=self.max_force_N, n_outputs=n_outputs)
 
 
 def _file_digest(path: str) -> str:
@@ -192,7 +193,8 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
                                             settings.peak_window_ms)
         health = ModelHealth(store, HealthRule(settings.health_k, settings.health_m),
                              plausible.expected_peak_N, explainer(tracker))
-        return Processor(store, tracker, settings.limits(model.spec.n_t), gate,
+        limits = settings.limits(model.spec.n_t, model.spec.n_outputs)
+        return Processor(store, tracker, limits, gate,
                          health=health, plausible=plausible, checkpoint_every=checkpoint_every)
     except BaseException:
         store.close()

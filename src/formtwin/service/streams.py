@@ -9,7 +9,7 @@ A stream is a sequence of :class:`~formtwin.service.messages.Stroke`. It is read
   (``product``/``run`` x ``time``; a ``source`` dimension is selected with ``source``), and
   ``angles`` and ``ok`` when present (products with ``ok = False`` are skipped);
 * ``.csv``: one product per row, columns ``part_id, cycle, f0 .. f{n_t-1}`` and optionally
-  ``angle1, angle2``.
+  ``angle1 .. angleK`` (the spec's K outputs, in their ``[[output]]`` order).
 
 :func:`make_stream` writes a synthetic stream from a process model (default the analytic
 stand-in; the line's state means ``mu`` drawn in the spec's ``[mu_min, mu_max]``, state
@@ -160,9 +160,8 @@ def read_stream(path: str | Path, source: str = "gFE") -> list[Stroke]:
         fcols = sorted((k for k in rows[0] if k and k[0] == "f" and k[1:].isdigit()),
                        key=lambda k: int(k[1:]))
         curves = np.array([[float(r[k]) for k in fcols] for r in rows])
-        has_a = "angle1" in rows[0] and "angle2" in rows[0]
-        angles = np.array([[float(r["angle1"]), float(r["angle2"])] for r in rows]) \
-            if has_a else None
+        acols = [f"angle{k}" for k in range(1, len(rows[0]) + 1) if f"angle{k}" in rows[0]]
+        angles = np.array([[float(r[k]) for k in acols] for r in rows]) if acols else None
         d_ids, _, d_stamps = _defaults(len(rows), p.stem)
         ids = [r.get("part_id") or d_ids[i] for i, r in enumerate(rows)]
         cycles = np.array([int(r.get("cycle") or i + 1) for i, r in enumerate(rows)])

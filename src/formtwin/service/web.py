@@ -34,6 +34,7 @@ from fastapi.staticfiles import StaticFiles
 
 from formtwin.service.processor import Outcome
 from formtwin.service.store import Store
+from formtwin.spec import DEFAULT_OUTPUTS
 
 log = logging.getLogger(__name__)
 
@@ -53,12 +54,18 @@ class LiveFeed:
         Points kept for a page that (re)loads.
     units : dict, optional
         Unit of each name (internal units), shown on the page.
+    outputs : list of dict, optional
+        The spec's scalar outputs as ``{"name", "label", "unit"}``, one chart each (None:
+        the demonstrator's two bend angles).
     """
 
     def __init__(self, names: tuple[str, ...], maxlen: int = 2000,
-                 units: dict[str, str] | None = None) -> None:
+                 units: dict[str, str] | None = None,
+                 outputs: list[dict[str, str]] | None = None) -> None:
         self.names = names
         self.units = dict(units or {})
+        self.outputs = list(outputs) if outputs is not None else [
+            {"name": o.name, "label": o.label, "unit": o.unit} for o in DEFAULT_OUTPUTS]
         #: changes with every process: a page that reconnects to a restarted service sees
         #: another epoch in its Last-Event-ID and reloads the state instead of waiting
         self.epoch = secrets.token_hex(4)
@@ -134,6 +141,7 @@ class LiveFeed:
         with self._lock:
             points = [e for _, e in self._events if e.get("type") == "point"]
             return {"names": list(self.names), "units": self.units, "points": points,
+                    "outputs": self.outputs,
                     "last": self._n,
                     "epoch": self.epoch, "counts": dict(self.counts),
                     "reasons": dict(self.reasons), "health": health,

@@ -41,20 +41,27 @@ from pathlib import Path
 import numpy as np
 
 from formtwin.spec.model import (
+    DEFAULT_OUTPUTS,
     DEMONSTRATOR,
+    DEVIATION_KINDS,
     UNITS,
     Deviation,
     FloatArray,
     Group,
+    Output,
     ProcessSpec,
     SpecError,
     Variable,
 )
-from formtwin.spec.reader import Reader
+from formtwin.spec.reader import KEYS, Reader
 from formtwin.spec.sensors import Sensor, parse_sensors
 
-__all__ = ["DEMONSTRATOR", "UNITS", "Deviation", "FloatArray", "Group", "ProcessSpec",
-           "Sensor", "SpecError", "Variable", "load_spec", "parse_spec"]
+__all__ = ["DEFAULT_OUTPUTS", "DEMONSTRATOR", "DEVIATION_KINDS", "KEYS", "UNITS", "Deviation",
+           "FloatArray", "Group", "Output", "ProcessSpec", "Sensor", "SpecError", "Variable",
+           "load_spec", "parse_spec"]
+
+#: internal unit of the curve axis -> the axis it measures
+AXES = {"s": "time", "mm": "stroke"}
 
 
 def load_spec(path: str | Path | None = None) -> ProcessSpec:
@@ -77,14 +84,18 @@ def parse_spec(text: str, source: str = "<string>") -> ProcessSpec:
     except tomllib.TOMLDecodeError as exc:
         raise SpecError(f"{source}: not valid TOML ({exc})") from exc
     r = Reader(source)
-    r.keys(doc, "", {"process", "curve", "state", "parameter", "control", "deviation",
-                    "sensor"})
+    r.keys(doc, "", set(KEYS["<top>"]))
     process = r.table(doc, "process")
+    r.keys(process, "process", set(KEYS["process"]))
     curve = r.table(doc, "curve")
-    r.keys(curve, "curve", {"unit", "t_start", "t_end", "n_samples", "force_unit"})
+    r.keys(curve, "curve", set(KEYS["curve"]))
     t_unit, t_scale = r.unit(curve, "curve")
-    if t_unit != "s":
-        raise SpecError(f"{source}: curve.unit = {curve['unit']!r}, expected a time unit (s, ms)")
+    if t_unit not in AXES:
+        raise SpecError(f"{source}: curve.unit = {curve['unit']!r}, expected a time unit "
+                        "(s, ms) or a stroke unit (mm, um)")
+    noise_sd = r.number(curve, "curve", "noise_sd") if "noise_sd" in curve else 0.0
+    if not noise_sd >= 0:
+        raise SpecError(f"{source}: curve.noise_sd = {noise_sd!r}, expected a force std >= 0 N")
     t0 = r.number(curve, "curve", "t_start") * t_scale
     t1 = r.number(curve, "curve", "t_end") * t_scale
     n = r.integer(curve, "curve", "n_samples")
@@ -101,11 +112,14 @@ def parse_spec(text: str, source: str = "<string>") -> ProcessSpec:
     controls = Group(tuple(r.variable(t, f"control[{i}]", False, is_control=True) for i, t in
                            enumerate(r.array(doc, "control"))) if "control" in doc else ())
     deviation = r.deviation(r.table(doc, "deviation"), t0, t1)
+    outputs = tuple(r.output(t, f"output[{i}]") for i, t in
+                    enumerate(r.array(doc, "output"))) if "output" in doc else DEFAULT_OUTPUTS
     seen: set[str] = set()
-    for v in (state + params + controls + deviation.group):
-        if v.name in seen:
-            raise SpecError(f"{source}: variable name {v.name!r} is used twice")
-        seen.add(v.name)
+    for name in (*(state + params + controls + deviation.group).names,
+                 *(o.name for o in outputs)):
+        if name in seen:
+            raise SpecError(f"{source}: variable name {name!r} is used twice")
+        seen.add(name)
     return ProcessSpec(
         name=r.text(process, "process", "name"),
         description=str(process.get("description", "")),
@@ -116,5 +130,11 @@ def parse_spec(text: str, source: str = "<string>") -> ProcessSpec:
         source=source,
         text=text,
         controls=controls,
-        sensors=parse_sensors(doc.get("sensor"), state, source),
+        sensors=parse_sensors(doc.get("sensor"), state, source,
+                              tuple(o.name for o in outputs)),
+        outputs=outputs,
+        axis=AXES[t_unit],
+        axis_unit=str(curve["unit"]),
+        axis_scale=t_scale,
+        noise_sd=noise_sd,
     )

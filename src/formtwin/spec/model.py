@@ -147,12 +147,41 @@ class Group:
         return self._col("rho")
 
 
+#: deviation kinds a spec may choose (``[deviation] kinds``), in the order of ``theta_d``
+DEVIATION_KINDS = ("force_scaling", "speed_scaling")
+
+
+@dataclass(frozen=True)
+class Output:
+    """One named scalar output of the process model (e.g. a bend angle), predicted per product.
+
+    ``uses_controls``: the output depends on the press settings ``u`` (happens after
+    they act, as the demonstrator's final angle); otherwise it is a function of ``(x,
+    theta)`` only, like the force curve.
+    """
+
+    name: str
+    label: str
+    unit: str
+    uses_controls: bool = True
+    note: str = ""
+
+
+#: the outputs of a spec without ``[[output]]`` entries: the demonstrator's two bend angles
+DEFAULT_OUTPUTS = (
+    Output("angle_stage1", "angle after stage 1", "deg", uses_controls=False),
+    Output("angle_stage2", "angle after stage 2", "deg", uses_controls=True))
+
+
 @dataclass(frozen=True)
 class Deviation:
-    """Layout of ``theta_d``: force scaling then speed scaling at ``knots`` knots (s)."""
+    """Layout of ``theta_d``: for each of ``kinds`` (in :data:`DEVIATION_KINDS` order) its
+    values at ``knots`` knots (curve-axis units). No kinds: ``g`` is the identity and
+    ``theta_d`` is empty."""
 
     group: Group
     knots: FloatArray
+    kinds: tuple[str, ...] = DEVIATION_KINDS
 
     @property
     def n_knots(self) -> int:
@@ -174,8 +203,12 @@ class ProcessSpec:
     press settings the line sets per product (known, never estimated; ``[[control]]`` in
     the TOML, optional), ``run_inputs`` (inputs then controls) the columns of a model run
     and of a DOE, ``augmented`` (inputs then deviation) the particle filter's state.
-    ``time`` is the force-curve grid in s. ``text`` is the TOML the spec was parsed from,
-    so that files can carry their spec.
+    ``time`` is the force-curve grid in internal units of its ``axis``: s for ``"time"``,
+    mm for ``"stroke"`` (``axis_unit``/``axis_scale``: the spec file's unit and its factor
+    to the internal one). ``noise_sd`` is the force sensor's std, N (0: not given).
+    ``outputs`` the named scalar outputs (``[[output]]``; the demonstrator's two angles when
+    none are given). ``text`` is the TOML the spec was parsed from, so that files can carry
+    their spec.
     """
 
     name: str
@@ -194,6 +227,34 @@ class ProcessSpec:
         """The sensor called ``name``; ``KeyError`` naming the known ones."""
         from formtwin.spec.sensors import sensor_by_name
         return sensor_by_name(self.sensors, name)
+
+    outputs: tuple[Output, ...] = DEFAULT_OUTPUTS
+    axis: str = "time"
+    axis_unit: str = "ms"
+    axis_scale: float = 1e-3
+    noise_sd: float = 0.0
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        """Names of the scalar outputs, in the order of the model's output columns."""
+        return tuple(o.name for o in self.outputs)
+
+    @property
+    def n_outputs(self) -> int:
+        """Number of scalar outputs (columns of ``angles``)."""
+        return len(self.outputs)
+
+    def output(self, name: str) -> Output:
+        """The output called ``name``; ``KeyError`` naming the known ones."""
+        for o in self.outputs:
+            if o.name == name:
+                return o
+        raise KeyError(f"no output {name!r}; known: {', '.join(self.output_names)}")
+
+    @property
+    def axis_label(self) -> str:
+        """The curve axis with the spec file's unit, e.g. ``"time (ms)"``."""
+        return f"{self.axis} ({self.axis_unit})"
 
     @property
     def inputs(self) -> Group:

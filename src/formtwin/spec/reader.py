@@ -8,7 +8,34 @@ from typing import Any
 
 import numpy as np
 
-from formtwin.spec.model import UNITS, Deviation, Group, SpecError, Variable
+from formtwin.spec.model import (
+    DEVIATION_KINDS,
+    UNITS,
+    Deviation,
+    Group,
+    Output,
+    SpecError,
+    Variable,
+)
+
+_BASE = {"name", "label", "unit", "min", "max", "note"}
+_STATS = {"mu_min", "mu_max", "sigma", "rho"}
+
+#: every key a spec may use, by table (``"<top>"``: the top-level tables); the reader
+#: refuses any other, and docs/reference_spec.md lists exactly these (a test compares them)
+KEYS: dict[str, frozenset[str]] = {
+    "<top>": frozenset({"process", "curve", "state", "parameter", "control", "deviation",
+                        "output", "sensor"}),
+    "process": frozenset({"name", "description"}),
+    "curve": frozenset({"unit", "t_start", "t_end", "n_samples", "force_unit", "noise_sd"}),
+    "state": frozenset(_BASE | _STATS),
+    "parameter": frozenset(_BASE),
+    "control": frozenset(_BASE | {"nominal"}),
+    "output": frozenset({"name", "label", "unit", "uses_controls", "note"}),
+    "sensor": frozenset({"name", "label", "measures", "unit", "noise", "delay", "note"}),
+    "deviation": frozenset({"kinds", "knots", "unit"} | {f"{k}_{e}" for k in DEVIATION_KINDS
+                                                         for e in ("min", "max")}),
+}
 
 
 class Reader:
@@ -71,10 +98,8 @@ class Reader:
 
     def variable(self, t: Mapping[str, Any], where: str, is_state: bool,
                  is_control: bool = False) -> Variable:
-        base = {"name", "label", "unit", "min", "max", "note"}
-        stats = {"mu_min", "mu_max", "sigma", "rho"}
-        self.keys(t, where, base | stats if is_state else
-                  base | {"nominal"} if is_control else base)
+        self.keys(t, where, set(KEYS["state" if is_state else "control" if is_control
+                                     else "parameter"]))
         name = self.text(t, where, "name")
         if not name.isidentifier():
             raise self.fail(where, "name", name, "a Python identifier (letters, digits, _)")
@@ -106,10 +131,37 @@ class Reader:
                         scale=scale, lo=lo * scale, hi=hi * scale,
                         note=str(t.get("note", "")), **values)
 
+    def flag(self, table: Mapping[str, Any], where: str, key: str, default: bool) -> bool:
+        """An optional boolean ``key`` (``default`` when absent)."""
+        value = table.get(key, default)
+        if not isinstance(value, bool):
+            raise self.fail(where, key, value, "true or false")
+        return value
+
+    def output(self, t: Mapping[str, Any], where: str) -> Output:
+        """One ``[[output]]`` entry: name, label, unit (free text), uses_controls, note."""
+        self.keys(t, where, set(KEYS["output"]))
+        name = self.text(t, where, "name")
+        if not name.isidentifier():
+            raise self.fail(where, "name", name, "a Python identifier (letters, digits, _)")
+        where = f"{where} {name!r}"
+        return Output(name=name, label=str(t.get("label", name)), unit=self.text(t, where, "unit"),
+                      uses_controls=self.flag(t, where, "uses_controls", True),
+                      note=str(t.get("note", "")))
+
     def deviation(self, t: Mapping[str, Any], t0: float, t1: float) -> Deviation:
-        kinds = ("force_scaling", "speed_scaling")
-        self.keys(t, "deviation", {"knots", "unit"} | {f"{k}_{e}" for k in kinds
-                                                      for e in ("min", "max")})
+        kinds_value = t.get("kinds", list(DEVIATION_KINDS))
+        if not isinstance(kinds_value, list) or any(
+                k not in DEVIATION_KINDS for k in kinds_value) or len(set(kinds_value)) != len(
+                    kinds_value):
+            raise self.fail("deviation", "kinds", kinds_value,
+                            f"a list of distinct kinds from {list(DEVIATION_KINDS)} (or [])")
+        kinds = tuple(k for k in DEVIATION_KINDS if k in kinds_value)
+        if not kinds:
+            self.keys(t, "deviation", {"kinds"})
+            return Deviation(group=Group(()), knots=np.linspace(t0, t1, 2), kinds=())
+        self.keys(t, "deviation", {"knots", "unit", "kinds"} | {f"{k}_{e}" for k in kinds
+                                                               for e in ("min", "max")})
         n = self.integer(t, "deviation", "knots")
         if n < 2:
             raise self.fail("deviation", "knots", n, "at least 2")
@@ -128,4 +180,5 @@ class Reader:
                                    f"knot {k + 1}", unit=t["unit"], internal_unit="-",
                                    scale=scale, lo=lo * scale, hi=hi * scale)
                           for k in range(n)]
-        return Deviation(group=Group(tuple(variables)), knots=np.linspace(t0, t1, n))
+        return Deviation(group=Group(tuple(variables)), knots=np.linspace(t0, t1, n),
+                         kinds=kinds)

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from formtwin.spec.model import UNITS, Group, SpecError
+from formtwin.spec.reader import KEYS
 
 if TYPE_CHECKING:
     from formtwin.spec.model import ProcessSpec
@@ -69,8 +70,8 @@ class Sensor:
 
 def output_names(spec: ProcessSpec | None = None) -> tuple[str, ...]:
     """Names of the scalar model outputs of ``spec`` (the columns of the model's angle
-    array)."""
-    return OUTPUTS
+    array): ``spec.output_names``; without a spec the demonstrator's."""
+    return OUTPUTS if spec is None else spec.output_names
 
 
 def output_column(spec: ProcessSpec | None, name: str) -> int:
@@ -82,16 +83,18 @@ def output_column(spec: ProcessSpec | None, name: str) -> int:
     return names.index(name)
 
 
-def parse_sensors(entries: Any, state: Group, source: str) -> tuple[Sensor, ...]:
+def parse_sensors(entries: Any, state: Group, source: str,
+                  outputs: tuple[str, ...] = OUTPUTS) -> tuple[Sensor, ...]:
     """The ``[[sensor]]`` entries (a list of tables, or None) checked against the state
-    variables ``state``; :class:`SpecError` naming the file, entry, field and value."""
+    variables ``state`` and the model outputs ``outputs`` (the spec's ``[[output]]``
+    names); :class:`SpecError` naming the file, entry, field and value."""
     if entries is None:
         return ()
     if not isinstance(entries, list):
         raise SpecError(f"{source}: sensor = {entries!r}, expected [[sensor]] tables")
     out: list[Sensor] = []
     for i, t in enumerate(entries):
-        out.append(_sensor(t, f"sensor[{i}]", state, source))
+        out.append(_sensor(t, f"sensor[{i}]", state, source, outputs))
     names = [s.name for s in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -103,10 +106,11 @@ def _fail(source: str, where: str, key: str, value: Any, expected: str) -> SpecE
     return SpecError(f"{source}: {where}.{key} = {value!r}, expected {expected}")
 
 
-def _sensor(t: Any, where: str, state: Group, source: str) -> Sensor:
+def _sensor(t: Any, where: str, state: Group, source: str,
+            outputs: tuple[str, ...] = OUTPUTS) -> Sensor:
     if not isinstance(t, Mapping):
         raise SpecError(f"{source}: {where} = {t!r}, expected a table")
-    allowed = {"name", "label", "measures", "unit", "noise", "delay", "note"}
+    allowed = set(KEYS["sensor"])
     for key in t:
         if key not in allowed:
             raise _fail(source, where, key, t[key], f"one of the keys {sorted(allowed)}")
@@ -118,7 +122,6 @@ def _sensor(t: Any, where: str, state: Group, source: str) -> Sensor:
         raise _fail(source, where, "name", name, "a Python identifier (letters, digits, _)")
     where = f"{where} {name!r}"
     measures, unit, noise, delay = t["measures"], t["unit"], t["noise"], t["delay"]
-    outputs = output_names()
     if not isinstance(measures, str) or (measures not in state.names and measures not in
                                          outputs):
         raise _fail(source, where, "measures", measures, "a state variable ("

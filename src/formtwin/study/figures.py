@@ -8,7 +8,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.figures import pyplot
-from formtwin.simulator import ANGLE_NAMES
 from formtwin.spec import ProcessSpec
 from formtwin.study.metrics import summarise
 from formtwin.study.pseudodata import Realisation
@@ -18,8 +17,9 @@ FloatArray = NDArray[np.float64]
 
 
 def component_labels(spec: ProcessSpec) -> list[str]:
-    """Names of the 20 study components: the augmented state, then the two angles."""
-    return list(spec.augmented.names) + list(ANGLE_NAMES)
+    """Names of the study components: the augmented state, then the spec's outputs (20 for
+    the demonstrator: 18 and its two angles)."""
+    return list(spec.augmented.names) + list(spec.output_names)
 
 
 def plot_nrmse(spec: ProcessSpec, nrmse: FloatArray, series: tuple[int, ...],
@@ -66,7 +66,7 @@ def plot_timeseries(spec: ProcessSpec, real: Realisation, run: dict[str, FloatAr
     truth = real.truth
     n_show = len(spec.augmented) if s.deviation else len(spec.inputs)
     labels = component_labels(spec)
-    idx = list(range(n_show)) + [len(spec.augmented), len(spec.augmented) + 1]
+    idx = list(range(n_show)) + [len(spec.augmented) + k for k in range(spec.n_outputs)]
     cols = 4
     rows = int(np.ceil(len(idx) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.1 * rows), sharex=True)
@@ -84,7 +84,8 @@ def plot_timeseries(spec: ProcessSpec, real: Realisation, run: dict[str, FloatAr
         ax.fill_between(products, m - 3 * sd, m + 3 * sd, color="0.8", lw=0)
         ax.plot(products, m, color="0.45", lw=0.8)
         ax.plot(products, tr, color="black", lw=1.0)
-        unit = spec.augmented.variables[c].unit if c < len(spec.augmented) else "deg"
+        unit = spec.augmented.variables[c].unit if c < len(spec.augmented) else \
+            spec.outputs[c - len(spec.augmented)].unit
         ax.set_title(f"{labels[c]} [{unit}]", fontsize=8)
         ax.tick_params(labelsize=7)
     for ax in list(axes.flat)[len(idx):]:

@@ -30,7 +30,7 @@ from formtwin.deviation import DeviationModel
 from formtwin.doe import run_design
 from formtwin.measurement import ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
-from formtwin.simulator import ANGLE_NAMES, Simulator
+from formtwin.simulator import Simulator
 from formtwin.spec import ProcessSpec
 
 FloatArray = NDArray[np.float64]
@@ -75,7 +75,7 @@ class Realisation(ProductionRun):
             coords={"state": list(spec.state.names), "param": list(spec.params.names),
                     "control": list(spec.controls.names),
                     "deviation": list(spec.deviation.names), "source": list(SOURCES),
-                    "time": spec.time, "angle": list(ANGLE_NAMES),
+                    "time": spec.time, "angle": list(spec.output_names),
                     "product": np.arange(self.n)},
             attrs={"realisation": self.index, "units": "mm, N, s, MPa; angles in degrees",
                    "description": "formtwin study pseudo-data (truth and force curves)"},

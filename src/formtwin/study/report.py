@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 import formtwin
-from formtwin.spec import ProcessSpec
+from formtwin.spec import DEMONSTRATOR, ProcessSpec
 from formtwin.study.figures import component_labels, plot_nrmse, plot_timeseries
 from formtwin.study.honest import honest_summary, honest_table, plot_honest
 from formtwin.study.metrics import summarise
@@ -33,7 +33,8 @@ def _fmt(v: float) -> str:
 def _groups(spec: ProcessSpec) -> dict[str, slice]:
     n_x, n_in, n_aug = len(spec.state), len(spec.inputs), len(spec.augmented)
     return {"state x": slice(0, n_x), "parameters theta": slice(n_x, n_in),
-            "deviation theta_d": slice(n_in, n_aug), "angles": slice(n_aug, n_aug + 2)}
+            "deviation theta_d": slice(n_in, n_aug),
+            "angles": slice(n_aug, n_aug + spec.n_outputs)}
 
 
 def comparison(spec: ProcessSpec, overall: np.ndarray, series: tuple[int, ...]) -> list[str]:
@@ -114,7 +115,9 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
     digest = data_digest(result.realisations)
     plot_honest(honest, folder / "fig_skill_coverage.png")
     blocks: list[Block] = [
-        ("h1", "formtwin study: the six simulation series of Havinga et al."),
+        ("h1", "formtwin study: the six simulation series of Havinga et al."
+         if spec.name == DEMONSTRATOR else
+         f"formtwin study on {spec.name}: the six simulation series"),
         ("p", f"formtwin {formtwin.__version__}, Python {platform.python_version()}, "
               f"{datetime.now(UTC).isoformat(timespec='seconds')}. Run time "
               f"{result.timings['total_s']:.0f} s (pseudo-data "
@@ -161,22 +164,8 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
                  if result.paper else "") + "; docs/explanation/likelihood.md explains them."),
         ("img", "fig_skill_coverage.png", "skill and coverage per series"),
         ("table", *honest_table(honest)),
-        ("h2", "Comparison with the paper"),
-        *[("p", line) for line in comparison(spec, overall, st.series)],
-        ("p", "Spread of the real angles in the scoring window (the angle normaliser), mean "
-              "over datasets: " + "; ".join(
-                  f"{src} data: stage 1 {a1:.3f} deg, stage 2 {a2:.3f} deg"
-                  for src, (a1, a2) in _angle_spread(result).items()) + ". A small spread "
-              "makes the normalised angle error large even when the error in degrees is "
-              "small: our stage-2 angle hardly varies with the inputs, and the metamodel's "
-              "own stage-2 angle error is of the same order as that spread "
-              "(docs/explanation/metamodel.md)."),
-        ("p", "Why ours may differ: our physics model is a corotational-beam model of an "
-              "invented flap geometry, not the paper's MSC.Marc model of the real demonstrator; "
-              "the sensitivities of the force curve to each parameter, and therefore what is "
-              "observable, differ. Our metamodel, the K_MC-based likelihood (with a residual "
-              "term for curves outside the POD span) and the random draws of mu, theta and "
-              "theta_d differ too; with 5 datasets the per-dataset spread (diamonds) is large."),
+        *(_paper_blocks(result, spec, overall) if spec.name == DEMONSTRATOR else
+          _own_blocks(result, spec, overall, sources)),
         *[("img", p.name, f"Fig. {4 + (1 if s == 1 else 2)} analogue: series {s}")
           for s, p in figs],
         ("h2", "Filter health"),
@@ -211,15 +200,68 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
     return folder / "report.html"
 
 
-def _angle_spread(result: StudyResult) -> dict[str, tuple[float, float]]:
+def _paper_blocks(result: StudyResult, spec: ProcessSpec, overall: np.ndarray
+                  ) -> list[Block]:
+    """The demonstrator's comparison with the paper's figures and why ours may differ."""
+    st = result.settings
+    return [
+        ("h2", "Comparison with the paper"),
+        *[("p", line) for line in comparison(spec, overall, st.series)],
+        ("p", "Spread of the real angles in the scoring window (the angle normaliser), mean "
+              "over datasets: " + "; ".join(
+                  f"{src} data: stage 1 {a1:.3f} deg, stage 2 {a2:.3f} deg"
+                  for src, (a1, a2) in _angle_spread(result).items()) + ". A small spread "
+              "makes the normalised angle error large even when the error in degrees is "
+              "small: our stage-2 angle hardly varies with the inputs, and the metamodel's "
+              "own stage-2 angle error is of the same order as that spread "
+              "(docs/explanation/metamodel.md)."),
+        ("p", "Why ours may differ: our physics model is a corotational-beam model of an "
+              "invented flap geometry, not the paper's MSC.Marc model of the real demonstrator; "
+              "the sensitivities of the force curve to each parameter, and therefore what is "
+              "observable, differ. Our metamodel, the K_MC-based likelihood (with a residual "
+              "term for curves outside the POD span) and the random draws of mu, theta and "
+              "theta_d differ too; with 5 datasets the per-dataset spread (diamonds) is large."),
+    ]
+
+
+def _own_blocks(result: StudyResult, spec: ProcessSpec, overall: np.ndarray,
+                sources: dict[str, str]) -> list[Block]:
+    """For another process than the demonstrator: what the series measured, no paper
+    figures (they are the demonstrator's)."""
+    g = _groups(spec)
+    st = result.settings
+    score = {s: float(np.nanmean(np.r_[overall[s - 1, g["state x"]],
+                                       overall[s - 1, g["angles"]]])) for s in st.series}
+    spread = _angle_spread(result)
+    return [
+        ("h2", f"Process {spec.name}"),
+        ("p", f"{spec.description or spec.name}. Mean normalised RMSE over the state "
+              "variables and the outputs, per series: " + ", ".join(
+                  f"series {s}: {v:.2f}" for s, v in sorted(score.items(),
+                                                           key=lambda kv: kv[1]))
+              + " (best first)."),
+        ("p", "Physics data of the sources FE and gFE (series 5, 6): "
+              f"{sources.get('physics model', '?')}. With an FE dataset the physics values at "
+              "the drawn products are an interpolation of the FE runs independent of the "
+              "metamodel (formtwin.study.fe_data): series 5 and 6 then measure how the "
+              "tracker copes with the metamodel's approximation error, not with the gap "
+              "between the FE model and the real press."),
+        ("p", "Spread of the real outputs in the scoring window (their normaliser), mean over "
+              "datasets: " + "; ".join(
+                  f"{src} data: " + ", ".join(f"{o.name} {v:.3g} {o.unit}" for o, v in
+                                              zip(spec.outputs, vals, strict=True))
+                  for src, vals in spread.items()) + "."),
+    ]
+
+
+def _angle_spread(result: StudyResult) -> dict[str, tuple[float, ...]]:
     """Std of the real angles over the last ``window`` products, per data source (deg)."""
     w = result.settings.window
     out = {}
     for src in ("MM", "FE"):
         spreads = [np.nanstd(np.where(r.ok[src][-w:, None], r.angles[src][-w:], np.nan), axis=0)
                    for r in result.realisations]
-        a1, a2 = np.mean(spreads, axis=0)
-        out[src] = (float(a1), float(a2))
+        out[src] = tuple(float(v) for v in np.mean(spreads, axis=0))
     return out
 
 

@@ -95,10 +95,11 @@ class StudySettings:
 
 @dataclass
 class StudyResult:
-    """Normalised RMSE ``nrmse[series - 1, realisation, repetition, component]`` (20
-    components: 18 augmented, 2 angles; rows for series 1..6, or up to the largest series
-    run, NaN for series not run) and the paths of every run. ``timings`` are those of the run
-    that computed the filter runs (``cached`` = 1 when this call only re-reported).
+    """Normalised RMSE ``nrmse[series - 1, realisation, repetition, component]`` (the
+    augmented state, then the spec's outputs: 18 + 2 for the demonstrator; rows for series
+    1..6, or up to the largest series run, NaN for series not run) and the paths of every
+    run. ``timings`` are those of the run that computed the filter runs (``cached`` = 1
+    when this call only re-reported).
 
     ``skill`` and ``coverage`` have the shape of ``nrmse`` (:mod:`formtwin.study.metrics`);
     ``ess`` and ``log_evidence`` are ``(series, realisation, repetition)``: mean ESS and
@@ -247,7 +248,7 @@ def _score(spec: ProcessSpec, settings: StudySettings, tasks: list[Task],
         else settings.n_repetitions
     n_series = max(len(PAPER_SERIES), *settings.series)  # the paper's 6 unless 7, 8 asked
     shape = (n_series, settings.n_realisations, reps)
-    n_comp = len(spec.augmented) + 2
+    n_comp = len(spec.augmented) + spec.n_outputs
     out = {name: np.full(shape + (n_comp,), np.nan) for name in ("nrmse", "skill", "coverage")}
     out.update({name: np.full(shape, np.nan) for name in ("ess", "log_evidence")})
     paths: dict[tuple[int, int, int], Path] = {}

@@ -209,7 +209,8 @@ def _run(task: Task, out: Path) -> None:
     est = tracker.run(curves, u=u)
     n, d = real.n, len(spec.augmented)
     mean, std = np.full((n, d), np.nan), np.full((n, d), np.nan)
-    ang_mean, ang_std = np.full((n, 2), np.nan), np.full((n, 2), np.nan)
+    n_out = spec.n_outputs
+    ang_mean, ang_std = np.full((n, n_out), np.nan), np.full((n, n_out), np.nan)
     mean[ok], std[ok] = est.mean, est.std
     ang_mean[ok], ang_std[ok] = est.angles_mean, est.angles_std
     ess, d2, loglik = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)

@@ -154,12 +154,12 @@ class TrackerConfig:
     estimate_deviation: bool = field(default=True, metadata=_help(
         "estimate the deviation parameters theta_d (else g = identity)", "--deviation"))
     mu: tuple[float, ...] | None = field(default=None, metadata=_help(
-        "assumed state means, 7 comma-separated values in internal units (default: "
-        "mid-range)"))
+        "assumed state means, one comma-separated value per state variable of the spec, "
+        "internal units (default: mid-range)"))
     sigma: tuple[float, ...] | None = field(default=None, metadata=_help(
-        "state std, 7 values (default: the spec's)"))
+        "state std, one value per state variable (default: the spec's)"))
     rho: tuple[float, ...] | None = field(default=None, metadata=_help(
-        "state autocorrelation, 7 values (default: the spec's)"))
+        "state autocorrelation, one value per state variable (default: the spec's)"))
     mu_known: bool = field(default=False, metadata=_help(
         "mu is the line's true state mean (else the intervals add the error of assuming "
         "it, the line's mu anywhere in the spec's range)"))
@@ -186,7 +186,8 @@ class TrackerConfig:
         "(part of K_res learned as a shared error) or paper"))
     fraction: float = field(default=0.5, metadata=_help(
         "measurement std as a fraction of the Monte-Carlo std (paper: 0.5)"))
-    sensor_noise: float = field(default=0.0, metadata=_help("force sensor std, N"))
+    sensor_noise: float = field(default=0.0, metadata=_help(
+        "force sensor std, N (track and serve: default the spec's [curve] noise_sd)"))
     learn_scale: bool = field(default=False, metadata=_help(
         "learn a factor on the likelihood covariance online"))
     error_share: float | None = field(default=None, metadata=_help(

@@ -257,8 +257,9 @@ class Tracker(SensorFusion):
         return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
                         std=std[:na], angles_mean=am, angles_std=astd, ess=s.ess,
                         collapsed=s.collapsed, loglik=s.loglik,
-                        mu_mean=mu[0] if mu else None,
-                        mu_std=mu[1] if mu else None, fit=fit, intervals=self.intervals)
+                        mu_mean=mu[0] if mu else None, mu_std=mu[1] if mu else None,
+                        fit=fit, intervals=self.intervals,
+                        output_names=self.ssm.spec.output_names)
 
     def run(self, curves: Iterable[Any], progress: bool = False,
             u: Any = None) -> Estimates:

@@ -165,7 +165,8 @@ def calibration_floors(model: Any, deviation: bool) -> tuple[FloatArray, FloatAr
     was learned for another metamodel."""
     n = len(model.spec.augmented)
     entry, _ = _entry(model, deviation)
-    return (np.zeros(n), np.zeros(2)) if entry is None else _floor_arrays(entry, "", n)
+    return ((np.zeros(n), np.zeros(model.spec.n_outputs)) if entry is None
+            else _floor_arrays(entry, "", n))
 
 
 def fit_ewma(d2: FloatArray, a: float, start: tuple[float, float] = (0.0, 0.0)
@@ -214,20 +215,20 @@ class Floors:
     def __init__(self, model: Any, deviation: bool, gated: bool) -> None:
         """Floors of the bundled calibration for a tracker on ``model`` with
         (``deviation``) or without theta_d; ``gated``: the fit gate."""
-        n = len(model.spec.augmented)
+        n, n_out = len(model.spec.augmented), model.spec.n_outputs
         entry, self.calibration = _entry(model, deviation)
         self.gated = gated
         self.ewma: tuple[float, float] = (0.0, 0.0)
         self.d0, self.a, self.s_max = 0.0, 1.0, 0.0
         if entry is None:
-            self.b, self.b_angles = np.zeros(n), np.zeros(2)
+            self.b, self.b_angles = np.zeros(n), np.zeros(n_out)
         elif not gated:
             self.b, self.b_angles = _floor_arrays(entry, "", n)
         elif entry.get("fit_gate") is None or "fit_floors" not in entry:
             reason = f"the calibration ({self.calibration.source}) has no fit gate"
             log.warning("intervals='calibrated_fit': %s; reporting the cloud's std", reason)
             self.calibration = dataclasses.replace(self.calibration, data=None, reason=reason)
-            self.b, self.b_angles = np.zeros(n), np.zeros(2)
+            self.b, self.b_angles = np.zeros(n), np.zeros(n_out)
         else:
             self.b, self.b_angles = _floor_arrays(entry, "fit_", n)
             gate = entry["fit_gate"]

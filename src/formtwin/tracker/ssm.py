@@ -150,7 +150,8 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
         object.__setattr__(self, "_sigma", st.sigma if c.sigma is None else np.array(c.sigma))
         object.__setattr__(self, "_rho", st.rho if c.rho is None else np.array(c.rho))
         var = angle_residual_variance(self.model) if c.likelihood != "paper" else None
-        object.__setattr__(self, "angle_error_var", np.zeros(2) if var is None else var)
+        object.__setattr__(self, "angle_error_var",
+                           np.zeros(spec.n_outputs) if var is None else var)
         if self.measurement.n_t != spec.n_t:
             raise ValueError(f"measurement model has {self.measurement.n_t} samples, "
                              f"the spec's curves {spec.n_t}")
@@ -346,7 +347,7 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
             return np.concatenate([final(xin[i: i + CHUNK], uu)
                                    for i in range(0, x.shape[0], CHUNK)])
         rep = np.repeat(xin, uu.size, axis=0)
-        a = self.model.predict_angles(rep, np.tile(uu, x.shape[0]))[:, 1]
+        a = self.model.predict_angles(rep, np.tile(uu, x.shape[0]))[:, -1]
         out: FloatArray = a.reshape(x.shape[0], uu.size)
         return out
 

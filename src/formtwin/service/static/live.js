@@ -46,7 +46,7 @@
     return (a !== 0 && (a < 1e-3 || a >= 1e5)) ? v.toExponential(3) : v.toPrecision(4);
   }
 
-  function build(names, units, nParticles) {
+  function build(names, units, nParticles, outputs) {
     el("grid").innerHTML = "";
     charts.length = 0;
     names.forEach((name) => {
@@ -60,8 +60,8 @@
         },
       });
     });
-    [0, 1].forEach((k) => {
-      makeChart("angle after stage " + (k + 1) + " (deg): predicted, measured", "angle" + k, {
+    (outputs || []).forEach((o, k) => {
+      makeChart(o.label + " (" + o.unit + "): predicted, measured", "angle" + k, {
         series: band("#b5561b").concat([{label: "measured", stroke: "#222", width: 0,
                                          points: {show: true, size: 3}}]),
         bands: [{series: [3, 1], fill: "rgba(181,86,27,0.18)"}],
@@ -259,7 +259,7 @@
     Promise.all([fetch("/api/state").then((r) => r.json()),
                  fetch("/api/monitor").then((r) => r.ok ? r.json() : null)]).then(([st, mon]) => {
       nPoints = 0;
-      build(st.names, st.units, st.n_particles);
+      build(st.names, st.units, st.n_particles, st.outputs);
       showHealth(st.health);
       buildMonitor(mon);
       if (mon) loadAlarms();
