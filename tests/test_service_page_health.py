@@ -118,6 +118,8 @@ def test_serve_check_exits_nonzero_with_the_message(mosquitto: Mosquitto,  # noq
     found = re.search(r"model_mismatch after (\d+) products: the model does not explain the "
                       r"force curves", text)
     assert found and int(found.group(1)) <= 10, text[-2000:]
+    # and says what the sensor noise was (the analytic stand-in's spec gives none: 0 N)
+    assert "sensor noise in use: 0 N (the default: no noise_sd" in text, text[-2000:]
 
 
 def test_page_refuses_other_addresses_without_a_token(mosquitto: Mosquitto,  # noqa: F811

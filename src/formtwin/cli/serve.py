@@ -10,7 +10,12 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from formtwin.cli.options import add_tracker_options, spec_defaults, tracker_config
+from formtwin.cli.options import (
+    add_tracker_options,
+    noise_note,
+    spec_defaults,
+    tracker_config,
+)
 from formtwin.service.plausibility import CLIP_SAMPLES
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
@@ -158,6 +163,8 @@ class _Check:
         self.accepted = 0
         self.mismatch: dict[str, Any] | None = None
         self.listener: Any = None
+        #: what to say about the sensor noise when the model does not explain the products
+        self.noise = ""
 
     def __call__(self, out: Any) -> None:
         if self.listener is not None:
@@ -175,6 +182,8 @@ class _Check:
         if self.mismatch is not None:
             print(f"model_mismatch after {self.accepted} products: {self.mismatch['detail']}",
                   flush=True)
+            if self.noise:
+                print(self.noise, flush=True)
             return 1
         if self.accepted < self.n:
             print(f"check incomplete: {self.accepted} of {self.n} products received", flush=True)
@@ -297,12 +306,18 @@ def _serve(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     page = monitor = None
     check = None if args.check is None else _Check(proc, args.check, stop)
+    if check is not None:
+        check.noise = noise_note(settings.tracker, _model_spec(args))
     try:
         monitor = _monitor(args, proc)
         _controller(args, proc)
         describe = getattr(proc.plausible, "describe", None)
         if describe is not None:
             print(describe(), flush=True)
+        print(f"tracker sensor noise: {settings.tracker.sensor_noise:g} N"
+              + ("" if settings.tracker.sensor_noise > 0 else " (no [curve] noise_sd in the "
+                 "spec and no --sensor-noise: a real sensor's noise reads as model mismatch)"),
+              flush=True)
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
