@@ -47,7 +47,7 @@ def register(sub: Any) -> None:
     imp.add_argument("csv", help="CSV: one column per input of the spec (its file's units), "
                      "one per output of the spec ([[output]] names), [status], and the curve "
                      "as F@<axis value> columns (the spec's [curve] unit); see "
-                     "docs/reference_csv.md")
+                     "docs/reference/csv.md")
     imp.add_argument("--out", required=True, help="dataset file (HDF5) to write")
     imp.add_argument("--spec", help="process spec TOML (default: the demonstrator)")
     imp.add_argument("--model-version", default="imported", help="label of the FE model")

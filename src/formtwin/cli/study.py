@@ -31,7 +31,7 @@ def register(sub: Any) -> None:
     p.add_argument("--fe-data", metavar="DATASET.h5",
                    help="your own FE dataset (formtwin doe import) as the physics data of "
                    "the sources FE and gFE (series 5, 6): interpolated with a thin-plate RBF "
-                   "independent of the metamodel (docs/howto_own_process.md); needed for "
+                   "independent of the metamodel (docs/howto/own-process.md); needed for "
                    "a spec the built-in --physics models do not know")
     p.add_argument("--products", type=int, help="products per realisation (paper: 1000)")
     p.add_argument("--realisations", type=int, help="dataset realisations (paper: 5)")

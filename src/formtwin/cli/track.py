@@ -35,7 +35,7 @@ def register(sub: Any) -> None:
     p.add_argument("--curves", required=True, type=Path,
                    help="curves (n, n_t) in N: .npz (key 'curves'), .csv (one curve a row: "
                         "bare numbers, or the stream layout part_id, cycle, f0 .. f<n_t-1>, "
-                        "angle<k> of replay; docs/reference_csv.md), a DOE dataset .h5 "
+                        "angle<k> of replay; docs/reference/csv.md), a DOE dataset .h5 "
                         "(formtwin.dataset) or a "
                         "NetCDF file with a variable 'curves' (study realisations: --source)")
     p.add_argument("--out", required=True, type=Path,

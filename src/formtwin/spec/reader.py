@@ -22,7 +22,7 @@ _BASE = {"name", "label", "unit", "min", "max", "note"}
 _STATS = {"mu_min", "mu_max", "sigma", "rho"}
 
 #: every key a spec may use, by table (``"<top>"``: the top-level tables); the reader
-#: refuses any other, and docs/reference_spec.md lists exactly these (a test compares them)
+#: refuses any other, and docs/reference/spec.md lists exactly these (a test compares them)
 KEYS: dict[str, frozenset[str]] = {
     "<top>": frozenset({"process", "curve", "state", "parameter", "control", "deviation",
                         "output", "sensor"}),
