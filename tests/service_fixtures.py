@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import shutil
 import socket
+import sqlite3
 import subprocess
 import sys
 import time
@@ -216,3 +217,14 @@ def live_page(url: str, height: int = 900) -> Iterator[tuple[Any, list[str]]]:
             yield page, errors
         finally:
             browser.close()
+
+
+def stored_count(store: Path) -> int:
+    """Products in a service's store (0 while it does not exist or is locked)."""
+    if not store.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=1.0) as db:
+            return int(db.execute("SELECT COUNT(*) FROM products").fetchone()[0])
+    except sqlite3.Error:
+        return 0

@@ -21,6 +21,7 @@ from service_fixtures import (
     Mosquitto,
     log_has,
     mosquitto,  # noqa: F401 - fixture
+    stored_count,
     wait_for,
 )
 
@@ -200,7 +201,7 @@ def test_howto_chain_runs_as_documented(mosquitto: Mosquitto, tmp_path: Path) ->
                 continue
             if argv[3:4] == ["export"]:  # the service has stored every product: stop it
                 assert serve is not None
-                wait_for(lambda: _stored(tmp_path / "out/ab/line.sqlite") >= 80, 120,
+                wait_for(lambda: stored_count(tmp_path / "out/ab/line.sqlite") >= 80, 120,
                          lambda: log.read_text()[-2000:])
                 serve.terminate()
                 assert serve.wait(60) == 0, log.read_text()[-3000:]
@@ -235,16 +236,6 @@ def test_howto_chain_runs_as_documented(mosquitto: Mosquitto, tmp_path: Path) ->
     assert "angle2_mean" not in rows[0]
     assert abs(float(rows[0]["angle1_measured"]) - float(rows[0]["angle1_mean"])) < 2.0
     assert elapsed < 600
-
-
-def _stored(store: Path) -> int:
-    if not store.exists():
-        return 0
-    try:
-        with sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=1.0) as db:
-            return int(db.execute("SELECT COUNT(*) FROM products").fetchone()[0])
-    except sqlite3.Error:
-        return 0
 
 
 def test_spec_reference_lists_every_key_the_reader_accepts() -> None:
@@ -346,7 +337,7 @@ def test_fresh_serve_after_check_stores_only_its_own_topic(
                  120, lambda: log.read_text()[-2000:])
         line, ids = _strokes(tmp_path, "line", 3, 4)
         _publish(mosquitto.url, line_t, line)
-        wait_for(lambda: _stored(store) >= 3, 60, lambda: log.read_text()[-2000:])
+        wait_for(lambda: stored_count(store) >= 3, 60, lambda: log.read_text()[-2000:])
         time.sleep(1.5)  # anything else queued would have arrived by now
     finally:
         serve.terminate()

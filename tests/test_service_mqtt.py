@@ -22,6 +22,7 @@ from service_fixtures import (
     require_binary,
     serve_cmd,
     start_serve,
+    stored_count,
     wait_for,
     wait_serving,
 )
@@ -35,16 +36,6 @@ FAST = ["--particles", "64", "--n-mc", "1000", "--seed", "3", "--no-page"]
 SETTINGS = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3))
 TOPIC = "plant/line1/press1/stroke"
 RESULTS, ERRORS = "plant/line1/press1/estimate", "plant/line1/press1/errors"
-
-
-def stored_count(store: Path) -> int:
-    if not store.exists():
-        return 0
-    try:
-        with sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=1.0) as db:
-            return int(db.execute("SELECT COUNT(*) FROM products").fetchone()[0])
-    except sqlite3.Error:
-        return 0
 
 
 def publish(url: str, payloads: list[bytes]) -> None:
