@@ -44,6 +44,10 @@ def register(subparsers: Any) -> None:
     cal.add_argument("--physics", default="bending",
                      help="process model that makes the physics pseudo-data: bending, "
                           "analytic or calculix (default: %(default)s)")
+    cal.add_argument("--fe-data", metavar="DATASET.h5",
+                     help="make the physics pseudo-data from this FE dataset of the "
+                          "metamodel's process (thin-plate RBF of its runs, as `formtwin study "
+                          "--fe-data`) instead of a --physics model")
     cal.add_argument("--out", help="metamodel file to write (default: the input, in place)")
     cal.add_argument("--work", help="folder of the pseudo-data and filter runs (default: "
                                     "<metamodel>.calibration beside the file)")
@@ -133,7 +137,7 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from formtwin.defaults import physics_model
+    from formtwin.cli.study import physics_source
     from formtwin.metamodel import Metamodel
     from formtwin.study.calibrate import SERIES_OF, learn_calibration
 
@@ -141,7 +145,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     mm = Metamodel.load(path)
     work = Path(args.work) if args.work else path.with_suffix(".calibration")
     try:
-        physics = physics_model(args.physics, mm.spec)
+        physics, _ = physics_source(args, mm.spec)
         cal = learn_calibration(mm, path, physics, work, args.datasets, args.repetitions,
                                 args.products, args.seed)
     except (ValueError, KeyError) as exc:

@@ -77,7 +77,7 @@ def settings_from_args(args: argparse.Namespace) -> StudySettings:
                          tracker=tracker, **values)
 
 
-def _physics(args: argparse.Namespace, spec: Any) -> tuple[Any, str]:
+def physics_source(args: argparse.Namespace, spec: Any) -> tuple[Any, str]:
     """The study's physics data source and its label: the FE dataset of ``--fe-data``
     (checked against the metamodel's spec), else the ``--physics`` model, which must be
     able to run this spec (else ``ValueError`` naming what is missing)."""
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     out = Path(args.out)
     metamodel, mm_path = default_metamodel(out / "model", args.physics, args.metamodel)
-    physics, label = _physics(args, metamodel.spec)
+    physics, label = physics_source(args, metamodel.spec)
     runs = label if args.fe_data else f"{label} model"
     print(f"study into {out}: {settings.n_realisations} datasets x {settings.n_products} "
           f"products ({runs} runs, cached), then {settings.n_filter_runs} "
