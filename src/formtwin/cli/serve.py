@@ -43,6 +43,32 @@ def broker_config(args: argparse.Namespace) -> Any:
                                  username=args.username, password=password)
 
 
+def add_source_options(p: argparse.ArgumentParser) -> None:
+    """Where the strokes come from: the MQTT topic (default) or a press's OPC UA server."""
+    p.add_argument("--source", metavar="URL",
+                   help="opc.tcp://HOST:PORT: subscribe to the press's OPC UA server for the "
+                   "strokes (estimates still go to --broker); default: the MQTT --topic")
+    p.add_argument("--opcua-map", metavar="TOML",
+                   help="OPC UA node mapping, section [opcua] (docs/opcua.md; default: the "
+                   "OPC 40503-1 based names)")
+
+
+def _service(args: argparse.Namespace, proc: Any, broker: Any, topics: Any) -> Any:
+    """The MQTT service, or with ``--source opc.tcp://...`` the OPC UA one."""
+    from formtwin.service.mqtt import MqttService
+
+    if args.source is None:
+        if args.opcua_map:
+            raise ValueError("--opcua-map needs --source opc.tcp://HOST:PORT")
+        return MqttService(proc, broker, topics, client_id=args.client_id)
+    from formtwin.service.opcua import OpcUaService, OpcUaSource
+    from formtwin.service.opcua_map import OpcUaMapping
+
+    mapping = OpcUaMapping.from_toml(args.opcua_map) if args.opcua_map else OpcUaMapping()
+    return OpcUaService(proc, OpcUaSource(args.source, mapping), broker, topics,
+                        client_id=args.client_id)
+
+
 def add_monitor_options(p: argparse.ArgumentParser) -> None:
     """Control charts and alarms (fixed with the store at its first start)."""
     g = p.add_argument_group("monitoring (EWMA/CUSUM charts, model-mismatch alarm)")
@@ -192,6 +218,7 @@ def register(sub: Any) -> None:
     model.add_argument("--analytic", action="store_true",
                        help="use the closed-form analytic stand-in instead of a metamodel")
     add_broker_options(p)
+    add_source_options(p)
     p.add_argument("--topic", default=DEFAULT_TOPIC, help="stroke topic (default: %(default)s)")
     p.add_argument("--results-topic", help="default: sibling 'estimate' of --topic")
     p.add_argument("--errors-topic", help="default: sibling 'errors' of --topic")
@@ -249,7 +276,7 @@ def register(sub: Any) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from formtwin.service.mqtt import MqttService, Topics
+    from formtwin.service.mqtt import Topics
     from formtwin.service.runtime import ServiceSettings, open_processor
 
     broker = broker_config(args)
@@ -286,7 +313,7 @@ def _serve(args: argparse.Namespace) -> int:
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
-        service = MqttService(proc, broker, topics, client_id=args.client_id)
+        service = _service(args, proc, broker, topics)
         if not args.no_page:
             from formtwin.service.web import LiveFeed, PageServer
             from formtwin.spec import load_spec
@@ -314,7 +341,9 @@ def _serve(args: argparse.Namespace) -> int:
         if args.status_every > 0:
             threading.Thread(target=_status, args=(proc, service, stop, args.status_every),
                              daemon=True, name="formtwin-status").start()
-        print(f"serving {topics.strokes} on {broker.host}:{broker.port} -> "
+        strokes = f"{topics.strokes} on {broker.host}:{broker.port}" if args.source is None \
+            else f"{args.source} (OPC UA; results on {broker.host}:{broker.port})"
+        print(f"serving {strokes} -> "
               f"{topics.results}, errors -> {topics.errors}"
               + (f", alarms -> {topics.alarms}" if monitor is not None else ""), flush=True)
         service.run(stop, timeout=args.connect_timeout,

@@ -1,0 +1,189 @@
+"""The OPC UA source: a simulated press (a real asyncua server on 127.0.0.1) feeding
+`formtwin serve --source opc.tcp://...`; estimates in the store and on MQTT, equal to the
+MQTT source's; a server restart mid-run; bad values rejected with their reasons."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sqlite3
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from service_fixtures import (
+    Collector,
+    Mosquitto,
+    free_port,
+    mosquitto,  # noqa: F401 - fixture
+    serve_cmd,
+    start_serve,
+    wait_for,
+    wait_serving,
+)
+
+pytest.importorskip("asyncua")
+
+from formtwin.service.messages import dumps  # noqa: E402
+from formtwin.service.mqtt import BrokerConfig, Topics  # noqa: E402
+from formtwin.service.opcua import OpcUaService, OpcUaSource  # noqa: E402
+from formtwin.service.opcua_map import NODES, OpcUaMapping, StrokeAssembler  # noqa: E402
+from formtwin.service.opcua_press import SimulatedPress  # noqa: E402
+from formtwin.service.runtime import ServiceSettings, open_processor  # noqa: E402
+from formtwin.service.streams import make_stream, read_stream  # noqa: E402
+from formtwin.tracker import TrackerConfig  # noqa: E402
+
+FAST = ["--particles", "64", "--n-mc", "1000", "--seed", "3", "--no-page", "--no-monitor"]
+SETTINGS = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3))
+TOPIC = "plant/line1/press1/stroke"
+RESULTS, ERRORS = "plant/line1/press1/estimate", "plant/line1/press1/errors"
+QUICK = OpcUaMapping(reconnect_min_s=0.2, reconnect_max_s=1.0)
+
+
+def test_mapping_defaults_and_errors_name_the_key(tmp_path: Path) -> None:
+    m = OpcUaMapping()
+    assert m.nodes["part_id"] == "PartInformation/PartId"  # OPC 40503-1 field names
+    assert m.nodes["cycle_count"] == "PartInformation/CycleCount"
+    assert set(m.nodes) == set(NODES)
+    f = tmp_path / "map.toml"
+    f.write_text('[opcua]\nroot = "Machines/Press7"\n[opcua.nodes]\n'
+                 'part_id = "ns=3;s=Press7.PartId"\nstage2_setting = ""\n', encoding="utf-8")
+    m = OpcUaMapping.from_toml(f)
+    assert m.root == "Machines/Press7" and m.nodes["part_id"] == "ns=3;s=Press7.PartId"
+    assert "stage2_setting" not in m.active() and m.nodes["force_curve"] == NODES[
+        "force_curve"][0]
+    f.write_text('[opcua.nodes]\nforce = "X"\n', encoding="utf-8")
+    with pytest.raises(ValueError, match="'force': unknown node key"):
+        OpcUaMapping.from_toml(f)
+    f.write_text('[opcua]\npublishing_interval = 5\n', encoding="utf-8")
+    with pytest.raises(ValueError, match="'publishing_interval': unknown key"):
+        OpcUaMapping.from_toml(f)
+    with pytest.raises(ValueError, match="part_id is required"):
+        OpcUaMapping(nodes={"part_id": ""})
+    with pytest.raises(ValueError, match="publishing_interval_ms = -1"):
+        OpcUaMapping(publishing_interval_ms=-1)
+
+
+def test_assembler_waits_for_the_curve_of_the_same_cycle() -> None:
+    asm = StrokeAssembler(OpcUaMapping())
+    asm.update("part_id", "P-2")
+    asm.update("force_curve", [1.0, 2.0])  # still the curve of cycle 1
+    asm.update("force_cycle_count", 1)
+    asm.update("cycle_count", 2)  # the part information arrives before the new curve
+    assert asm.take() is None
+    asm.update("force_curve", [3.0, 4.0])
+    assert asm.take() is None  # its cycle count has not arrived yet
+    asm.update("force_cycle_count", 2)
+    doc = json.loads(asm.take() or b"")
+    assert (doc["part_id"], doc["cycle"], doc["force_N"]) == ("P-2", 2, [3.0, 4.0])
+    assert "u" not in doc and asm.take() is None
+    asm.update("cycle_count", 5)
+    asm.update("force_cycle_count", 5)
+    asm.take()
+    assert asm.skipped == 2  # cycles 3 and 4 never arrived complete
+
+
+def _count(store: Path, status: str = "accepted") -> int:
+    if not store.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=1.0) as db:
+            return int(db.execute("SELECT COUNT(*) FROM products WHERE status = ?",
+                                  (status,)).fetchone()[0])
+    except sqlite3.Error:
+        return 0
+
+
+def test_serve_from_opcua_with_a_server_restart(mosquitto: Mosquitto,  # noqa: F811
+                                                tmp_path: Path) -> None:
+    strokes = read_stream(make_stream(tmp_path / "s.npz", 8, seed=4))
+    store, log = tmp_path / "a.sqlite", tmp_path / "serve.log"
+    col = Collector(mosquitto.url, [RESULTS, ERRORS])
+    press = SimulatedPress(free_port()).start()
+    mapping = tmp_path / "press.toml"  # the defaults, reconnecting within a second
+    mapping.write_text("[opcua]\nreconnect_min_s = 0.2\nreconnect_max_s = 1.0\n",
+                       encoding="utf-8")
+    proc = start_serve(serve_cmd(mosquitto, store, "--source", press.url, "--opcua-map",
+                                 str(mapping), "--topic", TOPIC, "--connect-timeout", "30",
+                                 *FAST), log)
+    try:
+        wait_serving(proc, log)
+        for i, s in enumerate(strokes):
+            if i == 4:  # the press's server restarts mid-run (empty address space)
+                press.restart(down_s=0.5)
+            press.write(s)
+            wait_for(lambda s=s: any(r["part_id"] == s.part_id for r in col.get(RESULTS)),
+                     30, f"the estimate of {s.part_id}")
+        assert _count(store) == len(strokes) and _count(store, "rejected") == 0
+        text = log.read_text(encoding="utf-8")
+        assert "connection lost" in text and "reconnecting" in text
+        results = col.get(RESULTS)
+        first = [r for r in results if not r["flags"]["redelivered"]]  # type: ignore[index]
+        assert [r["part_id"] for r in first] == [s.part_id for s in strokes]
+        # a redelivery (the last stroke reported again on resubscription) is answered
+        # from the store: the same estimate, never a second product
+        for r in results:
+            if r["flags"]["redelivered"]:  # type: ignore[index]
+                same = next(f for f in first if f["part_id"] == r["part_id"])
+                assert r["mean"] == same["mean"] and r["seq"] == same["seq"]
+        assert col.get(ERRORS) == []
+        # the estimates equal the MQTT source's: the same messages handled in-process
+        ref = open_processor(tmp_path / "ref.sqlite", SETTINGS)
+        want = [ref.handle(dumps(s.to_message())).message for s in strokes]
+        ref.close()
+        assert [m["mean"] for m in want] == [r["mean"] for r in first]
+        assert [m["std"] for m in want] == [r["std"] for r in first]
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        press.close()
+        col.stop()
+
+
+def test_bad_values_are_rejected_with_their_reasons_and_the_service_goes_on(
+        mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
+    strokes = read_stream(make_stream(tmp_path / "s.npz", 3, seed=5))
+    good = [{"part_id": s.part_id, "cycle": s.cycle, "force_N": s.force_N.tolist(),
+             "u": None} for s in strokes]
+    curve = good[0]["force_N"]
+    assert isinstance(curve, list)
+    bad = {  # reason -> values written by the press
+        "wrong_length": {"part_id": "B-1", "cycle": 10, "force_N": curve[:50]},
+        "non_finite": {"part_id": "B-2", "cycle": 11, "force_N": [np.nan, *curve[1:]]},
+        "missing_field": {"part_id": None, "cycle": 12, "force_N": curve},
+    }
+    good[1]["cycle"], good[2]["cycle"] = 20, 21  # after the bad ones, in order
+    col = Collector(mosquitto.url, [RESULTS, ERRORS])
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    stop = threading.Event()
+    with SimulatedPress(free_port()) as press:
+        service = OpcUaService(proc, OpcUaSource(press.url, QUICK),
+                               BrokerConfig.from_url(mosquitto.url),
+                               Topics.from_input(TOPIC), client_id="opcua-test")
+        runner = threading.Thread(target=service.run, args=(stop, 30.0), daemon=True)
+        runner.start()
+        try:
+            wait_for(service.connected.is_set, 30, "the OPC UA subscription")
+            sequence = [good[0], *bad.values(), good[1], good[2]]
+            for k, values in enumerate(sequence, start=1):
+                press.write(values)
+                wait_for(lambda k=k: service.handled >= k, 30, f"stroke {k} handled")
+        finally:
+            stop.set()
+            runner.join(20)
+    wait_for(lambda: len(col.get(ERRORS)) == len(bad) and len(col.get(RESULTS)) == 3, 10,
+             "the answers on MQTT")
+    errors = col.get(ERRORS)
+    assert [e["reason"] for e in errors] == list(bad)
+    # NaN is refused while the JSON is read, before the part id (as on MQTT)
+    assert [e["part_id"] for e in errors] == ["B-1", None, None]
+    assert "expected 101" in str(errors[0]["detail"])
+    assert [r["part_id"] for r in col.get(RESULTS)] == [g["part_id"] for g in good]
+    counts = proc.store.counts()
+    assert counts["accepted"] == 3 and counts["rejected"] == 3
+    assert sorted(proc.store.rejection_counts()) == sorted(bad)
+    proc.close()
+    col.stop()
