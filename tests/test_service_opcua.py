@@ -65,23 +65,30 @@ def test_mapping_defaults_and_errors_name_the_key(tmp_path: Path) -> None:
         OpcUaMapping(publishing_interval_ms=-1)
 
 
-def test_assembler_waits_for_the_curve_of_the_same_cycle() -> None:
+def test_assembler_pairs_values_in_order_and_drops_an_incomplete_stroke() -> None:
     asm = StrokeAssembler(OpcUaMapping())
-    asm.update("part_id", "P-2")
-    asm.update("force_curve", [1.0, 2.0])  # still the curve of cycle 1
-    asm.update("force_cycle_count", 1)
-    asm.update("cycle_count", 2)  # the part information arrives before the new curve
-    assert asm.take() is None
-    asm.update("force_curve", [3.0, 4.0])
-    assert asm.take() is None  # its cycle count has not arrived yet
-    asm.update("force_cycle_count", 2)
+
+    def stroke(cycle: int, part: str, curve: list[float], tag: int | None = None) -> None:
+        for key, value in (("part_id", part), ("stage2_setting", []),
+                           ("force_curve", curve), ("force_cycle_count", tag or cycle),
+                           ("cycle_count", cycle)):
+            asm.update(key, value)
+
+    stroke(1, "P-1", [1.0])
+    stroke(2, "P-1", [2.0])  # the same part id again is still a value of its own
+    docs = [json.loads(p) for p in iter(asm.take, None)]
+    assert [(d["part_id"], d["cycle"], d["force_N"]) for d in docs] == [
+        ("P-1", 1, [1.0]), ("P-1", 2, [2.0])]
+    assert all("u" not in d for d in docs)  # an empty setting: the nominal one
+    # the curve of cycle 3 was lost: the part information of cycle 3 is dropped
+    for key, value in (("part_id", "P-3"), ("stage2_setting", 0.2), ("cycle_count", 3)):
+        asm.update(key, value)
+    stroke(4, "P-4", [4.0])
     doc = json.loads(asm.take() or b"")
-    assert (doc["part_id"], doc["cycle"], doc["force_N"]) == ("P-2", 2, [3.0, 4.0])
-    assert "u" not in doc and asm.take() is None
-    asm.update("cycle_count", 5)
-    asm.update("force_cycle_count", 5)
-    asm.take()
-    assert asm.skipped == 2  # cycles 3 and 4 never arrived complete
+    assert (doc["part_id"], doc["cycle"], doc["force_N"]) == ("P-4", 4, [4.0])
+    assert asm.take() is None and asm.skipped == 1
+    asm.update("force_curve", [5.0])  # a stroke in progress waits for its other values
+    assert asm.take() is None
 
 
 def _count(store: Path, status: str = "accepted") -> int:
@@ -109,12 +116,17 @@ def test_serve_from_opcua_with_a_server_restart(mosquitto: Mosquitto,  # noqa: F
                                  *FAST), log)
     try:
         wait_serving(proc, log)
-        for i, s in enumerate(strokes):
+        def answered(s: object) -> bool:
+            return any(r["part_id"] == s.part_id for r in col.get(RESULTS))  # type: ignore[attr-defined]
+
+        for i, s in enumerate(strokes[:5]):
             if i == 4:  # the press's server restarts mid-run (empty address space)
                 press.restart(down_s=0.5)
+            press.write(s)  # the first after the restart: reported on resubscription
+            wait_for(lambda s=s: answered(s), 30, f"the estimate of {s.part_id}")
+        for s in strokes[5:]:  # a burst within one publishing interval: queued, not lost
             press.write(s)
-            wait_for(lambda s=s: any(r["part_id"] == s.part_id for r in col.get(RESULTS)),
-                     30, f"the estimate of {s.part_id}")
+        wait_for(lambda: answered(strokes[-1]), 30, "the estimates of the burst")
         assert _count(store) == len(strokes) and _count(store, "rejected") == 0
         text = log.read_text(encoding="utf-8")
         assert "connection lost" in text and "reconnecting" in text

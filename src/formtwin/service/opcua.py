@@ -68,6 +68,25 @@ async def _resolve(client: Any, mapping: OpcUaMapping) -> dict[str, Any]:
     return nodes
 
 
+def _requests(nodes: list[Any], queue_size: int) -> list[Any]:
+    """Monitored-item requests: every write reported (``StatusValueTimestamp``, so a value
+    written again is a new sample), up to ``queue_size`` values queued per publish."""
+    from asyncua import ua
+    from asyncua.ua.attribute_ids import AttributeIds
+
+    out = []
+    for handle, node in enumerate(nodes, start=1):
+        params = ua.MonitoringParameters(
+            ClientHandle=handle, SamplingInterval=0.0, QueueSize=queue_size,
+            DiscardOldest=True,
+            Filter=ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp))
+        out.append(ua.MonitoredItemCreateRequest(
+            ItemToMonitor=ua.ReadValueId(NodeId=node.nodeid,
+                                         AttributeId=AttributeIds.Value),
+            MonitoringMode=ua.MonitoringMode.Reporting, RequestedParameters=params))
+    return out
+
+
 class _Handler:
     """asyncua subscription handler: every data change into the assembler."""
 
@@ -83,8 +102,7 @@ class _Handler:
         stamp = getattr(dv, "SourceTimestamp", None) or getattr(dv, "ServerTimestamp", None)
         asm = self.source.assembler
         asm.update(key, val, stamp)
-        payload = asm.take()
-        if payload is not None:
+        while (payload := asm.take()) is not None:
             self.source.strokes.put(payload)
 
     def status_change_notification(self, status: Any) -> None:
@@ -178,13 +196,15 @@ class OpcUaSource:
         await client.connect()
         try:
             nodes = await _resolve(client, self.mapping)
+            self.assembler.reset()
             handler = _Handler(self, {n.nodeid: k for k, n in nodes.items()})
             sub = await client.create_subscription(self.mapping.publishing_interval_ms,
                                                    handler)
-            # the cycle counts last: a server reports a new subscription's first values in
-            # this order, so a stroke is assembled after its part id and setting arrived
-            order = sorted(nodes, key=lambda k: k in ("force_cycle_count", "cycle_count"))
-            await sub.subscribe_data_change([nodes[k] for k in order])
+            results = await sub.create_monitored_items(
+                _requests(list(nodes.values()), self.mapping.queue_size))
+            for key, res in zip(nodes, results, strict=True):
+                if not isinstance(res, int):
+                    raise ConnectionError(f"monitoring node {key!r} refused: {res}")
             self.sessions += 1
             self.connected.set()
             log.info("OPC UA %s: subscribed to %d nodes (session %d)", self.url, len(nodes),

@@ -15,19 +15,24 @@ Metal Forming" (Release 1.00) where the companion specification has a name:
 * ``Stage2Setting/Setpoint``: the stage-2 press setting as the ``Setpoint`` of a
   ``CyclicProcessValueType``-like object, in the spec's internal unit (mm).
 
-A stroke is assembled when ``PartInformation/CycleCount`` takes a new value and every
-tagged value (the force curve's ``CycleCount``) carries that same cycle count: the values
-may arrive in any order and in different publish responses. The part id and the setting are
-taken as last received: the press writes them before the cycle count.
+The press writes every mapped node once per stroke, the cycle counts last. formtwin
+monitors each node with a queue (``queue_size``) and the ``StatusValueTimestamp`` trigger,
+so every write is reported, in order, even when the value repeats (the same part id, the
+same setting) and when several strokes fall into one publishing interval. The k-th values
+of the nodes make the k-th stroke; the curve's ``CycleCount`` must equal the part
+information's ``CycleCount`` (else the older side is dropped as an incomplete stroke and
+counted with the cycle counts jumped in :attr:`StrokeAssembler.skipped`).
 
 >>> m = OpcUaMapping()
 >>> asm = StrokeAssembler(m)
->>> asm.update("force_curve", [0.0, 1.0]); asm.update("force_cycle_count", 7)
->>> asm.update("part_id", "P-7"); asm.update("cycle_count", 7)
->>> import json; doc = json.loads(asm.take()); doc["part_id"], doc["cycle"], doc["force_N"]
-('P-7', 7, [0.0, 1.0])
->>> asm.take() is None  # the same cycle is not assembled twice
+>>> for key, value in [("part_id", "P-7"), ("stage2_setting", 0.1), ("force_curve", [0.0, 1.0]),
+...                    ("force_cycle_count", 7)]:
+...     asm.update(key, value)
+>>> asm.take() is None  # the part information's cycle count has not arrived
 True
+>>> asm.update("cycle_count", 7)
+>>> import json; doc = json.loads(asm.take()); doc["part_id"], doc["cycle"], doc["u"]
+('P-7', 7, 0.1)
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ import json
 import logging
 import math
 import tomllib
+from collections import deque
 from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -57,8 +63,8 @@ NODES: dict[str, tuple[str, bool, str]] = {
                     "stage-1 punch force on the spec's time grid (Double array, N); no node "
                     "in OPC 40503-1, formtwin's browse path"),
     "force_cycle_count": ("StrokeForce/CycleCount", False,
-                          "cycle count of the force curve ('' : none, the curve is taken as "
-                          "last received)"),
+                          "cycle count of the force curve ('' : none, the curve is not "
+                          "checked against the part information's)"),
     "stage2_setting": ("Stage2Setting/Setpoint", False,
                        "stage-2 press setting u (Double or Double array, mm; '' : none, the "
                        "nominal setting)"),
@@ -81,6 +87,9 @@ class OpcUaMapping:
         the press does not have.
     publishing_interval_ms : float
         Requested publishing interval of the subscription, ms.
+    queue_size : int
+        Values each monitored node queues between two publishes (strokes per publishing
+        interval the service can take without loss).
     reconnect_min_s, reconnect_max_s : float
         First and largest wait between connection attempts, s (doubling in between).
     """
@@ -89,6 +98,7 @@ class OpcUaMapping:
     root: str = "Press"
     nodes: dict[str, str] = field(default_factory=lambda: {k: v[0] for k, v in NODES.items()})
     publishing_interval_ms: float = 20.0
+    queue_size: int = 1000
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 10.0
 
@@ -111,6 +121,10 @@ class OpcUaMapping:
             if isinstance(value, bool) or not isinstance(value, int | float) \
                     or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"[opcua] {name} = {value!r}: expected a number > 0")
+        if isinstance(self.queue_size, bool) or not isinstance(self.queue_size, int) \
+                or self.queue_size < 1:
+            raise ValueError(f"[opcua] queue_size = {self.queue_size!r}: expected an integer "
+                             ">= 1")
         if self.reconnect_max_s < self.reconnect_min_s:
             raise ValueError(f"[opcua] reconnect_max_s = {self.reconnect_max_s} < "
                              f"reconnect_min_s = {self.reconnect_min_s}")
@@ -145,7 +159,7 @@ def _jsonable(value: Any) -> Any:
 
 
 class StrokeAssembler:
-    """Collect node values; make a ``formtwin.stroke/1`` payload once a stroke is complete.
+    """Queue node values; make a ``formtwin.stroke/1`` payload per complete stroke.
 
     The payload goes to :meth:`formtwin.service.processor.Processor.handle` like an MQTT
     message, so the same validation and rejection reasons apply (a missing part id is
@@ -154,43 +168,67 @@ class StrokeAssembler:
 
     def __init__(self, mapping: OpcUaMapping) -> None:
         self.mapping = mapping
-        self.values: dict[str, Any] = {}
-        self.stamps: dict[str, datetime | None] = {}
+        self.keys = tuple(mapping.active())
+        self.queues: dict[str, deque[tuple[Any, datetime | None]]] = {
+            k: deque() for k in self.keys}
         self.last_cycle: Any = None
-        #: cycles skipped (a new cycle count arrived before an earlier one was complete)
+        #: strokes not assembled: cycle counts jumped (incomplete strokes dropped, strokes
+        #: made while disconnected)
         self.skipped = 0
 
+    def reset(self) -> None:
+        """Forget queued values (a new session reports every node's current value)."""
+        for q in self.queues.values():
+            q.clear()
+
     def update(self, key: str, value: Any, stamp: datetime | None = None) -> None:
-        """Record the value of node ``key`` (its source timestamp ``stamp``, optional)."""
-        self.values[key] = value
-        self.stamps[key] = stamp
+        """Queue the value of node ``key`` (its source timestamp ``stamp``, optional)."""
+        self.queues[key].append((value, stamp))
+
+    def _drop(self, keys: tuple[str, ...]) -> None:
+        for k in keys:
+            if k in self.queues:
+                self.queues[k].popleft()
 
     def take(self) -> bytes | None:
-        """The payload of the newest complete stroke not yet taken, else None."""
-        cycle = self.values.get("cycle_count")
-        if cycle is None or cycle == self.last_cycle:
-            return None
-        tagged = [k for k in ("force_cycle_count",) if k in self.mapping.active()]
-        if any(self.values.get(k) != cycle for k in tagged):
-            return None  # the curve of this cycle has not arrived yet
-        if (isinstance(cycle, int) and isinstance(self.last_cycle, int)
-                and cycle > self.last_cycle + 1):
-            self.skipped += cycle - self.last_cycle - 1
-            log.warning("cycle count jumped from %d to %d: strokes of the press not received "
-                        "(closer together than the publishing interval, or made while "
-                        "disconnected)", self.last_cycle, cycle)
-        self.last_cycle = cycle
-        stamp = self.stamps.get("cycle_count") or datetime.now(UTC)
+        """The payload of the oldest complete stroke not yet taken, else None."""
+        force_side = ("force_curve", "force_cycle_count")
+        info_side = tuple(k for k in self.keys if k not in force_side)
+        while all(self.queues[k] for k in self.keys):
+            cycle, stamp = self.queues["cycle_count"][0]
+            if "force_cycle_count" in self.queues:
+                tag = self.queues["force_cycle_count"][0][0]
+                if tag != cycle:  # one side lost a stroke: drop the older side's values
+                    older_force = cycle is not None and (tag is None or (
+                        isinstance(tag, int) and isinstance(cycle, int) and tag < cycle))
+                    log.warning("curve of cycle %s with part information of cycle %s: "
+                                "dropping the older", tag, cycle)
+                    self._drop(force_side if older_force else info_side)
+                    continue
+            values = {k: self.queues[k].popleft()[0] for k in self.keys}
+            if cycle is None:  # a node not yet written (a server just started)
+                continue
+            if isinstance(cycle, int) and isinstance(self.last_cycle, int) \
+                    and cycle > self.last_cycle + 1:
+                self.skipped += cycle - self.last_cycle - 1
+                log.warning("cycle count jumped from %d to %d: strokes of the press not "
+                            "received", self.last_cycle, cycle)
+            self.last_cycle = cycle
+            return self._payload(values, stamp)
+        return None
+
+    @staticmethod
+    def _payload(values: dict[str, Any], stamp: datetime | None) -> bytes:
+        stamp = stamp or datetime.now(UTC)
         if stamp.tzinfo is None:
             stamp = stamp.replace(tzinfo=UTC)
-        doc: dict[str, Any] = {"schema": STROKE_SCHEMA, "cycle": cycle,
+        doc: dict[str, Any] = {"schema": STROKE_SCHEMA, "cycle": values["cycle_count"],
                                "timestamp": stamp.isoformat().replace("+00:00", "Z")}
-        part_id = self.values.get("part_id")
-        if part_id not in (None, ""):
-            doc["part_id"] = part_id
-        if self.values.get("force_curve") is not None:
-            doc["force_N"] = _jsonable(self.values["force_curve"])
-        if self.values.get("stage2_setting") is not None:
-            doc["u"] = _jsonable(self.values["stage2_setting"])
+        if values.get("part_id") not in (None, ""):
+            doc["part_id"] = values["part_id"]
+        if values.get("force_curve") is not None:
+            doc["force_N"] = _jsonable(values["force_curve"])
+        if values.get("stage2_setting") not in (None, []):  # empty: the nominal setting
+            doc["u"] = _jsonable(values["stage2_setting"])
         # NaN is written as the JSON literal so the validator rejects it as non_finite
         return json.dumps(doc, separators=(",", ":")).encode("utf-8")

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+from datetime import UTC
 from typing import Any
 
 from formtwin.service.messages import Stroke
@@ -131,7 +132,8 @@ class SimulatedPress:
     # ------------------------------------------------------------------ strokes
     def write(self, stroke: Stroke | dict[str, Any]) -> None:
         """Write one stroke: a :class:`Stroke`, or a dict with keys ``part_id``, ``cycle``,
-        ``force_N``, ``u`` (None: not written, a part id of None is written as ``''``;
+        ``force_N``, ``u`` (a part id of None is written as ``''``, a setting of None as
+        an empty array: the nominal setting;
         a bad value is written as given, to test the service's validation)."""
         if isinstance(stroke, Stroke):
             stroke = {"part_id": stroke.part_id, "cycle": stroke.cycle,
@@ -146,14 +148,14 @@ class SimulatedPress:
         u = s.get("u")
         if isinstance(u, list) and len(u) == 1:
             u = u[0]
+        now = ua.DateTime.now(UTC)  # one acquisition time for the stroke's values
         values = (("part_id", s.get("part_id"), VT.String), ("stage2_setting", u, VT.Double),
                   ("force_curve", s.get("force_N"), VT.Double),
                   ("force_cycle_count", s.get("cycle"), VT.UInt32),
                   ("cycle_count", s.get("cycle"), VT.UInt32))
         for key, value, kind in values:  # the server's own write, as a PLC's
-            if value is None and key == "part_id":
-                value = ""  # a press without a part id for the stroke reports ''
-            elif value is None:
-                continue
-            await self._server.write_attribute_value(self._nodes[key].nodeid,
-                                                     ua.DataValue(ua.Variant(value, kind)))
+            if value is None:  # a press without a part id / setting for the stroke
+                value = "" if key == "part_id" else []
+            dv = ua.DataValue(ua.Variant(value, kind), SourceTimestamp=now,
+                              ServerTimestamp=now)
+            await self._server.write_attribute_value(self._nodes[key].nodeid, dv)
