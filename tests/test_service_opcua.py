@@ -5,17 +5,23 @@ MQTT source's; a server restart mid-run; bad values rejected with their reasons.
 from __future__ import annotations
 
 import json
+import os
+import shlex
 import signal
 import sqlite3
+import subprocess
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 from service_fixtures import (
+    FORMTWIN,
+    REPO,
     Collector,
     Mosquitto,
     free_port,
+    log_has,
     mosquitto,  # noqa: F401 - fixture
     serve_cmd,
     start_serve,
@@ -199,3 +205,34 @@ def test_bad_values_are_rejected_with_their_reasons_and_the_service_goes_on(
     assert sorted(proc.store.rejection_counts()) == sorted(bad)
     proc.close()
     col.stop()
+
+
+def test_docs_simulated_press_block_runs_as_written(mosquitto: Mosquitto,  # noqa: F811
+                                                    tmp_path: Path) -> None:
+    text = (REPO / "docs" / "opcua.md").read_text(encoding="utf-8")
+    mark = "<!-- the block below is run by tests/test_service_opcua.py -->"
+    block = text.split(mark, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
+    press_line, serve_line = [line for line in block.splitlines() if line.strip()]
+    port = str(free_port())
+
+    def argv(line: str) -> list[str]:
+        words = shlex.split(line.replace(":4840/", f":{port}/").replace(
+            "mqtt://127.0.0.1:1883", mosquitto.url))
+        assert words[0] == "formtwin", line
+        return [*FORMTWIN, *words[1:]]
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    with open(tmp_path / "press.log", "wb") as fh:
+        press = subprocess.Popen(argv(press_line), cwd=tmp_path, env=env, stdout=fh,
+                                 stderr=subprocess.STDOUT)
+    try:  # the press first, as the page says
+        wait_for(lambda: log_has(tmp_path / "press.log", "waiting for a subscription"), 60,
+                 "the simulated press")
+        out = subprocess.run(argv(serve_line), cwd=tmp_path, env=env, capture_output=True,
+                             text=True, timeout=120)
+        assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+        assert "check passed: the model explains the first 20 products" in out.stdout
+        assert press.wait(60) == 0, (tmp_path / "press.log").read_text()[-3000:]
+    finally:
+        if press.poll() is None:
+            press.kill()

@@ -21,6 +21,7 @@ import asyncio
 import threading
 from datetime import UTC
 from typing import Any
+from urllib.parse import urlsplit
 
 from formtwin.service.messages import Stroke
 
@@ -44,11 +45,14 @@ class SimulatedPress:
         TCP port (the caller picks a free one).
     host : str
         Bind address.
+    path : str
+        Path of the endpoint URL.
     """
 
-    def __init__(self, port: int, host: str = "127.0.0.1") -> None:
+    def __init__(self, port: int, host: str = "127.0.0.1", path: str = "/formtwin/press"
+                 ) -> None:
         self.host, self.port = host, port
-        self.url = f"opc.tcp://{host}:{port}/formtwin/press"
+        self.url = f"opc.tcp://{host}:{port}{path}"
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._server: Any = None
@@ -128,6 +132,21 @@ class SimulatedPress:
         }
         await server.start()
         self._server = server
+
+    @classmethod
+    def from_url(cls, url: str) -> SimulatedPress:
+        """The press at ``opc.tcp://HOST:PORT[/PATH]``."""
+        parts = urlsplit(url)
+        if parts.scheme != "opc.tcp" or not parts.hostname or not parts.port:
+            raise ValueError(f"press URL {url!r}: expected opc.tcp://HOST:PORT[/PATH]")
+        return cls(parts.port, parts.hostname, parts.path)
+
+    def monitored(self) -> int:
+        """Number of monitored items clients hold on the server (0: nobody subscribed)."""
+        service = getattr(getattr(self._server, "iserver", None), "subscription_service",
+                          None)
+        subs = list(getattr(service, "subscriptions", {}).values())
+        return sum(len(getattr(s.monitored_item_srv, "_monitored_items", {})) for s in subs)
 
     # ------------------------------------------------------------------ strokes
     def write(self, stroke: Stroke | dict[str, Any]) -> None:
