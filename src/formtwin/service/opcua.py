@@ -253,6 +253,7 @@ class OpcUaService:
         self.connected = source.connected
         self.handled = 0
         self.busy_s = 0.0
+        self._last: mqtt.MQTTMessageInfo | None = None
 
     def publish_alarm(self, message: dict[str, Any]) -> None:
         """Publish an alarm message on the alarms topic, QoS 1 (thread-safe)."""
@@ -264,7 +265,7 @@ class OpcUaService:
         for note in out.notices:
             self.client.publish(self.topics.errors, dumps(note), qos=1)
         topic = self.topics.errors if out.is_error else self.topics.results
-        self.client.publish(topic, out.payload or dumps(out.message), qos=1)
+        self._last = self.client.publish(topic, out.payload or dumps(out.message), qos=1)
 
     def _connect_broker(self, timeout: float) -> None:
         answered = threading.Event()
@@ -317,5 +318,7 @@ class OpcUaService:
                 self.busy_s += time.perf_counter() - t0
         finally:
             self.source.stop()
+            if self._last is not None and self.client.is_connected():
+                self._last.wait_for_publish(5.0)  # the answers in flight reach the broker
             self.client.disconnect()
             self.client.loop_stop()
