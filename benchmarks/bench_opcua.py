@@ -16,7 +16,7 @@ the ratio of the two (target >= 0.8, issue 35); ``serve_cpu_ms_per_product`` the
 process's CPU time per product during the full-speed phase, which other jobs on the machine
 disturb less than wall time (``opcua_over_mqtt_cpu`` = MQTT's CPU per product over OPC UA's).
 
-Usage: ``python benchmarks/bench_opcua.py [--n 1000] [--particles 500]``; writes
+Usage: ``python benchmarks/bench_opcua.py [--n 1000] [--particles 500] [--analytic]``; writes
 ``benchmarks/results/bench_opcua.json``.
 """
 
@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from formtwin._bench import bundled_metamodel, write_result
+from formtwin.defaults import analytic_model
 from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
 from formtwin.service.opcua_press import SimulatedPress
 from formtwin.service.streams import make_stream, read_stream
@@ -137,8 +138,16 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=1000, help="strokes of the full-speed phase")
     ap.add_argument("--particles", type=int, default=500)
+    ap.add_argument("--analytic", action="store_true",
+                    help="the closed-form stand-in instead of the bundled metamodel (a quick "
+                    "check, not the product)")
     args = ap.parse_args()
-    stream_model, mm_path, model_info = bundled_metamodel()
+    if args.analytic:
+        stream_model, model_args = analytic_model(), ["--analytic"]
+        model_info: dict[str, Any] = {"name": "analytic stand-in, not the product"}
+    else:
+        stream_model, mm_path, model_info = bundled_metamodel()
+        model_args = ["--metamodel", str(mm_path)]
     mosq = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     if not os.path.exists(mosq):
         raise SystemExit("mosquitto not installed: make system-deps")
@@ -156,7 +165,7 @@ def main() -> int:
         time.sleep(0.5)
 
         def serve(name: str, *extra: str) -> list[str]:
-            return [*CLI, "serve", "--metamodel", str(mm_path), "--broker", broker_url,
+            return [*CLI, "serve", *model_args, "--broker", broker_url,
                     "--store", str(tmp / f"{name}.sqlite"), "--particles",
                     str(args.particles), "--sensor-noise", str(NOISE_N), "--http-port",
                     str(free_port()), "--topic", TOPIC, *extra]

@@ -236,3 +236,21 @@ def test_docs_simulated_press_block_runs_as_written(mosquitto: Mosquitto,  # noq
     finally:
         if press.poll() is None:
             press.kill()
+
+
+def test_source_options_are_checked_before_the_start(tmp_path: Path) -> None:
+    from argparse import Namespace
+
+    from formtwin.cli.source import opcua_source
+
+    assert opcua_source(Namespace(source=None, opcua_map=None)) is None  # MQTT
+    with pytest.raises(ValueError, match="--opcua-map needs --source"):
+        opcua_source(Namespace(source=None, opcua_map="press.toml"))
+    with pytest.raises(ValueError, match="expected opc.tcp://HOST:PORT"):
+        opcua_source(Namespace(source="mqtt://press:1883", opcua_map=None))
+    f = tmp_path / "press.toml"
+    f.write_text('[opcua]\nqueue_size = 0\n', encoding="utf-8")
+    with pytest.raises(ValueError, match="queue_size = 0: expected an integer >= 1"):
+        opcua_source(Namespace(source="opc.tcp://press:4840", opcua_map=str(f)))
+    src = opcua_source(Namespace(source="opc.tcp://press:4840", opcua_map=None))
+    assert src.mapping == OpcUaMapping() and src.url == "opc.tcp://press:4840"

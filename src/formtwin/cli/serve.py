@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from formtwin.cli.options import add_tracker_options, tracker_config
+from formtwin.cli.source import add_source_options, make_service, opcua_source
 from formtwin.service.plausibility import CLIP_SAMPLES
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
@@ -41,32 +42,6 @@ def broker_config(args: argparse.Namespace) -> Any:
     return BrokerConfig.from_url(args.broker, tls=args.tls, ca_file=args.ca_file,
                                  cert_file=args.cert_file, key_file=args.key_file,
                                  username=args.username, password=password)
-
-
-def add_source_options(p: argparse.ArgumentParser) -> None:
-    """Where the strokes come from: the MQTT topic (default) or a press's OPC UA server."""
-    p.add_argument("--source", metavar="URL",
-                   help="opc.tcp://HOST:PORT: subscribe to the press's OPC UA server for the "
-                   "strokes (estimates still go to --broker); default: the MQTT --topic")
-    p.add_argument("--opcua-map", metavar="TOML",
-                   help="OPC UA node mapping, section [opcua] (docs/opcua.md; default: the "
-                   "OPC 40503-1 based names)")
-
-
-def _service(args: argparse.Namespace, proc: Any, broker: Any, topics: Any) -> Any:
-    """The MQTT service, or with ``--source opc.tcp://...`` the OPC UA one."""
-    from formtwin.service.mqtt import MqttService
-
-    if args.source is None:
-        if args.opcua_map:
-            raise ValueError("--opcua-map needs --source opc.tcp://HOST:PORT")
-        return MqttService(proc, broker, topics, client_id=args.client_id)
-    from formtwin.service.opcua import OpcUaService, OpcUaSource
-    from formtwin.service.opcua_map import OpcUaMapping
-
-    mapping = OpcUaMapping.from_toml(args.opcua_map) if args.opcua_map else OpcUaMapping()
-    return OpcUaService(proc, OpcUaSource(args.source, mapping), broker, topics,
-                        client_id=args.client_id)
 
 
 def add_monitor_options(p: argparse.ArgumentParser) -> None:
@@ -282,6 +257,7 @@ def _serve(args: argparse.Namespace) -> int:
     broker = broker_config(args)
     topics = Topics.from_input(args.topic, args.results_topic, args.errors_topic,
                                args.alarms_topic)
+    source = opcua_source(args)
     if args.metamodel and not Path(args.metamodel).exists():
         raise ValueError(f"--metamodel {args.metamodel}: no such file")
     settings = ServiceSettings(
@@ -313,7 +289,7 @@ def _serve(args: argparse.Namespace) -> int:
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
-        service = _service(args, proc, broker, topics)
+        service = make_service(args, proc, broker, topics, source)
         if not args.no_page:
             from formtwin.service.web import LiveFeed, PageServer
             from formtwin.spec import load_spec
