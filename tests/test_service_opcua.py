@@ -192,14 +192,30 @@ def test_bad_values_are_rejected_with_their_reasons_and_the_service_goes_on(
         finally:
             stop.set()
             runner.join(20)
-    wait_for(lambda: len(col.get(ERRORS)) == len(bad) and len(col.get(RESULTS)) == 3, 10,
+        # a new session (the service restarted) is first told the press's last stroke
+        # again: answered from the store, not counted twice
+        stop = threading.Event()
+        again = OpcUaService(proc, OpcUaSource(press.url, QUICK),
+                             BrokerConfig.from_url(mosquitto.url), Topics.from_input(TOPIC),
+                             client_id="opcua-test-2")
+        runner = threading.Thread(target=again.run, args=(stop, 30.0), daemon=True)
+        runner.start()
+        try:
+            wait_for(lambda: again.handled >= 1, 30, "the last stroke reported again")
+        finally:
+            stop.set()
+            runner.join(20)
+    wait_for(lambda: len(col.get(ERRORS)) == len(bad) and len(col.get(RESULTS)) == 4, 10,
              "the answers on MQTT")
     errors = col.get(ERRORS)
     assert [e["reason"] for e in errors] == list(bad)
     # NaN is refused while the JSON is read, before the part id (as on MQTT)
     assert [e["part_id"] for e in errors] == ["B-1", None, None]
     assert "expected 101" in str(errors[0]["detail"])
-    assert [r["part_id"] for r in col.get(RESULTS)] == [g["part_id"] for g in good]
+    results = col.get(RESULTS)
+    assert [r["part_id"] for r in results] == [g["part_id"] for g in (*good, good[2])]
+    assert [r["flags"]["redelivered"] for r in results] == [False] * 3 + [True]  # type: ignore[index]
+    assert results[3]["mean"] == results[2]["mean"] and proc.redelivered == 1
     counts = proc.store.counts()
     assert counts["accepted"] == 3 and counts["rejected"] == 3
     assert sorted(proc.store.rejection_counts()) == sorted(bad)
