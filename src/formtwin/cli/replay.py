@@ -37,6 +37,10 @@ def register(sub: Any) -> None:
                    help="NetCDF files with a source dimension: which source (default: gFE)")
     add_broker_options(p)
     p.add_argument("--topic", default=DEFAULT_TOPIC, help="stroke topic (default: %(default)s)")
+    p.add_argument("--press", metavar="URL",
+                   help="opc.tcp://HOST:PORT[/PATH]: instead of publishing to MQTT, be a "
+                   "simulated OPC UA press there (docs/opcua.md): wait for formtwin serve "
+                   "--source to subscribe, then write the strokes into the press's nodes")
     p.add_argument("--rate", type=float, default=2.0,
                    help="strokes per second; 0 = as fast as possible (default: %(default)s)")
     p.add_argument("--start", type=int, default=0, help="first product to publish")
@@ -107,6 +111,8 @@ def _replay(args: argparse.Namespace) -> int:
         strokes = [dataclasses.replace(s, angles_deg=None) for s in strokes]
     if args.rate < 0:
         raise ValueError(f"--rate {args.rate}: expected >= 0")
+    if args.press:
+        return _replay_press(strokes, args.press, args.rate)
     broker = broker_config(args)
     rate = "full speed" if args.rate == 0 else f"{args.rate:g}/s"
     print(f"publishing {len(strokes)} strokes to {args.topic} on {broker.host}:{broker.port} "
@@ -119,4 +125,24 @@ def _replay(args: argparse.Namespace) -> int:
         n = publish_strokes(strokes, broker, args.topic, rate=args.rate,
                             on_sent=lambda s, t: bar.update(1))
     print(f"published {n} strokes")
+    return 0
+
+
+def _replay_press(strokes: list[Any], url: str, rate: float) -> int:
+    """Serve ``strokes`` as a simulated OPC UA press at ``url`` (``--press``)."""
+    import time
+
+    from formtwin.service.opcua_press import SimulatedPress
+
+    with SimulatedPress.from_url(url) as press:
+        print(f"simulated press at {press.url}; waiting for a subscription", flush=True)
+        while press.monitored() == 0:
+            time.sleep(0.1)
+        t0 = time.perf_counter()
+        for i, s in enumerate(strokes):
+            if rate > 0:
+                time.sleep(max(0.0, t0 + i / rate - time.perf_counter()))
+            press.write(s)
+        print(f"wrote {len(strokes)} strokes", flush=True)
+        time.sleep(1.0)  # the last publishing interval reaches the subscriber
     return 0

@@ -16,6 +16,7 @@ from formtwin.cli.options import (
     spec_defaults,
     tracker_config,
 )
+from formtwin.cli.source import add_source_options, make_service, opcua_source
 from formtwin.service.plausibility import CLIP_SAMPLES
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
@@ -203,6 +204,7 @@ def register(sub: Any) -> None:
     model.add_argument("--analytic", action="store_true",
                        help="use the closed-form analytic stand-in instead of a metamodel")
     add_broker_options(p)
+    add_source_options(p)
     p.add_argument("--topic", default=DEFAULT_TOPIC, help="stroke topic (default: %(default)s)")
     p.add_argument("--results-topic", help="default: sibling 'estimate' of --topic")
     p.add_argument("--errors-topic", help="default: sibling 'errors' of --topic")
@@ -277,12 +279,13 @@ def _model_spec(args: argparse.Namespace) -> Any:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from formtwin.service.mqtt import MqttService, Topics, check_client_id
+    from formtwin.service.mqtt import Topics
     from formtwin.service.runtime import ServiceSettings, open_processor
 
     broker = broker_config(args)
     topics = Topics.from_input(args.topic, args.results_topic, args.errors_topic,
                                args.alarms_topic)
+    source = opcua_source(args)
     if args.metamodel and not Path(args.metamodel).exists():
         raise ValueError(f"--metamodel {args.metamodel}: no such file")
     defaults = spec_defaults(_model_spec(args))
@@ -321,10 +324,7 @@ def _serve(args: argparse.Namespace) -> int:
         counts = proc.store.counts()
         print(f"store {args.store}: {counts['accepted']} accepted, {counts['gated']} gated, "
               f"{counts['rejected']} rejected", flush=True)
-        # --check: a clean session of its own id, gone when the check disconnects
-        service = MqttService(proc, broker, topics, persistent=check is None,
-                              client_id=args.client_id if check is None
-                              else check_client_id(args.client_id))
+        service = make_service(args, proc, broker, topics, source, check=check is not None)
         if not args.no_page:
             from formtwin.service.web import LiveFeed, PageServer
             from formtwin.spec import load_spec
@@ -356,7 +356,9 @@ def _serve(args: argparse.Namespace) -> int:
         if args.status_every > 0:
             threading.Thread(target=_status, args=(proc, service, stop, args.status_every),
                              daemon=True, name="formtwin-status").start()
-        print(f"serving {topics.strokes} on {broker.host}:{broker.port} -> "
+        strokes = f"{topics.strokes} on {broker.host}:{broker.port}" if args.source is None \
+            else f"{args.source} (OPC UA; results on {broker.host}:{broker.port})"
+        print(f"serving {strokes} -> "
               f"{topics.results}, errors -> {topics.errors}"
               + (f", alarms -> {topics.alarms}" if monitor is not None else ""), flush=True)
         service.run(stop, timeout=args.connect_timeout,

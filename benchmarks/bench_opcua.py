@@ -1,0 +1,211 @@
+"""The OPC UA source against the MQTT source: products/s, same run, N = 500 particles.
+
+One private mosquitto on 127.0.0.1 and, in this process, a simulated press
+(:class:`formtwin.service.opcua_press.SimulatedPress`, an asyncua server on 127.0.0.1). For each
+source in turn a fresh ``formtwin serve`` subprocess (the bundled metamodel, page on, default
+monitoring, its own store), ``N_WARM`` strokes paced one by one, then ``--n`` strokes at full
+speed:
+
+* MQTT: published with QoS 1 to the stroke topic (``publish_strokes``);
+* OPC UA: written into the press's nodes (``SimulatedPress.write``; the service's monitored
+  items queue them, ``serve --source opc.tcp://...``).
+
+``products_per_s`` of a source: products divided by the time from the first stroke sent to
+the last estimate received on the results topic (MQTT in both cases). ``opcua_over_mqtt`` is
+the ratio of the two (target >= 0.8, issue 35); ``serve_cpu_ms_per_product`` the serve
+process's CPU time per product during the full-speed phase, which other jobs on the machine
+disturb less than wall time (``opcua_over_mqtt_cpu`` = MQTT's CPU per product over OPC UA's).
+
+Usage: ``python benchmarks/bench_opcua.py [--n 1000] [--particles 500] [--analytic]``; writes
+``benchmarks/results/bench_opcua.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from formtwin._bench import bundled_metamodel, write_result
+from formtwin.defaults import analytic_model
+from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
+from formtwin.service.opcua_press import SimulatedPress
+from formtwin.service.streams import make_stream, read_stream
+
+NOISE_N = 2.0
+N_WARM = 20
+TOPIC = "plant/line1/press1/stroke"
+RESULTS = "plant/line1/press1/estimate"
+CLI = [sys.executable, "-c", "import sys; from formtwin.cli import main; sys.exit(main())"]
+TARGET = 0.8
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (Linux ``/proc``), s."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class Receiver:
+    """The results topic: perf_counter time of the first estimate per part id."""
+
+    def __init__(self, broker: BrokerConfig) -> None:
+        self.t: dict[str, float] = {}
+        self.lock = threading.Lock()
+        self.client = make_client(broker, f"bench-opcua-rx-{time.time_ns()}")
+        ready = threading.Event()
+        self.client.on_subscribe = lambda *a: ready.set()
+        self.client.on_message = self._on_message
+        self.client.connect(broker.host, broker.port)
+        self.client.subscribe(RESULTS, qos=1)
+        self.client.loop_start()
+        if not ready.wait(10):
+            raise TimeoutError("receiver could not subscribe")
+
+    def _on_message(self, c: object, u: object, msg: Any) -> None:
+        now = time.perf_counter()
+        with self.lock:
+            self.t.setdefault(json.loads(msg.payload)["part_id"], now)
+
+    def wait(self, ids: list[str], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                if all(i in self.t for i in ids):
+                    return
+            time.sleep(0.005)
+        raise TimeoutError(f"estimates missing after {timeout} s")
+
+    def stop(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+def start_serve(cmd: list[str], log: Path) -> subprocess.Popen[bytes]:
+    with open(log, "wb") as fh:
+        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT,
+                                env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    deadline = time.monotonic() + 300
+    while "connected and subscribed" not in log.read_text(errors="replace"):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise SystemExit(f"serve did not start:\n{log.read_text()[-3000:]}")
+        time.sleep(0.1)
+    return proc
+
+
+def run_source(name: str, send: Callable[[list[Any]], float], serve: list[str],
+               strokes: list[Any], broker: BrokerConfig, tmp: Path) -> dict[str, float]:
+    """Warm up, then the full-speed phase; products/s and serve CPU per product."""
+    proc = start_serve(serve, tmp / f"serve-{name}.log")
+    rx = Receiver(broker)
+    try:
+        warm, full = strokes[:N_WARM], strokes[N_WARM:]
+        for s in warm:
+            send([s])
+            rx.wait([s.part_id], 60)
+        cpu0 = cpu_seconds(proc.pid)
+        t_first = send(full)
+        ids = [s.part_id for s in full]
+        rx.wait(ids, 60 + 0.5 * len(ids))
+        cpu = cpu_seconds(proc.pid) - cpu0
+        t_last = max(rx.t[i] for i in ids)
+    finally:
+        rx.stop()
+        proc.terminate()
+        proc.wait(30)
+    return {"products_per_s": len(full) / (t_last - t_first),
+            "serve_cpu_ms_per_product": 1e3 * cpu / len(full)}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=1000, help="strokes of the full-speed phase")
+    ap.add_argument("--particles", type=int, default=500)
+    ap.add_argument("--analytic", action="store_true",
+                    help="the closed-form stand-in instead of the bundled metamodel (a quick "
+                    "check, not the product)")
+    args = ap.parse_args()
+    if args.analytic:
+        stream_model, model_args = analytic_model(), ["--analytic"]
+        model_info: dict[str, Any] = {"name": "analytic stand-in, not the product"}
+    else:
+        stream_model, mm_path, model_info = bundled_metamodel()
+        model_args = ["--metamodel", str(mm_path)]
+    mosq = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    if not os.path.exists(mosq):
+        raise SystemExit("mosquitto not installed: make system-deps")
+    tmp = Path(tempfile.mkdtemp(prefix="bench-opcua-"))
+    port = free_port()
+    (tmp / "m.conf").write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
+                                "persistence false\nmax_queued_messages 100000\n")
+    strokes = read_stream(make_stream(tmp / "s.npz", N_WARM + args.n, seed=9,
+                                      noise_N=NOISE_N, model=stream_model))
+    broker = BrokerConfig.from_url(f"mqtt://127.0.0.1:{port}")
+    mosquitto = subprocess.Popen([mosq, "-c", str(tmp / "m.conf")],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    press = SimulatedPress(free_port()).start()
+    try:
+        time.sleep(0.5)
+
+        def serve(name: str, *extra: str) -> list[str]:
+            return [*CLI, "serve", *model_args, "--broker", broker_url,
+                    "--store", str(tmp / f"{name}.sqlite"), "--particles",
+                    str(args.particles), "--sensor-noise", str(NOISE_N), "--http-port",
+                    str(free_port()), "--topic", TOPIC, *extra]
+
+        def send_mqtt(batch: list[Any]) -> float:
+            t0 = time.perf_counter()
+            publish_strokes(batch, broker, TOPIC)
+            return t0
+
+        def send_opcua(batch: list[Any]) -> float:
+            t0 = time.perf_counter()
+            for s in batch:
+                press.write(s)
+            return t0
+
+        broker_url = f"mqtt://127.0.0.1:{port}"
+        mqtt = run_source("mqtt", send_mqtt, serve("mqtt"), strokes, broker, tmp)
+        opcua = run_source("opcua", send_opcua, serve("opcua", "--source", press.url),
+                           strokes, broker, tmp)
+    finally:
+        press.close()
+        mosquitto.terminate()
+        mosquitto.wait(10)
+    ratio = opcua["products_per_s"] / mqtt["products_per_s"]
+    figures = {
+        "opcua_over_mqtt": round(ratio, 3),
+        "opcua_over_mqtt_cpu": round(mqtt["serve_cpu_ms_per_product"]
+                                     / opcua["serve_cpu_ms_per_product"], 3),
+        "mqtt_products_per_s": round(mqtt["products_per_s"], 1),
+        "opcua_products_per_s": round(opcua["products_per_s"], 1),
+        "mqtt_serve_cpu_ms_per_product": round(mqtt["serve_cpu_ms_per_product"], 3),
+        "opcua_serve_cpu_ms_per_product": round(opcua["serve_cpu_ms_per_product"], 3),
+        "n_products": args.n, "n_particles": args.particles,
+        "targets": {"opcua_over_mqtt": TARGET},
+        "met": {"opcua_over_mqtt": ratio >= TARGET},
+    }
+    write_result("opcua", figures, model=model_info)
+    shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,47 @@
+"""Where ``formtwin serve`` takes its strokes from: the MQTT topic (default) or a press's
+OPC UA server (``--source opc.tcp://...``, docs/opcua.md)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def add_source_options(p: argparse.ArgumentParser) -> None:
+    """Where the strokes come from: the MQTT topic (default) or a press's OPC UA server."""
+    p.add_argument("--source", metavar="URL",
+                   help="opc.tcp://HOST:PORT: subscribe to the press's OPC UA server for the "
+                   "strokes (estimates still go to --broker); default: the MQTT --topic")
+    p.add_argument("--opcua-map", metavar="TOML",
+                   help="OPC UA node mapping, section [opcua] (docs/opcua.md; default: the "
+                   "OPC 40503-1 based names)")
+
+
+def opcua_source(args: argparse.Namespace) -> Any:
+    """The OPC UA source of ``--source opc.tcp://...`` (its mapping read now, so that a bad
+    file stops the start at once), or None for the MQTT topic."""
+    if args.source is None:
+        if args.opcua_map:
+            raise ValueError("--opcua-map needs --source opc.tcp://HOST:PORT")
+        return None
+    from formtwin.service.opcua import OpcUaSource
+    from formtwin.service.opcua_map import OpcUaMapping
+
+    mapping = OpcUaMapping.from_toml(args.opcua_map) if args.opcua_map else OpcUaMapping()
+    return OpcUaSource(args.source, mapping)
+
+
+def make_service(args: argparse.Namespace, proc: Any, broker: Any, topics: Any,
+                 source: Any, check: bool = False) -> Any:
+    """The MQTT service, or with an OPC UA ``source`` the OPC UA one; ``check``
+    (``serve --check``): on a clean MQTT session of its own id, gone when it disconnects."""
+    from formtwin.service.mqtt import check_client_id
+
+    client_id = check_client_id(args.client_id) if check else args.client_id
+    if source is None:
+        from formtwin.service.mqtt import MqttService
+
+        return MqttService(proc, broker, topics, persistent=not check, client_id=client_id)
+    from formtwin.service.opcua import OpcUaService
+
+    return OpcUaService(proc, source, broker, topics, client_id=client_id)

@@ -1,0 +1,180 @@
+"""A simulated press serving its strokes over OPC UA (asyncua server; demo, tests, benchmark).
+
+The address space follows :class:`~formtwin.service.opcua_map.OpcUaMapping`'s defaults::
+
+    Objects/Press                      (namespace urn:formtwin:press)
+        PartInformation/CycleCount     UInt32   written last for each stroke
+        PartInformation/PartId         String
+        StrokeForce/AnalogSignal       Double[n_t], N
+        StrokeForce/CycleCount         UInt32
+        Stage2Setting/Setpoint         Double or Double[], mm
+
+All values are null until the first stroke. :meth:`SimulatedPress.write` writes one stroke
+in the order a press would (part id, setting, curve, the curve's cycle count, then the part
+information's cycle count); :meth:`SimulatedPress.restart` stops the server and starts an
+empty one on the same port, as a press restarting its OPC UA server would.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from datetime import UTC
+from typing import Any
+from urllib.parse import urlsplit
+
+from formtwin.service.messages import Stroke
+
+NAMESPACE = "urn:formtwin:press"
+
+
+async def _cancel_pending() -> None:
+    """Cancel the server's leftover tasks (session timeouts) before the loop stops."""
+    tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+    for t in tasks:
+        t.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+
+
+class SimulatedPress:
+    """An asyncua server on ``host:port`` holding the last stroke (in a thread of its own).
+
+    Parameters
+    ----------
+    port : int
+        TCP port (the caller picks a free one).
+    host : str
+        Bind address.
+    path : str
+        Path of the endpoint URL.
+    """
+
+    def __init__(self, port: int, host: str = "127.0.0.1", path: str = "/formtwin/press"
+                 ) -> None:
+        self.host, self.port = host, port
+        self.url = f"opc.tcp://{host}:{port}{path}"
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._server: Any = None
+        self._nodes: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> SimulatedPress:
+        """Start the event loop thread (once) and the server; return self."""
+        if self._loop is None:
+            self._loop = asyncio.new_event_loop()
+            self._thread = threading.Thread(target=self._loop.run_forever, daemon=True,
+                                            name="formtwin-sim-press")
+            self._thread.start()
+        self._call(self._start())
+        return self
+
+    def stop(self) -> None:
+        """Stop the server (the thread keeps running for a restart)."""
+        if self._server is not None:
+            self._call(self._server.stop())
+            self._server = None
+
+    def restart(self, down_s: float = 0.0) -> None:
+        """Stop the server, stay down ``down_s`` seconds, start an empty one."""
+        import time
+
+        self.stop()
+        time.sleep(down_s)
+        self._call(self._start())
+
+    def close(self) -> None:
+        """Stop the server and the thread."""
+        self.stop()
+        if self._loop is not None:
+            self._call(_cancel_pending())
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            if self._thread is not None:
+                self._thread.join(10.0)
+            self._loop.close()
+            self._loop = None
+
+    def __enter__(self) -> SimulatedPress:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _call(self, coro: Any, timeout: float = 30.0) -> Any:
+        assert self._loop is not None
+        return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
+
+    async def _start(self) -> None:
+        from asyncua import ua
+        from asyncua.server.server import Server
+
+        server = Server()
+        await server.init()
+        server.set_endpoint(self.url)
+        server.set_server_name("formtwin simulated press")
+        ns = await server.register_namespace(NAMESPACE)
+        press = await server.nodes.objects.add_object(ns, "Press")
+        info = await press.add_object(ns, "PartInformation")
+        force = await press.add_object(ns, "StrokeForce")
+        setting = await press.add_object(ns, "Stage2Setting")
+        VT = ua.VariantType
+
+        async def var(parent: Any, name: str, kind: Any) -> Any:  # null until a stroke
+            return await parent.add_variable(ns, name, ua.Variant(),
+                                             datatype=ua.NodeId(kind.value))
+
+        self._nodes = {
+            "cycle_count": await var(info, "CycleCount", VT.UInt32),
+            "part_id": await var(info, "PartId", VT.String),
+            "force_curve": await var(force, "AnalogSignal", VT.Double),
+            "force_cycle_count": await var(force, "CycleCount", VT.UInt32),
+            "stage2_setting": await var(setting, "Setpoint", VT.Double),
+        }
+        await server.start()
+        self._server = server
+
+    @classmethod
+    def from_url(cls, url: str) -> SimulatedPress:
+        """The press at ``opc.tcp://HOST:PORT[/PATH]``."""
+        parts = urlsplit(url)
+        if parts.scheme != "opc.tcp" or not parts.hostname or not parts.port:
+            raise ValueError(f"press URL {url!r}: expected opc.tcp://HOST:PORT[/PATH]")
+        return cls(parts.port, parts.hostname, parts.path)
+
+    def monitored(self) -> int:
+        """Number of monitored items clients hold on the server (0: nobody subscribed)."""
+        service = getattr(getattr(self._server, "iserver", None), "subscription_service",
+                          None)
+        subs = list(getattr(service, "subscriptions", {}).values())
+        return sum(len(getattr(s.monitored_item_srv, "_monitored_items", {})) for s in subs)
+
+    # ------------------------------------------------------------------ strokes
+    def write(self, stroke: Stroke | dict[str, Any]) -> None:
+        """Write one stroke: a :class:`Stroke`, or a dict with keys ``part_id``, ``cycle``,
+        ``force_N``, ``u`` (a part id of None is written as ``''``, a setting of None as
+        an empty array: the nominal setting;
+        a bad value is written as given, to test the service's validation)."""
+        if isinstance(stroke, Stroke):
+            stroke = {"part_id": stroke.part_id, "cycle": stroke.cycle,
+                      "force_N": [float(v) for v in stroke.force_N],
+                      "u": None if stroke.u is None else [float(v) for v in stroke.u]}
+        self._call(self._write(stroke))
+
+    async def _write(self, s: dict[str, Any]) -> None:
+        from asyncua import ua
+
+        VT = ua.VariantType
+        u = s.get("u")
+        if isinstance(u, list) and len(u) == 1:
+            u = u[0]
+        now = ua.DateTime.now(UTC)  # one acquisition time for the stroke's values
+        values = (("part_id", s.get("part_id"), VT.String), ("stage2_setting", u, VT.Double),
+                  ("force_curve", s.get("force_N"), VT.Double),
+                  ("force_cycle_count", s.get("cycle"), VT.UInt32),
+                  ("cycle_count", s.get("cycle"), VT.UInt32))
+        for key, value, kind in values:  # the server's own write, as a PLC's
+            if value is None:  # a press without a part id / setting for the stroke
+                value = "" if key == "part_id" else []
+            dv = ua.DataValue(ua.Variant(value, kind), SourceTimestamp=now,
+                              ServerTimestamp=now)
+            await self._server.write_attribute_value(self._nodes[key].nodeid, dv)
