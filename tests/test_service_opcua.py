@@ -225,7 +225,7 @@ def test_bad_values_are_rejected_with_their_reasons_and_the_service_goes_on(
 
 def test_docs_simulated_press_block_runs_as_written(mosquitto: Mosquitto,  # noqa: F811
                                                     tmp_path: Path) -> None:
-    text = (REPO / "docs" / "opcua.md").read_text(encoding="utf-8")
+    text = (REPO / "docs" / "reference" / "opcua.md").read_text(encoding="utf-8")
     mark = "<!-- the block below is run by tests/test_service_opcua.py -->"
     block = text.split(mark, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
     press_line, serve_line = [line for line in block.splitlines() if line.strip()]

@@ -1,5 +1,5 @@
 """Where ``formtwin serve`` takes its strokes from: the MQTT topic (default) or a press's
-OPC UA server (``--source opc.tcp://...``, docs/opcua.md)."""
+OPC UA server (``--source opc.tcp://...``, docs/reference/opcua.md)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ def add_source_options(p: argparse.ArgumentParser) -> None:
                    help="opc.tcp://HOST:PORT: subscribe to the press's OPC UA server for the "
                    "strokes (estimates still go to --broker); default: the MQTT --topic")
     p.add_argument("--opcua-map", metavar="TOML",
-                   help="OPC UA node mapping, section [opcua] (docs/opcua.md; default: the "
+                   help="OPC UA node mapping, section [opcua] (docs/reference/opcua.md; default: the "
                    "OPC 40503-1 based names)")
 
 

@@ -1,6 +1,6 @@
 """Which OPC UA nodes make a stroke, and how their values become a stroke message.
 
-The mapping (a TOML file, section ``[opcua]``, see docs/opcua.md) names the press's nodes
+The mapping (a TOML file, section ``[opcua]``, see docs/reference/opcua.md) names the press's nodes
 by browse path below a root object or by NodeId. Its defaults follow OPC 40503-1 "OPC UA for
 Metal Forming" (Release 1.00) where the companion specification has a name:
 
