@@ -350,9 +350,10 @@ def test_fit_gated_floors_scale_with_the_excess_running_fit_distance(
         np.testing.assert_array_equal(x.std, y.std)
 
 
-def test_fit_gated_floors_without_a_gate_in_the_calibration_report_the_cloud(
+def test_fit_gated_floors_without_a_gate_in_the_calibration_use_the_constant_floors(
         tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A calibration file from before the gate: ``calibrated_fit`` reports the cloud's std."""
+    """A calibration without a fit gate (from before the gate, or where the gate was 0 on
+    rows that need floors): ``calibrated_fit`` adds the constant floors, ungated."""
     import json
 
     from formtwin.tracker import intervals
@@ -365,7 +366,9 @@ def test_fit_gated_floors_without_a_gate_in_the_calibration_report_the_cloud(
     monkeypatch.setattr(intervals, "CALIBRATION_PATH", path)
     _, ec = _run("cloud", True)
     _, eg = _run("calibrated_fit", True)
-    np.testing.assert_array_equal(eg[-1].std, ec[-1].std)
+    np.testing.assert_allclose(eg[-1].std, np.sqrt(ec[-1].std ** 2 + 0.1**2), rtol=1e-12)
+    np.testing.assert_allclose(eg[-1].angles_std**2, ec[-1].angles_std**2 + [0.04, 0.09],
+                               rtol=1e-12)
 
 
 def test_floors_for_another_deviation_layout_report_the_cloud_with_a_warning(

@@ -153,14 +153,16 @@ def _calibrate(args: argparse.Namespace) -> int:
         return 2
     mm.calibration = cal
     out = mm.save(args.out or path)
-    n = mm.spec.n_inputs  # x, theta and the angles: theta_d is not estimated in series 5
+    n, n_out = mm.spec.n_inputs, mm.spec.n_outputs  # theta_d is not estimated in series 5
     for key, series in SERIES_OF.items():
         e = cal[key]
-        fit, cloud = (e[k][:n] + e[k][-2:] for k in ("coverage_calibrated_fit_in_sample",
-                                                       "coverage_cloud"))
+        kind = "fit" if "fit_floors" in e else ""  # else: constant floors, no fit gate
+        fit, cloud = (e[k][:n] + e[k][-n_out:] for k in (
+            f"coverage_calibrated{'_' + kind if kind else ''}_in_sample", "coverage_cloud"))
         print(f"{key} (series {series}, {e['runs']} runs): the 90 % intervals of x, theta "
-              f"and the angles hold {min(fit):.3f}-{max(fit):.3f} in sample (the cloud's std "
-              f"{min(cloud):.3f}-{max(cloud):.3f})")
+              f"and the outputs hold {min(fit):.3f}-{max(fit):.3f} in sample (the cloud's std "
+              f"{min(cloud):.3f}-{max(cloud):.3f})"
+              + ("" if kind else f"; constant floors: {e['fit_gate_unusable']}"))
     print(f"interval calibration of fit {mm.fit_id} -> {out}")
     return 0
 

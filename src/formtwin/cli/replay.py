@@ -39,8 +39,9 @@ def register(sub: Any) -> None:
     p.add_argument("--topic", default=DEFAULT_TOPIC, help="stroke topic (default: %(default)s)")
     p.add_argument("--press", metavar="URL",
                    help="opc.tcp://HOST:PORT[/PATH]: instead of publishing to MQTT, be a "
-                   "simulated OPC UA press there (docs/reference/opcua.md): wait for formtwin serve "
-                   "--source to subscribe, then write the strokes into the press's nodes")
+                   "simulated OPC UA press there (docs/reference/opcua.md): wait for "
+                   "formtwin serve --source to subscribe, then write the strokes into the "
+                   "press's nodes")
     p.add_argument("--rate", type=float, default=2.0,
                    help="strokes per second; 0 = as fast as possible (default: %(default)s)")
     p.add_argument("--start", type=int, default=0, help="first product to publish")

@@ -13,8 +13,8 @@ def add_source_options(p: argparse.ArgumentParser) -> None:
                    help="opc.tcp://HOST:PORT: subscribe to the press's OPC UA server for the "
                    "strokes (estimates still go to --broker); default: the MQTT --topic")
     p.add_argument("--opcua-map", metavar="TOML",
-                   help="OPC UA node mapping, section [opcua] (docs/reference/opcua.md; default: the "
-                   "OPC 40503-1 based names)")
+                   help="OPC UA node mapping, section [opcua] (docs/reference/opcua.md; "
+                   "default: the OPC 40503-1 based names)")
 
 
 def opcua_source(args: argparse.Namespace) -> Any:

@@ -105,12 +105,14 @@ def gate_d0(result: StudyResult, a: float = FIT_EWMA) -> tuple[float, int]:
 
 def floors_from_study(result: StudyResult, series: int, d0: float,
                       a: float = FIT_EWMA) -> dict[str, Any]:
-    """Floors of the 18 augmented components and the 2 angles from every run of
-    ``series`` in ``result`` (last ``window`` products), constant and fit-gated (``d0``,
-    weight ``a``), with the coverage of the cloud's and of both calibrated intervals on
-    these runs."""
+    """Floors of the augmented components and the outputs from every run of ``series`` in
+    ``result`` (last ``window`` products), constant and fit-gated (``d0``, weight ``a``;
+    none, with ``fit_gate_unusable`` saying why, where the gate is 0 on rows that need a
+    floor), with the coverage of the cloud's and of the calibrated intervals on these
+    runs."""
     window = result.settings.window
     src = SERIES[series - 1].data
+    n_out = result.realisations[0].angles[src].shape[1]  # the spec's scalar outputs
     errs, stds, E = [], [], []
     for (s, i, _r), path in sorted(result.run_paths.items()):
         if s != series:
@@ -126,9 +128,7 @@ def floors_from_study(result: StudyResult, series: int, d0: float,
     s_max = float(np.nanmax(e)) - d0
     gate = gate_scale(e, d0, s_max)[:, None]
     b_fit = learn_floors(err, std, scale=gate[:, 0])
-    if s_max <= 0 or not np.all(np.isfinite(b_fit)):
-        raise ValueError(f"series {series}: the fit gate is 0 where floors are needed "
-                         f"(d0 = {d0:.3g}, largest running fit distance {s_max + d0:.3g})")
+    gate_ok = s_max > 0 and bool(np.all(np.isfinite(b_fit)))
 
     def cover(s: FloatArray) -> list[float]:
         with np.errstate(invalid="ignore"):
@@ -137,16 +137,20 @@ def floors_from_study(result: StudyResult, series: int, d0: float,
 
     if not SERIES[series - 1].deviation:  # theta_d is not estimated (std 0): no floor
         real = result.realisations[0]
-        b[real.x.shape[1] + real.theta.size:-2] = 0.0
-        b_fit[real.x.shape[1] + real.theta.size:-2] = 0.0
-    return {"series": series, "runs": len(errs), "floors": [float(v) for v in b[:-2]],
-            "angle_floors": [float(v) for v in b[-2:]],
-            "fit_floors": [float(v) for v in b_fit[:-2]],
-            "fit_angle_floors": [float(v) for v in b_fit[-2:]], "fit_s_max": s_max,
-            "fit_distance_mean": round(float(np.nanmean(e)), 3),
-            "coverage_cloud": cover(std), "coverage_calibrated_in_sample":
-                cover(np.sqrt(std**2 + b**2)), "coverage_calibrated_fit_in_sample":
-                cover(np.sqrt(std**2 + gate * b_fit**2))}
+        b[real.x.shape[1] + real.theta.size:-n_out] = 0.0
+        b_fit[real.x.shape[1] + real.theta.size:-n_out] = 0.0
+    out: dict[str, Any] = {
+        "series": series, "runs": len(errs), "floors": [float(v) for v in b[:-n_out]],
+        "angle_floors": [float(v) for v in b[-n_out:]],
+        "fit_distance_mean": round(float(np.nanmean(e)), 3), "coverage_cloud": cover(std),
+        "coverage_calibrated_in_sample": cover(np.sqrt(std**2 + b**2))}
+    if not gate_ok:  # Floors then uses the constant floors for "calibrated_fit" too
+        out["fit_gate_unusable"] = (f"the fit gate is 0 where floors are needed (d0 = "
+                                    f"{d0:.3g}, largest running fit distance {s_max + d0:.3g})")
+        return out
+    return out | {"fit_floors": [float(v) for v in b_fit[:-n_out]],
+                  "fit_angle_floors": [float(v) for v in b_fit[-n_out:]], "fit_s_max": s_max,
+                  "coverage_calibrated_fit_in_sample": cover(np.sqrt(std**2 + gate * b_fit**2))}
 
 
 def learn_calibration(mm: Metamodel, mm_path: Path, physics: Simulator, folder: Path,
@@ -179,7 +183,7 @@ def learn_calibration(mm: Metamodel, mm_path: Path, physics: Simulator, folder: 
             "residuals": residual_rule(mm),
             "physics": physics.version,
             "k_res_diag": [float(v) for v in signature],
-            "names": list(mm.spec.augmented.names) + ["angle1", "angle2"],
+            "names": list(mm.spec.augmented.names) + list(mm.spec.output_names),
             "settings": {"seed": seed, "datasets": datasets, "repetitions": repetitions,
                          "products": settings.n_products, "window": settings.window,
                          "tracker": settings.tracker.to_dict()},

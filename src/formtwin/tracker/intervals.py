@@ -147,13 +147,14 @@ def _entry(model: Any, deviation: bool) -> tuple[dict[str, Any] | None, Calibrat
     return entry, cal
 
 
-def _floor_arrays(entry: dict[str, Any], prefix: str, n: int) -> tuple[FloatArray, FloatArray]:
+def _floor_arrays(entry: dict[str, Any], prefix: str, n: int, n_out: int = 2
+                  ) -> tuple[FloatArray, FloatArray]:
     """The floors ``<prefix>floors`` (n,) and ``<prefix>angle_floors`` (2,) of ``entry``."""
     floors = np.array(entry[f"{prefix}floors"], dtype=np.float64)
     angles = np.array(entry[f"{prefix}angle_floors"], dtype=np.float64)
-    if floors.shape != (n,) or angles.shape != (2,):
+    if floors.shape != (n,) or angles.shape != (n_out,):
         raise ValueError(f"interval calibration: {prefix}floors of shape {floors.shape} "
-                         f"and {angles.shape}, expected ({n},) and (2,)")
+                         f"and {angles.shape}, expected ({n},) and ({n_out},)")
     return floors, angles
 
 
@@ -166,7 +167,7 @@ def calibration_floors(model: Any, deviation: bool) -> tuple[FloatArray, FloatAr
     n = len(model.spec.augmented)
     entry, _ = _entry(model, deviation)
     return ((np.zeros(n), np.zeros(model.spec.n_outputs)) if entry is None
-            else _floor_arrays(entry, "", n))
+            else _floor_arrays(entry, "", n, model.spec.n_outputs))
 
 
 def fit_ewma(d2: FloatArray, a: float, start: tuple[float, float] = (0.0, 0.0)
@@ -223,14 +224,15 @@ class Floors:
         if entry is None:
             self.b, self.b_angles = np.zeros(n), np.zeros(n_out)
         elif not gated:
-            self.b, self.b_angles = _floor_arrays(entry, "", n)
+            self.b, self.b_angles = _floor_arrays(entry, "", n, n_out)
         elif entry.get("fit_gate") is None or "fit_floors" not in entry:
-            reason = f"the calibration ({self.calibration.source}) has no fit gate"
-            log.warning("intervals='calibrated_fit': %s; reporting the cloud's std", reason)
-            self.calibration = dataclasses.replace(self.calibration, data=None, reason=reason)
-            self.b, self.b_angles = np.zeros(n), np.zeros(n_out)
+            log.info("intervals='calibrated_fit': the calibration (%s) has no fit gate (%s); "
+                     "the constant floors apply", self.calibration.source,
+                     entry.get("fit_gate_unusable", "none learned"))
+            self.gated = False
+            self.b, self.b_angles = _floor_arrays(entry, "", n, n_out)
         else:
-            self.b, self.b_angles = _floor_arrays(entry, "fit_", n)
+            self.b, self.b_angles = _floor_arrays(entry, "fit_", n, n_out)
             gate = entry["fit_gate"]
             self.d0, self.a = float(gate["d0"]), float(gate["ewma"])
             self.s_max = float(entry["fit_s_max"])
