@@ -12,7 +12,7 @@ import pytest
 
 from formtwin.monitoring.calibrate import ChartDesign
 from formtwin.service import alarms, runtime
-from formtwin.service.alarms import MonitorSource, monitor_config
+from formtwin.service.alarms import MonitorSource, ServiceMonitor, monitor_config
 from formtwin.service.cache import default_dir, entry
 from formtwin.service.runtime import ServiceSettings, measurement_path, open_processor
 from formtwin.service.store import Store
@@ -32,16 +32,21 @@ def test_a_new_store_reuses_what_an_earlier_one_computed(
     source = MonitorSource(runs=1, products=120, design=DESIGN, seed=3, cache=str(cache))
     first = open_processor(tmp_path / "a" / "s.sqlite", SETTINGS, cache=cache)
     config = monitor_config(first.store, first.tracker, source)
+    ServiceMonitor(first.store, config, str(cache))
+    first_clear = first.store.get_meta("alarm_clear_after")
     first.close()
     kept = sorted(p.name for p in cache.iterdir())
-    assert [k.split("-")[0] for k in kept] == ["measurement", "monitor"]
+    assert [k.split("-")[0] for k in kept] == ["clear", "measurement", "monitor"]
     # a second, new store: nothing simulated, nothing built; the same numbers
     monkeypatch.setattr(alarms, "in_control_runs", _refuse)
     monkeypatch.setattr(runtime, "build_measurement", _refuse)
+    monkeypatch.setattr(alarms, "clear_after", _refuse)
     second = open_processor(tmp_path / "b" / "s.sqlite", SETTINGS, cache=cache)
     again = monitor_config(second.store, second.tracker, source)
     assert again.to_json() == config.to_json()
     assert second.store.get_meta("monitor_config") == config.to_json()
+    ServiceMonitor(second.store, again, str(cache))
+    assert second.store.get_meta("alarm_clear_after") == first_clear
     assert measurement_path(tmp_path / "b" / "s.sqlite").read_bytes() == \
         measurement_path(tmp_path / "a" / "s.sqlite").read_bytes()
     # another input (the runs' seed, the tracker's settings): another key, computed
@@ -53,7 +58,7 @@ def test_a_new_store_reuses_what_an_earlier_one_computed(
     with pytest.raises(AssertionError, match="computed again"):
         open_processor(tmp_path / "d" / "s.sqlite", other, cache=cache)
     # a damaged entry is computed again, not trusted
-    (cache / kept[1]).write_text("{not json", encoding="utf-8")
+    (cache / kept[2]).write_text("{not json", encoding="utf-8")
     with pytest.raises(AssertionError, match="computed again"):
         monitor_config(Store(tmp_path / "e.sqlite"), second.tracker, source)
     second.close()

@@ -122,7 +122,8 @@ def _monitor(args: argparse.Namespace, proc: Any) -> Any:
     source = MonitorSource(file=args.monitor_config, runs=args.monitor_runs,
                            products=args.monitor_products, design=design,
                            seed=proc.tracker.config.seed, cache=_cache_dir(args))
-    monitor = ServiceMonitor(proc.store, monitor_config(proc.store, proc.tracker, source))
+    monitor = ServiceMonitor(proc.store, monitor_config(proc.store, proc.tracker, source),
+                             source.cache)
     proc.monitor = monitor
     return monitor
 

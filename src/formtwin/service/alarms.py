@@ -57,7 +57,7 @@ from formtwin.monitoring.charts import Alarm
 from formtwin.monitoring.episodes import Change, Episode, Episodes, clear_after
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
 from formtwin.service import alarm_tables as tables
-from formtwin.service import cache
+from formtwin.service import cache as _cache
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker
 from formtwin.tracker.state import fingerprint
@@ -119,7 +119,7 @@ def _calibrated(store: Store, tracker: Tracker, source: MonitorSource) -> Monito
                   "tracker": tracker.config.to_dict(), "runs": source.runs,
                   "products": source.products, "seed": source.seed,
                   "design": dataclasses.asdict(source.design)}
-        path = cache.entry(source.cache, "monitor-config", inputs, ".json")
+        path = _cache.entry(source.cache, "monitor-config", inputs, ".json")
         try:
             config = MonitorConfig.from_json(path.read_text(encoding="utf-8"))
         except (OSError, ValueError, KeyError, TypeError):
@@ -141,7 +141,7 @@ def _calibrated(store: Store, tracker: Tracker, source: MonitorSource) -> Monito
     config = calibrate([est for _, est in runs], tracker.spec.state.names, mu,
                        source.design, truths=[x for x, _ in runs])
     if path is not None:
-        cache.write_atomic(path, config.to_json().encode())
+        _cache.write_atomic(path, config.to_json().encode())
     return config
 
 
@@ -167,14 +167,15 @@ class ServiceMonitor:
     config : the chart configuration (see :func:`monitor_config`).
     """
 
-    def __init__(self, store: Store, config: MonitorConfig) -> None:
+    def __init__(self, store: Store, config: MonitorConfig, cache: str | None = None
+                 ) -> None:
         self.config = config
         self.store = store
         had_episodes = tables.ensure(store)
         self.monitor = Monitor(config)
         stored = store.get_meta("alarm_clear_after")
         if stored is None:
-            stored = json.dumps({**clear_after(self.monitor), **HEALTH_CLEAR_AFTER})
+            stored = self._clear_after(cache)
             store.set_meta("alarm_clear_after", stored)
         self.clear_after: dict[str, int] = json.loads(stored)
         self.episodes = Episodes(self.clear_after)
@@ -196,6 +197,23 @@ class ServiceMonitor:
                 tables.backfill(cur, list(seen.values()), products)
             log.info("alarm episodes rebuilt for %d earlier products: %d", len(products),
                      len(seen))
+
+    def _clear_after(self, cache: str | None) -> str:
+        """The episodes' clear-after products (JSON) of a new store: simulated from the
+        charts (seconds), or kept in ``cache`` by a digest of the chart configuration."""
+        path = None if cache is None else _cache.entry(
+            cache, "clear-after", {"config": self.config.to_json()}, ".json")
+        if path is not None and path.is_file():
+            try:
+                text = path.read_text(encoding="utf-8")
+                if all(isinstance(v, int) for v in json.loads(text).values()):
+                    return text
+            except (OSError, ValueError, AttributeError):
+                pass
+        text = json.dumps({**clear_after(self.monitor), **HEALTH_CLEAR_AFTER})
+        if path is not None:
+            _cache.write_atomic(path, text.encode())
+        return text
 
     # ------------------------------------------------------------------ processor hooks
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:

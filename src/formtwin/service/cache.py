@@ -2,9 +2,10 @@
 cache folder under a digest of everything it depends on, so that a new store with the same
 inputs (a second service beside the first, a store started afresh) reuses it.
 
-Two results are kept: the control charts' calibration (seconds of simulated in-control
-runs; :func:`formtwin.service.alarms.monitor_config`) and the measurement model
-(:func:`formtwin.tracker.build_measurement`). The key of an entry is the SHA-256 of a JSON
+Three results are kept: the control charts' calibration (seconds of simulated in-control
+runs; :func:`formtwin.service.alarms.monitor_config`), the alarm episodes' clear-after
+products (simulated run lengths; :class:`formtwin.service.alarms.ServiceMonitor`) and the
+measurement model (:func:`formtwin.tracker.build_measurement`). The key of an entry is the SHA-256 of a JSON
 document of its inputs (the model file's digest, the tracker's settings, the measurement
 model's fingerprint, the calibration's settings) and of the source of the ``formtwin``
 package that computes it (:func:`code_digest`): a new version of the code or any other
