@@ -5,13 +5,13 @@ inputs (a second service beside the first, a store started afresh) reuses it.
 Three results are kept: the control charts' calibration (seconds of simulated in-control
 runs; :func:`formtwin.service.alarms.monitor_config`), the alarm episodes' clear-after
 products (simulated run lengths; :class:`formtwin.service.alarms.ServiceMonitor`) and the
-measurement model (:func:`formtwin.tracker.build_measurement`). The key of an entry is the SHA-256 of a JSON
-document of its inputs (the model file's digest, the tracker's settings, the measurement
-model's fingerprint, the calibration's settings) and of the source of the ``formtwin``
-package that computes it (:func:`code_digest`): a new version of the code or any other
-input gives another key, never a stale entry. An entry is written atomically (a temporary
-file, then a rename), so services starting side by side never read half a file; one that
-cannot be read is computed again. The folder: ``serve --cache DIR``, by default
+measurement model (:func:`formtwin.tracker.build_measurement`). The key of an entry is the
+SHA-256 of a JSON document of its inputs (the model file's digest, the tracker's settings,
+the measurement model's fingerprint, the calibration's settings) and of the source of the
+``formtwin`` package that computes it (:func:`code_digest`): a new version of the code or
+any other input gives another key, never a stale entry. An entry is written atomically (a
+temporary file, then a rename), so services starting side by side never read half a file;
+one that cannot be read is computed again. The folder: ``serve --cache DIR``, by default
 ``$FORMTWIN_CACHE``, else ``$XDG_CACHE_HOME/formtwin``, else ``~/.cache/formtwin``.
 """
 
