@@ -10,6 +10,16 @@ single-threaded. Figures (``benchmarks/results/bench_filter.json``):
   over a 1000-product run; ``step_ms_n500_nodev`` the same without ``theta_d``;
 * ``run_1000_s``: wall time of that 1000-product run;
 * ``breakdown_n500_*_ms``: the parts of a step, timed separately;
+* ``model_ms_n500``: the model's own evaluation for the 500 particles (metamodel curves
+  and angles plus the deviation model ``g``, the step's breakdown) and
+  ``step_over_model``: ``step_cpu_ms_n500`` over it (what the filter adds to the model);
+* ``state_bytes_ms`` / ``state_bytes_ms_learn_residuals``: encode plus decode of the
+  tracker's state bytes (median of 50) at N = 500, default settings and with
+  ``learn_residuals`` (the learned (n_t, n_t) moment folded in); ``state_kb*`` their size;
+* ``profile_top``: the 12 functions of largest own time in a cProfile of 250 steps, in
+  % of the profile's total (``total_ms_per_step``, cProfile's overhead included; shares
+  hold under other load, milliseconds do not), ``profile_top_before`` the same recorded
+  on the version before the tracker's own terms were made cheaper (``--profile-before``);
 * ``step_ms_n{1e3,1e4,1e5}``, ``peak_mb_n{...}``: time per step and tracemalloc peak;
 * ``speedup_vs_particles``: ``particles_step_ms_n500 / step_ms_n500`` as each is
   installed (particles on numpy < 2); ``speedup_vs_particles_same_numpy``: the two
@@ -123,6 +133,48 @@ def breakdown(tracker: Tracker, curve: np.ndarray) -> dict[str, float]:
     return {f"breakdown_n{f.n}_{k}_ms": round(median_ms(v), 4) for k, v in parts.items()}
 
 
+def profile_top(tracker: Tracker, curves: np.ndarray, n: int = 12) -> dict[str, float]:
+    """ms per step of own time (cProfile) of the ``n`` costliest functions over the steps
+    of ``curves``, keyed ``file:line(function)`` within the package."""
+    import cProfile
+    import pstats
+
+    pr = cProfile.Profile(time.thread_time)  # CPU time: other load does not count
+    pr.enable()
+    for c in curves:
+        tracker.step(c)
+    pr.disable()
+    stats = pstats.Stats(pr).stats  # type: ignore[attr-defined]
+    total = sum(v[2] for v in stats.values())
+    rows = sorted(((v[2], k) for k, v in stats.items()), reverse=True)[:n]
+    out = {"total_ms_per_step": round(total / len(curves) * 1e3, 3)}
+    for own, (path, line, name) in rows:
+        where = path.split("/src/", 1)[-1].split("site-packages/", 1)[-1]
+        out[f"{where}:{line}({name}) %"] = round(100 * own / total, 1)
+    return out
+
+
+def state_bytes_ms(tracker: Tracker, model: ProcessModel, mm: MeasurementModel
+                   ) -> tuple[float, float]:
+    """Median ms of encode + decode of the tracker's state bytes, and their size (KB);
+    checks that the bytes restore exactly."""
+    from formtwin.tracker import state as state_codec
+
+    def both() -> bytes:
+        data = tracker.state_bytes()
+        state_codec.decode(data)
+        return data
+
+    data = both()
+    assert Tracker.from_state_bytes(data, model, mm).state_bytes() == data
+    ts = []
+    for _ in range(50):
+        t0 = time.perf_counter()
+        both()
+        ts.append(time.perf_counter() - t0)
+    return round(float(np.median(ts)) * 1e3, 3), round(len(data) / 1024, 1)
+
+
 def scaling(model: ProcessModel, mm: MeasurementModel, curves: np.ndarray,
             n: int, steps: int) -> dict[str, float]:
     tr = Tracker(model, mm, TrackerConfig(n_particles=n, seed=1))
@@ -182,6 +234,11 @@ def main() -> None:
     ap.add_argument("--products", type=int, default=1000)
     ap.add_argument("--no-particles", action="store_true", help="skip the particles peer")
     ap.add_argument("--no-scaling", action="store_true", help="skip N = 1e3..1e5")
+    ap.add_argument("--profile-before", metavar="FILE.json",
+                    help="a profile_top recorded before (by --profile-only on an earlier "
+                         "version), kept in the result as profile_top_before")
+    ap.add_argument("--profile-only", metavar="FILE.json",
+                    help="only write profile_top of this version to FILE.json and stop")
     args = ap.parse_args()
     global WORK
     tmp = tempfile.TemporaryDirectory(prefix="bench_filter_")
@@ -199,6 +256,12 @@ def main() -> None:
         curves = data["curves"]
 
         cfg = TrackerConfig(n_particles=500, mu=tuple(data["mu"]), seed=3)
+        if args.profile_only:
+            tr_p = Tracker(model, mm, cfg)
+            tr_p.run(curves[:50])
+            Path(args.profile_only).write_text(json.dumps(profile_top(tr_p, curves[50:300]),
+                                                          indent=1), encoding="utf-8")
+            return
         tr = Tracker(model, mm, cfg)
         figures["load_average_1min_start"] = round(os.getloadavg()[0], 2)
         t0 = time.perf_counter()
@@ -209,11 +272,22 @@ def main() -> None:
         figures["step_ms_n500_p90"] = round(float(np.percentile(ts, 90) * 1e3), 3)
         figures["step_cpu_ms_n500"] = round(float(np.median(cpu) * 1e3), 3)
         figures.update(breakdown(tr, curves[-1]))
-        t0 = time.perf_counter()
-        state = tr.state_bytes()
-        figures["state_bytes_ms"] = round((time.perf_counter() - t0) * 1e3, 3)
-        figures["state_kb"] = round(len(state) / 1024, 1)
-        assert Tracker.from_state_bytes(state, model, mm).state_bytes() == state
+        model_ms = sum(figures[f"breakdown_n500_{k}_ms"] for k in (
+            "predict_curves", "predict_angles", "deviation_apply"))
+        figures["model_ms_n500"] = round(model_ms, 3)
+        figures["step_over_model"] = round(figures["step_cpu_ms_n500"] / model_ms, 2)
+        figures["state_bytes_ms"], figures["state_kb"] = state_bytes_ms(tr, model, mm)
+        tr_lr = Tracker(model, mm, TrackerConfig(n_particles=500, mu=tuple(data["mu"]),
+                                                 seed=3, learn_residuals=True))
+        tr_lr.run(curves[:60])  # the moment folded once (every 50 products)
+        figures["state_bytes_ms_learn_residuals"], figures["state_kb_learn_residuals"] = \
+            state_bytes_ms(tr_lr, model, mm)
+        tr_p = Tracker(model, mm, cfg)
+        tr_p.run(curves[:50])
+        figures["profile_top"] = profile_top(tr_p, curves[50:300])
+        if args.profile_before:
+            figures["profile_top_before"] = json.loads(
+                Path(args.profile_before).read_text(encoding="utf-8"))
         tr2 = Tracker(model, mm, TrackerConfig(n_particles=500, mu=tuple(data["mu"]), seed=3,
                                                estimate_deviation=False))
         figures["step_cpu_ms_n500_nodev"] = round(float(np.median(

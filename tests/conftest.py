@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
+
 import pytest
 
 from formtwin.defaults import AnalyticModel
@@ -17,3 +20,17 @@ def spec() -> ProcessSpec:
 def model(spec: ProcessSpec) -> AnalyticModel:
     """The analytic stand-in as a ProcessModel (test files may override ``model`` locally)."""
     return AnalyticModel(spec)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def service_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The services the tests start keep their chart calibrations and measurement models in
+    one folder of this test session (``serve --cache``'s default, ``$FORMTWIN_CACHE``), not
+    in the user's cache: a later service with the same inputs reuses them, as in use."""
+    old = os.environ.get("FORMTWIN_CACHE")
+    os.environ["FORMTWIN_CACHE"] = str(tmp_path_factory.mktemp("formtwin-cache"))
+    yield
+    if old is None:
+        del os.environ["FORMTWIN_CACHE"]
+    else:
+        os.environ["FORMTWIN_CACHE"] = old

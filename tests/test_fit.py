@@ -102,3 +102,28 @@ def test_tracker_estimates_carry_fit_and_health(model: AnalyticModel) -> None:
     d = e.to_dict()
     assert d["health"] == "no_fit" and d["fit"]["quantile"] == 1.0
     assert d["fit"]["log10_p"] < -100 and d["fit"]["dof"] == 101
+
+
+def test_whitened_residuals_give_the_same_distance() -> None:
+    """The tracker hands the goodness of fit its likelihood's whitened residuals and their
+    variances (no (n_t, n_t) covariance per product): the distance is the one of the raw
+    residuals under the full predictive covariance, to rounding (conditioning ~1e3)."""
+    from formtwin.tracker.discrepancy import Discrepancy
+
+    rng = np.random.default_rng(5)
+    n_t = 30
+    a = rng.standard_normal((n_t, 2 * n_t))
+    b = rng.standard_normal((n_t, n_t // 2))
+    d = Discrepancy.from_covariances(a @ a.T / n_t + 0.1 * np.eye(n_t), b @ b.T / n_t,
+                                     np.array([0.0, 0.5, 1.0]))
+    mm = MeasurementModel(basis=np.eye(n_t)[:, :3], lam=np.ones(3), s2=1.0)
+    w = np.array([0.2, 0.3, 0.5])
+    r = rng.standard_normal((400, n_t)) + rng.standard_normal(n_t)
+    r[7] = np.nan  # a particle without a likelihood
+    v = rng.random(400)
+    full = assess(r, v, 50.0, mm, covariance=d.predictive_cov(None, w))
+    white = assess(d.whiten(r), v, 50.0, mm, covariance=d.predictive_var(None, w))
+    assert np.isfinite(full.distance2) and full.distance2 > 0
+    assert white.distance2 == pytest.approx(full.distance2, rel=1e-9)
+    assert white.health == full.health and white.log10_p == pytest.approx(full.log10_p,
+                                                                         rel=1e-9)

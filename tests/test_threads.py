@@ -43,3 +43,27 @@ def test_retain_heap_keeps_freed_blocks() -> None:
     del block
     after = libc.mallinfo2()
     assert after.arena == grown.arena  # freed, but not handed back to the system
+
+
+def test_single_blas_thread_nests_and_restores() -> None:
+    """The outermost limit sets one BLAS thread and restores the count on exit; the
+    nested ones change nothing (and cost nothing)."""
+    from threadpoolctl import threadpool_info
+
+    from formtwin._threads import _SingleThread, single_blas_thread
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    if not blas_threads():
+        pytest.skip("no BLAS thread pool found")
+    before, depth = blas_threads(), _SingleThread.depth
+    with single_blas_thread() as outer:
+        assert blas_threads() == [1] * len(before)
+        with single_blas_thread() as inner:
+            assert inner.limit is None and _SingleThread.depth == depth + 2
+            assert blas_threads() == [1] * len(before)
+        assert blas_threads() == [1] * len(before)  # the inner exit restored nothing
+        assert (outer.limit is None) == (depth > 0)
+    assert _SingleThread.depth == depth
+    assert blas_threads() == before

@@ -57,6 +57,12 @@ def add_monitor_options(p: argparse.ArgumentParser) -> None:
                    help="chart configuration with user-set in-control means, sigmas and "
                    "limits (MonitorConfig JSON); default: calibrated on simulated in-control "
                    "runs with the spec's statistics")
+    g.add_argument("--cache", metavar="DIR",
+                   help="folder of the chart calibrations and measurement models a new "
+                   "store computes at its first start, kept by a digest of their inputs and "
+                   "reused by the next new store with the same ones (default: "
+                   "$FORMTWIN_CACHE, else $XDG_CACHE_HOME/formtwin, else ~/.cache/formtwin;"
+                   " '' for none)")
     g.add_argument("--monitor-runs", type=int, default=2,
                    help="simulated in-control runs to calibrate on (default: %(default)s)")
     g.add_argument("--monitor-products", type=int, default=600,
@@ -96,6 +102,15 @@ def _controller(args: argparse.Namespace, proc: Any) -> None:
     proc.controller = ServiceController(proc.tracker, settings, proc.store)
 
 
+def _cache_dir(args: argparse.Namespace) -> str | None:
+    """``--cache`` (None for '': no cache; not given: the default folder)."""
+    if args.cache is None:
+        from formtwin.service.cache import default_dir
+
+        return str(default_dir())
+    return args.cache or None
+
+
 def _monitor(args: argparse.Namespace, proc: Any) -> Any:
     """The service's charts (None with --no-monitor), attached to ``proc``."""
     if args.no_monitor:
@@ -107,8 +122,9 @@ def _monitor(args: argparse.Namespace, proc: Any) -> Any:
                          arl0_per_chart=args.monitor_arl0)
     source = MonitorSource(file=args.monitor_config, runs=args.monitor_runs,
                            products=args.monitor_products, design=design,
-                           seed=proc.tracker.config.seed)
-    monitor = ServiceMonitor(proc.store, monitor_config(proc.store, proc.tracker, source))
+                           seed=proc.tracker.config.seed, cache=_cache_dir(args))
+    monitor = ServiceMonitor(proc.store, monitor_config(proc.store, proc.tracker, source),
+                             source.cache)
     proc.monitor = monitor
     return monitor
 
@@ -303,7 +319,7 @@ def _serve(args: argparse.Namespace) -> int:
     # one BLAS thread: the step is many small products (see formtwin._threads)
     threadpool_limits(limits=1, user_api="blas")
     proc = open_processor(args.store, settings, synchronous=args.sync.upper(),
-                          checkpoint_every=args.checkpoint_every)
+                          checkpoint_every=args.checkpoint_every, cache=_cache_dir(args))
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

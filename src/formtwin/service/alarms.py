@@ -40,6 +40,7 @@ sigmas, chart limits). So are the episodes' clear-after products (``meta`` key
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -56,8 +57,10 @@ from formtwin.monitoring.charts import Alarm
 from formtwin.monitoring.episodes import Change, Episode, Episodes, clear_after
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
 from formtwin.service import alarm_tables as tables
+from formtwin.service import cache as _cache
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker
+from formtwin.tracker.state import fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +79,9 @@ class MonitorSource:
     design : chart design (smoothing, reference values, in-control ARL per chart,
         warm-up and Phase I).
     seed : seed of the simulated runs.
+    cache : folder of calibrations kept by a digest of their inputs
+        (:mod:`formtwin.service.cache`): a new store with the same model, measurement
+        model, tracker settings and the above reuses one; ``None``: always calibrate.
     """
 
     file: str | None = None
@@ -83,6 +89,7 @@ class MonitorSource:
     products: int = 600
     design: ChartDesign = ChartDesign()
     seed: int = 0
+    cache: str | None = None
 
 
 def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> MonitorConfig:
@@ -97,20 +104,44 @@ def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> Mon
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"monitor config {source.file}: {exc}") from exc
     else:
-        log.info("calibrating the charts on %d simulated in-control runs of %d products",
-                 source.runs, source.products)
-        runs = in_control_runs(tracker.model, tracker.measurement, tracker.config,
-                               source.products, source.runs, source.seed, noise=True)
-        c = tracker.config
-        mu = tracker.spec.state.mu_mid if c.mu is None else np.asarray(c.mu)
-        if c.mu is None:
-            log.info("the line's state means are not given (--mu): the state charts watch "
-                     "for departures from the spec's mid-range, where a line whose means "
-                     "lie elsewhere in [mu_min, mu_max] raises alarms")
-        # the true states too: the GLR charts follow how the estimates respond to a step
-        config = calibrate([est for _, est in runs], tracker.spec.state.names, mu,
-                           source.design, truths=[x for x, _ in runs])
+        config = _calibrated(store, tracker, source)
     store.set_meta("monitor_config", config.to_json())
+    return config
+
+
+def _calibrated(store: Store, tracker: Tracker, source: MonitorSource) -> MonitorConfig:
+    """The charts calibrated on simulated in-control runs, or the same calibration kept in
+    ``source.cache`` by a digest of its inputs."""
+    path = None
+    if source.cache is not None:
+        inputs = {"model": store.get_meta("model_digest"),
+                  "measurement": fingerprint(tracker.measurement),
+                  "tracker": tracker.config.to_dict(), "runs": source.runs,
+                  "products": source.products, "seed": source.seed,
+                  "design": dataclasses.asdict(source.design)}
+        path = _cache.entry(source.cache, "monitor-config", inputs, ".json")
+        try:
+            config = MonitorConfig.from_json(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # none yet (or unreadable): calibrate
+        else:
+            log.info("chart calibration from %s", path)
+            return config
+    log.info("calibrating the charts on %d simulated in-control runs of %d products",
+             source.runs, source.products)
+    runs = in_control_runs(tracker.model, tracker.measurement, tracker.config,
+                           source.products, source.runs, source.seed, noise=True)
+    c = tracker.config
+    mu = tracker.spec.state.mu_mid if c.mu is None else np.asarray(c.mu)
+    if c.mu is None:
+        log.info("the line's state means are not given (--mu): the state charts watch "
+                 "for departures from the spec's mid-range, where a line whose means "
+                 "lie elsewhere in [mu_min, mu_max] raises alarms")
+    # the true states too: the GLR charts follow how the estimates respond to a step
+    config = calibrate([est for _, est in runs], tracker.spec.state.names, mu,
+                       source.design, truths=[x for x, _ in runs])
+    if path is not None:
+        _cache.write_atomic(path, config.to_json().encode())
     return config
 
 
@@ -136,14 +167,15 @@ class ServiceMonitor:
     config : the chart configuration (see :func:`monitor_config`).
     """
 
-    def __init__(self, store: Store, config: MonitorConfig) -> None:
+    def __init__(self, store: Store, config: MonitorConfig, cache: str | None = None
+                 ) -> None:
         self.config = config
         self.store = store
         had_episodes = tables.ensure(store)
         self.monitor = Monitor(config)
         stored = store.get_meta("alarm_clear_after")
         if stored is None:
-            stored = json.dumps({**clear_after(self.monitor), **HEALTH_CLEAR_AFTER})
+            stored = self._clear_after(cache)
             store.set_meta("alarm_clear_after", stored)
         self.clear_after: dict[str, int] = json.loads(stored)
         self.episodes = Episodes(self.clear_after)
@@ -165,6 +197,23 @@ class ServiceMonitor:
                 tables.backfill(cur, list(seen.values()), products)
             log.info("alarm episodes rebuilt for %d earlier products: %d", len(products),
                      len(seen))
+
+    def _clear_after(self, cache: str | None) -> str:
+        """The episodes' clear-after products (JSON) of a new store: simulated from the
+        charts (seconds), or kept in ``cache`` by a digest of the chart configuration."""
+        path = None if cache is None else _cache.entry(
+            cache, "clear-after", {"config": self.config.to_json()}, ".json")
+        if path is not None and path.is_file():
+            try:
+                text = path.read_text(encoding="utf-8")
+                if all(isinstance(v, int) for v in json.loads(text).values()):
+                    return text
+            except (OSError, ValueError, AttributeError):
+                pass
+        text = json.dumps({**clear_after(self.monitor), **HEALTH_CLEAR_AFTER})
+        if path is not None:
+            _cache.write_atomic(path, text.encode())
+        return text
 
     # ------------------------------------------------------------------ processor hooks
     def observe(self, message: dict[str, Any]) -> dict[str, Any]:

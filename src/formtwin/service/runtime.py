@@ -12,6 +12,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,7 @@ from scipy.stats import chi2
 
 from formtwin.defaults import load_model
 from formtwin.measurement import MeasurementModel
+from formtwin.service import cache as _cache
 from formtwin.service.gate import OutlierGate
 from formtwin.service.health import HealthRule, ModelHealth
 from formtwin.service.messages import Limits
@@ -145,6 +147,28 @@ def explainer(tracker: Tracker) -> Callable[[FloatArray, FloatArray | None], flo
     return explain
 
 
+def _new_measurement(model: Any, settings: ServiceSettings, model_digest: str | None,
+                     mpath: Path, cache: str | Path | None) -> None:
+    """Write a new store's measurement model to ``mpath``: the one kept in ``cache`` for
+    the same model and tracker settings, else built (and kept there)."""
+    kept = None if cache is None else _cache.entry(
+        cache, "measurement", {"model": model_digest, "tracker": settings.tracker.to_dict()},
+        ".npz")
+    if kept is not None and kept.is_file():
+        try:
+            MeasurementModel.load(kept)  # readable: a file another service finished
+            shutil.copyfile(kept, mpath)
+            log.info("measurement model from %s", kept)
+            return
+        except (OSError, ValueError, KeyError):
+            pass
+    built = build_measurement(model, settings.tracker)
+    tmp = built.save(mpath.with_name(mpath.stem + ".tmp.npz"))
+    if kept is not None:
+        _cache.write_atomic(kept, tmp.read_bytes())
+    tmp.replace(mpath)
+
+
 def measurement_path(store_path: Path) -> Path:
     """Where the measurement model of a store is kept."""
     return store_path.with_name(store_path.name + ".measurement.npz")
@@ -152,7 +176,8 @@ def measurement_path(store_path: Path) -> Path:
 
 def open_processor(store_path: str | Path, settings: ServiceSettings,
                    synchronous: str = "NORMAL", background_checkpoint_s: float = 1.0,
-                   checkpoint_every: int = 10) -> Processor:
+                   checkpoint_every: int = 10, cache: str | Path | None = None
+                   ) -> Processor:
     """Open (or create) a store and return a processor with the tracker restored.
 
     Parameters
@@ -168,6 +193,10 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
     checkpoint_every : int
         Store the tracker's state (~77 kB at N = 500) with every this many accepted
         products; a restart replays at most ``checkpoint_every - 1`` steps (:func:`replay`).
+    cache : str or Path, optional
+        Folder where a new store's measurement model is kept by a digest of the model
+        and the tracker settings, and found by the next new store with the same ones
+        (:mod:`formtwin.service.cache`; None: built every time).
     """
     path = Path(store_path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -178,9 +207,7 @@ def open_processor(store_path: str | Path, settings: ServiceSettings,
         model = load_model(settings.model)
         mpath = measurement_path(path)
         if not mpath.exists():
-            built = build_measurement(model, settings.tracker)
-            tmp = built.save(mpath.with_name(mpath.stem + ".tmp.npz"))
-            tmp.replace(mpath)
+            _new_measurement(model, settings, store.get_meta("model_digest"), mpath, cache)
         # always the saved file, so the first run and every restart use identical numbers
         measurement = MeasurementModel.load(mpath)
         tracker = build_tracker(model, settings.tracker, measurement)

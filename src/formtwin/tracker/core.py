@@ -250,8 +250,8 @@ class Tracker(SensorFusion):
             std = np.sqrt(std[:na] ** 2 + var)
             astd = np.sqrt(astd**2 + avar)
         mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None
-        fit = assess(self.ssm.last_residuals(), v, s.ess, self.measurement, s.collapsed,
-                     self.fit_rule, scale, self.ssm.last_covariance())
+        r, cov = self.ssm.fit_residuals()  # whitened by the step where it can
+        fit = assess(r, v, s.ess, self.measurement, s.collapsed, self.fit_rule, scale, cov)
         if self.floors is not None:  # calibrated offline: floors in quadrature
             std, astd = self.floors.apply(std[:na], astd, fit.distance2)
         return Estimate(index=self.filter.t - 1, names=self.names, mean=mean[:na],
@@ -290,7 +290,7 @@ class Tracker(SensorFusion):
             self._fingerprint = _state.fingerprint(self.measurement)
         f = self.filter
         x = np.empty((0, self.ssm.n_aug)) if f.x is None else f.x
-        model = {"scale_logpost": [float(v) for v in self.ssm.scale_logpost]} \
+        model: dict[str, Any] = {"scale_logpost": [float(v) for v in self.ssm.scale_logpost]} \
             if self.config.learn_scale else {}
         if self.ssm.share_logpost.size > 1:
             model["share_logpost"] = [float(v) for v in self.ssm.share_logpost]

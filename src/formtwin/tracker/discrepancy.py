@@ -164,18 +164,34 @@ class Discrepancy:
     def bias(self, stats: FloatArray, weights: FloatArray) -> FloatArray:
         """Posterior mean of the discrepancy (N, n_t), N, per particle, averaged over the
         grid with ``weights`` (n_k,)."""
+        out: FloatArray = self.bias_whitened(stats, weights) @ self.inverse.T
+        return out
+
+    def bias_whitened(self, stats: FloatArray, weights: FloatArray) -> FloatArray:
+        """:meth:`bias` in the coordinates of :meth:`whiten` (N, n_t)."""
         a = weights @ self._coefficients(float(stats[0, -1]))[0]
-        out: FloatArray = (stats[:, :-1] * a) @ self.inverse.T
+        out: FloatArray = stats[:, :-1] * a
+        return out
+
+    def predictive_var(self, stats: FloatArray | None, weights: FloatArray) -> FloatArray:
+        """The predictive covariance of the next residual in the coordinates of
+        :meth:`whiten`, where it is diagonal: its variances (n_t,) (``stats`` None: nothing
+        shared), averaged over the grid with ``weights`` (n_k,)."""
+        n = 0.0 if stats is None or not self.shared else float(stats[0, -1])
+        out: FloatArray = weights @ self._coefficients(n)[1]
+        return out
+
+    def covariance_from_var(self, var: FloatArray) -> FloatArray:
+        """``T^-1 diag(var) T^-T`` (n_t, n_t) N^2: a covariance from its variances (n_t,)
+        in the coordinates of :meth:`whiten`."""
+        out: FloatArray = (self.inverse * var) @ self.inverse.T
         return out
 
     def predictive_cov(self, stats: FloatArray | None, weights: FloatArray) -> FloatArray:
         """Predictive covariance (n_t, n_t) N^2 of the next residual given the
         discrepancy (``stats`` None: nothing shared), averaged over the grid with
         ``weights`` (n_k,)."""
-        n = 0.0 if stats is None or not self.shared else float(stats[0, -1])
-        var = weights @ self._coefficients(n)[1]
-        out: FloatArray = (self.inverse * var) @ self.inverse.T
-        return out
+        return self.covariance_from_var(self.predictive_var(stats, weights))
 
     def update(self, stats: FloatArray, c: FloatArray) -> None:
         """Add this product's coordinates ``c`` (N, n_t) to ``stats`` in place (rows with

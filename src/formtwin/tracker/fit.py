@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import solve_triangular
 from scipy.special import gammaincc, gammaln
 from scipy.stats import f as fdist
 
@@ -128,25 +128,35 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     rule : thresholds; default :class:`FitRule()`.
     scale : factor on ``Sigma`` (the learned likelihood scale, ``learn_scale``; else 1).
     covariance : (n_t, n_t) the residuals' predictive covariance N^2 when it is not
-        ``scale * Sigma`` (the discrepancy likelihood), else ``None``.
+        ``scale * Sigma`` (the discrepancy likelihood), else ``None``; or (n_t,) its
+        variances when ``residuals`` are given in coordinates where it is diagonal (the
+        likelihood's whitened ones, which the step computed: the same distance, without
+        the (n_t, n_t) covariance).
     """
     rule = FitRule() if rule is None else rule
     r = np.asarray(residuals, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     share = min(float(ess) / max(r.shape[0], 1), 1.0)
-    ok = np.all(np.isfinite(r), axis=1) & (v > 0)
-    if collapsed or not ok.any():
+    ok = np.isfinite(r.sum(axis=1)) & (v > 0)  # rows with NaN or inf (a row sum is
+    if collapsed or not ok.any():              # finite below ~1e306 N: any curve)
         return Fit(distance2=math.inf, dof=measurement.n_t, quantile=1.0, log10_p=-math.inf,
                    ess_share=share, health="no_fit")
-    r, v = r[ok], v[ok] / v[ok].sum()
+    if not ok.all():
+        r, v = r[ok], v[ok]
+    v = v / v.sum()
     r_bar = v @ r
     stride = max(1, -(-r.shape[0] // MAX_SPREAD))
     rs, vs = r[::stride], v[::stride]
     rc = (rs - r_bar) * np.sqrt(vs / vs.sum())[:, None]
-    base = scale * measurement.covariance() if covariance is None else covariance
-    cov = base + rc.T @ rc
-    chol = cho_factor(cov, lower=True, check_finite=False)
-    d2 = float(r_bar @ cho_solve(chol, r_bar, check_finite=False))
+    cov = rc.T @ rc
+    if covariance is None:
+        cov += scale * measurement.covariance()
+    elif covariance.ndim == 1:
+        cov.flat[::cov.shape[0] + 1] += covariance
+    else:
+        cov += covariance
+    z = solve_triangular(np.linalg.cholesky(cov), r_bar, lower=True, check_finite=False)
+    d2 = float(z @ z)
     logp = min(float(distance_logsf(np.array([d2]), measurement)[0]), 0.0)
     p = math.exp(logp)
     if p < rule.p_fail:

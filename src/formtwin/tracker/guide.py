@@ -67,6 +67,16 @@ class GuidedProposal(GridPosteriors):
             return np.asarray(self.measurement.covariance())
         return np.asarray(d.predictive_cov(None, np.exp(self.share_logpost)))
 
+    def _lik_whitening(self) -> tuple[FloatArray, FloatArray] | None:
+        """``(T, v)`` with :meth:`_lik_cov` ``= T^-1 diag(v) T^-T`` (``T`` (n_t, n_t) the
+        adaptive likelihood's :meth:`~formtwin.tracker.discrepancy.Discrepancy.whiten`,
+        ``v`` (n_t,)): its inverse is ``T^T diag(1/v) T`` without a factorisation; None
+        without a discrepancy."""
+        d = self.discrepancy
+        if d is None:
+            return None
+        return d.transform, d.predictive_var(None, np.exp(self.share_logpost))
+
     def sample_guided(self, x: FloatArray, y: FloatArray, rng: np.random.Generator,
                       pilot: bool = True) -> tuple[FloatArray, FloatArray]:
         """Particles (N, d) of the next product drawn from the guided proposal given this

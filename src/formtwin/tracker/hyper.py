@@ -2,7 +2,9 @@
 particles: the share ``kappa`` of the metamodel's error (adaptive and discrepancy
 likelihoods, :mod:`formtwin.tracker.discrepancy`) and the factor ``c`` on the whole
 covariance (``learn_scale``). A mixin of :class:`~formtwin.tracker.ssm.BendingSSM`, whose
-``_last`` holds the last step's per-particle log-likelihoods on each grid."""
+``_last`` holds the last step's per-particle log-likelihoods on each grid; the
+last curve's residuals for the goodness of fit and the angles' added variance,
+which depend on those posteriors, are read here too."""
 
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ class GridPosteriors:
     _last: dict[str, FloatArray]
     discrepancy: Any
     measurement: Any
+    angle_error_var: FloatArray
 
     @property
     def share_logpost(self) -> FloatArray:
@@ -111,3 +114,26 @@ class GridPosteriors:
         logp = self.scale_logpost + ev
         self.set_scale_logpost(logp - logsumexp(logp))
 
+    def angle_error(self) -> FloatArray:
+        """Variance (2,) deg^2 the predicted angles' variance adds for the metamodel's own
+        angle error: its held-out variance (calibrated, discrepancy); for the adaptive
+        likelihood that times the posterior probability that the metamodel's error is in
+        the data at all (``kappa > 0``: in the curves a part of the error is taken up by
+        the parameters, in the angles nothing takes it up); 0 for the paper's."""
+        d = self.discrepancy
+        if d is None or d.shared:
+            return self.angle_error_var
+        present = float(np.exp(self.share_logpost) @ (d.shares > 0))
+        out: FloatArray = self.angle_error_var * present
+        return out
+
+    def fit_residuals(self) -> tuple[FloatArray, FloatArray | None]:
+        """The last curve's residuals and their predictive covariance, as the goodness of
+        fit (:func:`~formtwin.tracker.fit.assess`) takes them: with the adaptive and
+        discrepancy likelihoods in the coordinates where that covariance is diagonal (the
+        likelihood's :meth:`~formtwin.tracker.discrepancy.Discrepancy.whiten`, (N, n_t),
+        computed by the step) and its variances there (n_t,); else ``last_residuals()``
+        (N, n_t) and ``None`` (the measurement model's). The distances are the same."""
+        if "var" not in self._last:
+            return self._last["r"], None
+        return self._last["c"], self._last["var"]

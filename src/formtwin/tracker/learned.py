@@ -82,15 +82,15 @@ class ResidualMoment:
         self.recent = []
         return True
 
-    def state(self) -> dict[str, list[float]]:
-        """``M``'s sum, count and the residuals since as JSON numbers (the tracker state's
-        ``model`` entries)."""
-        return {"residual_total": [float(v) for v in self.total.ravel()],
-                "residual_n": [float(self.n)],
-                "residual_recent": [float(v) for r in self.recent for v in r]}
+    def state(self) -> dict[str, Any]:
+        """``M``'s sum (n_t, n_t), count and the residuals since (k, n_t) (the tracker
+        state's ``model`` entries; the sum is not a copy: it is replaced, never changed)."""
+        return {"residual_total": self.total, "residual_n": [float(self.n)],
+                "residual_recent": np.array(self.recent).reshape(-1, self.total.shape[0])}
 
-    def set_state(self, d: dict[str, list[float]]) -> None:
-        """Restore from :meth:`state` (keys absent: nothing learned yet)."""
+    def set_state(self, d: dict[str, Any]) -> None:
+        """Restore from :meth:`state` (arrays, or flat lists of numbers as in version 1's
+        states; keys absent: nothing learned yet)."""
         n_t = self.total.shape[0]
         total = np.asarray(d.get("residual_total", np.zeros(n_t * n_t)), dtype=np.float64)
         recent = np.asarray(d.get("residual_recent", []), dtype=np.float64)
@@ -122,7 +122,7 @@ class LearnedResiduals:
                 self.learned.add(self._last["r"], step.w):
             self.refresh_likelihood()
 
-    def set_learned_state(self, d: dict[str, list[float]]) -> None:
+    def set_learned_state(self, d: dict[str, Any]) -> None:
         """Restore ``M`` from a tracker state's ``model`` entries (:meth:`ResidualMoment.state`)
         and refresh the likelihood."""
         if self.learned is not None:

@@ -64,15 +64,16 @@ EVERY = 4
 STATE_KEYS = ("sandwich_G", "sandwich_P", "sandwich_J", "sandwich_Ja", "sandwich_Gmu")
 
 
-def _gains(P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray, F: FloatArray,
-           Q: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _gains(P_prev: FloatArray, info: FloatArray, S_inv_J: FloatArray | None, F: FloatArray,
+           Q: FloatArray) -> tuple[FloatArray, FloatArray | None]:
     """``(I - K J) = P_lin P_pred^-1`` (m, m) and the gain ``K = P_lin J^T S^-1`` (m, n_t)
-    of the linearised step (module doc)."""
+    of the linearised step (module doc) from the information ``J^T S^-1 J`` (m, m) and
+    ``S^-1 J`` (n_t, m) (None: ``K`` is not wanted, None)."""
     P_pred = F[:, None] * P_prev * F[None, :] + np.diag(Q)
     pred_inv = np.linalg.inv(P_pred)
-    P_lin = np.linalg.inv(pred_inv + J.T @ S_inv_J)
+    P_lin = np.linalg.inv(pred_inv + info)
     P_lin = 0.5 * (P_lin + P_lin.T)
-    return P_lin @ pred_inv, P_lin @ S_inv_J.T
+    return P_lin @ pred_inv, None if S_inv_J is None else P_lin @ S_inv_J.T
 
 
 def sandwich_step(G: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray,
@@ -88,7 +89,9 @@ def sandwich_step(G: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: Flo
     >>> round(float(G[0, 0]), 6)   # P_pred = 2, P_lin = 1 / (1/2 + 1/2) = 1, K = 1/2
     0.5
     """
-    return _next_G(*_gains(P_prev, J, S_inv_J, F, Q), F, G)
+    M, K = _gains(P_prev, J.T @ S_inv_J, S_inv_J, F, Q)
+    assert K is not None
+    return _next_G(M, K, F, G)
 
 
 def _next_G(M: FloatArray, K: FloatArray, F: FloatArray, G: FloatArray) -> FloatArray:
@@ -120,7 +123,7 @@ def mu_step(G_mu: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: FloatA
     >>> G.ravel().tolist()
     [1.0, 0.0]
     """
-    return _next_G_mu(_gains(P_prev, J, S_inv_J, F, Q)[0], F, G_mu)
+    return _next_G_mu(_gains(P_prev, J.T @ S_inv_J, None, F, Q)[0], F, G_mu)
 
 
 class Sandwich:
@@ -158,6 +161,8 @@ class Sandwich:
         self.P = self.P0 = np.diag(np.r_[ssm._sigma**2, (hi[nx:] - lo[nx:]) ** 2 / 12.0])
         self.J: FloatArray | None = None
         self.Ja: FloatArray | None = None
+        #: ``(J, T, T J)``: the Jacobian in the adaptive likelihood's whitened coordinates
+        self._tj: tuple[FloatArray, FloatArray, FloatArray] | None = None
 
     def weight(self) -> float:
         """The factor on ``B``: 1, or (gated, adaptive likelihood) ``P(kappa > 0)``."""
@@ -179,10 +184,9 @@ class Sandwich:
         if self.J is None or t % EVERY == 0:
             self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
         assert self.J is not None and self.Ja is not None
-        S = np.asarray(ssm._lik_cov())
         if np.all(np.isfinite(self.J)) and np.all(np.isfinite(P)):
-            M, K = _gains(self.P, self.J, np.linalg.solve(S, self.J), self.F, self.Q)
-            if self.k_half.size:
+            M, K = _gains(self.P, *self._information(), self.F, self.Q)
+            if K is not None:
                 self.G = _next_G(M, K, self.F, self.G)
             if self.mu_half.size:
                 self.G_mu = _next_G_mu(M, self.F, self.G_mu)
@@ -194,6 +198,25 @@ class Sandwich:
         var[:m] = c * np.sum(H * H, axis=1) + np.sum(H_mu * H_mu, axis=1)
         Ha, Ha_mu = self.Ja @ H[:n_in], self.Ja @ H_mu[:n_in]
         return var, c * np.sum(Ha * Ha, axis=1) + np.sum(Ha_mu * Ha_mu, axis=1)
+
+    def _information(self) -> tuple[FloatArray, FloatArray | None]:
+        """``J^T S^-1 J`` (m, m) and, for the metamodel's term, ``S^-1 J`` (n_t, m) under
+        the likelihood's covariance ``S`` of this product: with the adaptive likelihood
+        from ``T J`` (kept until ``J`` or the whitening ``T`` changes) as
+        ``(TJ)^T diag(1/v) TJ`` and ``T^T diag(1/v) TJ`` (``S = T^-1 diag(v) T^-T``), else
+        by a solve with ``S``."""
+        assert self.J is not None
+        want = self.k_half.size > 0
+        white = self.ssm._lik_whitening()
+        if white is None:
+            S_inv_J = np.linalg.solve(np.asarray(self.ssm._lik_cov()), self.J)
+            return self.J.T @ S_inv_J, S_inv_J if want else None
+        T, v = white
+        if self._tj is None or self._tj[0] is not self.J or self._tj[1] is not T:
+            self._tj = (self.J, T, T @ self.J)
+        TJ = self._tj[2]
+        scaled = TJ / v[:, None]
+        return TJ.T @ scaled, T.T @ scaled if want else None
 
     def _refresh(self, mean: FloatArray, spread: FloatArray, y: FloatArray,
                  u: FloatArray | None) -> None:
@@ -216,15 +239,17 @@ class Sandwich:
         """Back to a :meth:`snapshot`."""
         self.G, self.P, self.J, self.Ja, self.G_mu = snap
 
-    def state(self) -> dict[str, list[float]]:
-        """The recursion's state as JSON numbers (for the tracker's checkpoint)."""
+    def state(self) -> dict[str, FloatArray]:
+        """The recursion's arrays (for the tracker's checkpoint; not copies: they are
+        replaced, never changed in place)."""
         if self.J is None or self.Ja is None:
             return {}
-        return {k: [float(v) for v in a.ravel()] for k, a in zip(
-            STATE_KEYS, (self.G, self.P, self.J, self.Ja, self.G_mu), strict=True)}
+        return dict(zip(STATE_KEYS, (self.G, self.P, self.J, self.Ja, self.G_mu),
+                        strict=True))
 
-    def set_state(self, d: dict[str, list[float]]) -> None:
-        """Continue from :meth:`state` (an empty dict: the start)."""
+    def set_state(self, d: dict[str, Any]) -> None:
+        """Continue from :meth:`state` (arrays, or lists of numbers as in version 1's
+        states; an empty dict: the start)."""
         n_t, m, n_in, nx = self.G.shape[1], self.m, self.ssm.n_in, self.ssm.n_x
         if not d:
             self.G, self.P, self.J, self.Ja = np.zeros((m, n_t)), self.P0, None, None

@@ -278,29 +278,21 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
         if disc is not None:  # residuals net of each particle's shared discrepancy,
             stats = x[:, self._disc:] if disc.shared else None  # then this product
             w = np.exp(self.share_logpost)  # joins the statistics
-            self._last["cov"] = disc.predictive_cov(stats, w)
+            self._last["var"] = disc.predictive_var(stats, w)
+            c = parts[0][2] if len(parts) == 1 else np.concatenate([p[2] for p in parts])
+            assert c is not None
+            self._last["c"] = c
             if stats is not None:
-                self._last["r"] = self._last["r"] - disc.bias(stats, w)
-                disc.update(stats, np.concatenate([p[2] for p in parts]))
+                b = disc.bias_whitened(stats, w)
+                self._last["r"] = self._last["r"] - b @ disc.inverse.T
+                self._last["c"] = c - b
+                disc.update(stats, c)
             self._last["grid"] = ll  # (N, n_k): the mixture over the share's posterior
             ll = self.mix_share(ll)
         if not self.config.learn_scale:
             return ll
         self._last["scaled"] = ll  # (N, n_scales): the mixture over the scale posterior
         return self.mix_scale(ll)
-
-    def angle_error(self) -> FloatArray:
-        """Variance (2,) deg^2 the predicted angles' variance adds for the metamodel's own
-        angle error: its held-out variance (calibrated, discrepancy); for the adaptive
-        likelihood that times the posterior probability that the metamodel's error is in
-        the data at all (``kappa > 0``: in the curves a part of the error is taken up by
-        the parameters, in the angles nothing takes it up); 0 for the paper's."""
-        d = self.discrepancy
-        if d is None or d.shared:
-            return self.angle_error_var
-        present = float(np.exp(self.share_logpost) @ (d.shares > 0))
-        out: FloatArray = self.angle_error_var * present
-        return out
 
     def residuals(self, x: FloatArray, y: FloatArray) -> FloatArray:
         """Residuals ``obs - model`` (N, n_t) N of curve ``y`` for particles ``x``, as the
@@ -314,11 +306,6 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
         if "r" not in self._last:
             raise RuntimeError("no likelihood evaluated yet")
         return self._last["r"]
-
-    def last_covariance(self) -> FloatArray | None:
-        """The predictive covariance (n_t, n_t) N^2 of the last curve's residuals when it is
-        not the measurement model's (the discrepancy likelihood), else ``None``."""
-        return self._last.get("cov")
 
     def constrain(self, x: FloatArray) -> FloatArray:
         """Reflect particles (N, 18) or (N, 32) into their bounds (used by kernel moves);
