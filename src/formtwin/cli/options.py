@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from formtwin._config import add_arguments, resolve
 from formtwin.tracker import TrackerConfig
@@ -51,3 +54,17 @@ def tracker_config(args: argparse.Namespace, base: Mapping[str, Any] | None = No
         return config
     known = {**(base or {}), "mu_known": True}
     return resolve(TrackerConfig, args, getattr(args, "config", None), "tracker", known)
+
+
+def model_spec(args: argparse.Namespace) -> Any:
+    """The spec a command on ``--metamodel`` (or ``--analytic``) will run, read from the
+    metamodel file without loading its models (the analytic stand-in: the demonstrator)."""
+    from formtwin.spec import load_spec, parse_spec
+
+    if args.analytic or not args.metamodel or Path(args.metamodel).is_dir():
+        return load_spec()
+    try:
+        with np.load(args.metamodel, allow_pickle=False) as z:
+            return parse_spec(str(z["spec_text"]), str(args.metamodel))
+    except (OSError, ValueError, KeyError):
+        return load_spec()  # the processor reports the file's problem when it loads it

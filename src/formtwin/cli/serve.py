@@ -12,6 +12,7 @@ from typing import Any
 
 from formtwin.cli.options import (
     add_tracker_options,
+    model_spec,
     noise_note,
     spec_defaults,
     tracker_config,
@@ -278,22 +279,6 @@ def register(sub: Any) -> None:
     p.set_defaults(run=_serve)
 
 
-def _model_spec(args: argparse.Namespace) -> Any:
-    """The spec the service will run (read from the metamodel file without loading its
-    models; the analytic stand-in: the demonstrator)."""
-    import numpy as np
-
-    from formtwin.spec import load_spec, parse_spec
-
-    if args.analytic or not args.metamodel or Path(args.metamodel).is_dir():
-        return load_spec()
-    try:
-        with np.load(args.metamodel, allow_pickle=False) as z:
-            return parse_spec(str(z["spec_text"]), str(args.metamodel))
-    except (OSError, ValueError, KeyError):
-        return load_spec()  # the processor reports the file's problem when it loads it
-
-
 def _serve(args: argparse.Namespace) -> int:
     from formtwin.service.mqtt import Topics
     from formtwin.service.runtime import ServiceSettings, open_processor
@@ -304,7 +289,7 @@ def _serve(args: argparse.Namespace) -> int:
     source = opcua_source(args)
     if args.metamodel and not Path(args.metamodel).exists():
         raise ValueError(f"--metamodel {args.metamodel}: no such file")
-    defaults = spec_defaults(_model_spec(args))
+    defaults = spec_defaults(model_spec(args))
     settings = ServiceSettings(
         model="analytic" if args.analytic else str(Path(args.metamodel).resolve()),
         tracker=tracker_config(args, defaults), gate_k=args.gate, max_bytes=args.max_bytes,
@@ -326,7 +311,7 @@ def _serve(args: argparse.Namespace) -> int:
     page = monitor = None
     check = None if args.check is None else _Check(proc, args.check, stop)
     if check is not None:
-        check.noise = noise_note(settings.tracker, _model_spec(args))
+        check.noise = noise_note(settings.tracker, model_spec(args))
     try:
         monitor = _monitor(args, proc)
         _controller(args, proc)
