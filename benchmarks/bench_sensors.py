@@ -52,8 +52,8 @@ from typing import Any
 
 import numpy as np
 
-from formtwin._bench import file_digest, study_metamodel_info, write_result
-from formtwin.defaults import default_metamodel, physics_model
+from formtwin._bench import bundled_metamodel, file_digest, write_result
+from formtwin.defaults import physics_model
 from formtwin.spec.sensors import line_sensors
 from formtwin.study.metrics import Z90, coverage, normalisers
 from formtwin.study.run import StudySettings, _tasks, run_study
@@ -93,7 +93,7 @@ def main() -> None:
     args = parser.parse_args()
     out = Path(args.out)
     t0 = time.perf_counter()
-    mm, mm_path = default_metamodel(out / "model", "bending")
+    mm, mm_path, model_info = bundled_metamodel(out / "model")
     sizes: dict[str, Any] = {"n_products": 200, "n_realisations": 2, "window": 100} \
         if args.quick else {}
     if args.products:
@@ -207,7 +207,7 @@ def main() -> None:
         "sensor_runs_s": round(t_runs, 1), "sensor_runs": len(jobs),
     }
     write_result("sensors", figures, directory=out if smoke else None,
-                 model=study_metamodel_info(mm, mm_path))
+                 model=model_info)
 
 
 if __name__ == "__main__":

@@ -55,7 +55,9 @@ def _metamodel(f: dict[str, Any]) -> str:
 
 
 def _tracker(f: dict[str, Any]) -> str:
-    return (f"{f['step_cpu_ms_n500']:.1f} ms CPU per product at N = 500 particles, "
+    return (f"{f['step_cpu_ms_n500']:.1f} ms CPU per product at N = 500 particles "
+            f"({1 / f['speedup_vs_particles']:.2f} times the CPU time of `particles`' "
+            f"bootstrap step on the same model, same run), "
             f"{f['step_cpu_ms_n1e5'] / 1000:.2f} s at N = 100 000")
 
 
@@ -72,8 +74,10 @@ def _control(f: dict[str, Any]) -> str:
 
 
 def _service(f: dict[str, Any]) -> str:
-    return (f"{f['products_per_s']:.0f} products/s sustained through MQTT; p99 latency "
-            f"{f['latency_p99_ms']:.1f} ms at {f['latency_rate_per_s']:.0f} products/s")
+    return (f"{f['products_per_s']:.0f} products/s sustained through MQTT "
+            f"({f['capacity_over_step']:.2f} of the tracker step's rate); p99 latency "
+            f"{f['latency_p99_ms']:.1f} ms at {f['latency_rate_per_s']:.0f} products/s; "
+            f"{f['startup_s']:.1f} s from start to subscribed")
 
 
 #: (what, results file, figures -> text, reproducing command), in README order
