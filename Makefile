@@ -4,6 +4,8 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# pytest workers (pytest-xdist; one test file per worker at a time): the 2 cores CI has
+TEST_WORKERS ?= 2
 
 .PHONY: demo test lint docs bench live-demo system-deps fe-deps clean
 
@@ -34,7 +36,7 @@ docs: $(STAMP)
 	$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs docs/_build/html
 
 test: $(STAMP) lint docs system-deps fe-deps
-	OMP_NUM_THREADS=1 $(BIN)/pytest
+	OMP_NUM_THREADS=1 $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
 
 # the service tests need a real mosquitto broker and a headless chromium (Debian packages)
 system-deps:
