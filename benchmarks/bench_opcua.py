@@ -23,22 +23,21 @@ Usage: ``python benchmarks/bench_opcua.py [--n 1000] [--particles 500] [--analyt
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from bench_service import Receiver, cpu_seconds, free_port  # the service benchmark's probes
+
 from formtwin._bench import bundled_metamodel, write_result
 from formtwin.defaults import analytic_model
-from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
+from formtwin.service.mqtt import BrokerConfig, publish_strokes
 from formtwin.service.opcua_press import SimulatedPress
 from formtwin.service.streams import make_stream, read_stream
 
@@ -48,53 +47,6 @@ TOPIC = "plant/line1/press1/stroke"
 RESULTS = "plant/line1/press1/estimate"
 CLI = [sys.executable, "-c", "import sys; from formtwin.cli import main; sys.exit(main())"]
 TARGET = 0.8
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (Linux ``/proc``), s."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-class Receiver:
-    """The results topic: perf_counter time of the first estimate per part id."""
-
-    def __init__(self, broker: BrokerConfig) -> None:
-        self.t: dict[str, float] = {}
-        self.lock = threading.Lock()
-        self.client = make_client(broker, f"bench-opcua-rx-{time.time_ns()}")
-        ready = threading.Event()
-        self.client.on_subscribe = lambda *a: ready.set()
-        self.client.on_message = self._on_message
-        self.client.connect(broker.host, broker.port)
-        self.client.subscribe(RESULTS, qos=1)
-        self.client.loop_start()
-        if not ready.wait(10):
-            raise TimeoutError("receiver could not subscribe")
-
-    def _on_message(self, c: object, u: object, msg: Any) -> None:
-        now = time.perf_counter()
-        with self.lock:
-            self.t.setdefault(json.loads(msg.payload)["part_id"], now)
-
-    def wait(self, ids: list[str], timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with self.lock:
-                if all(i in self.t for i in ids):
-                    return
-            time.sleep(0.005)
-        raise TimeoutError(f"estimates missing after {timeout} s")
-
-    def stop(self) -> None:
-        self.client.disconnect()
-        self.client.loop_stop()
 
 
 def start_serve(cmd: list[str], log: Path) -> subprocess.Popen[bytes]:

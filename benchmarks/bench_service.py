@@ -123,6 +123,11 @@ class Receiver:
             time.sleep(0.01)
         raise TimeoutError(f"estimates missing after {timeout} s")
 
+    def stop(self) -> None:
+        """Disconnect from the broker."""
+        self.client.disconnect()
+        self.client.loop_stop()
+
 
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process (Linux ``/proc``), s."""
@@ -283,8 +288,7 @@ def main() -> int:
         serve_cpu_ms = (cpu_seconds(procs[-1].pid) - cpu0) / args.n * 1e3
         lat_rate = 0.5 * rate_full  # half the sustained rate: latency, not queueing
         _, lat = run_phase(strokes[n_warm + args.n:], broker, rx, rate=lat_rate)
-        rx.client.disconnect()
-        rx.client.loop_stop()
+        rx.stop()
         stop()
         restart = serve("b.sqlite", "restart")  # after a crash: the same store
         stop()
