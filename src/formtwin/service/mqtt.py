@@ -280,25 +280,6 @@ def check_client_id(client_id: str) -> str:
     return f"{client_id}-check-{os.getpid()}"
 
 
-def connect_and_start(client: mqtt.Client, broker: BrokerConfig, timeout: float) -> None:
-    """Connect ``client`` to ``broker`` and start its network loop; ``ConnectionError``
-    naming the broker when it does not answer within ``timeout`` s or refuses."""
-    answered = threading.Event()
-    refused: list[str] = []
-
-    def on_connect(c: mqtt.Client, u: Any, f: Any, rc: Any, p: Any = None) -> None:
-        if getattr(rc, "is_failure", False):
-            refused.append(str(rc))
-        answered.set()
-
-    client.on_connect = on_connect
-    client.connect_async(broker.host, broker.port, broker.keepalive)
-    client.loop_start()
-    if not answered.wait(timeout) or refused:
-        raise ConnectionError(f"no connection to the broker at {broker.host}:{broker.port} "
-                              f"within {timeout:g} s" + (f": {refused[0]}" if refused else ""))
-
-
 def publish_strokes(strokes: Iterable[Stroke], broker: BrokerConfig, topic: str,
                     rate: float = 0.0, client_id: str = "",
                     on_sent: Callable[[Stroke, float], None] | None = None,
@@ -309,9 +290,24 @@ def publish_strokes(strokes: Iterable[Stroke], broker: BrokerConfig, topic: str,
     publish (the benchmark measures latency from there).
     """
     client = make_client(broker, client_id or f"formtwin-replay-{time.time_ns()}")
+    answered = threading.Event()
+    refused: list[str] = []
+
+    def on_connect(c: mqtt.Client, u: Any, f: Any, rc: Any, p: Any = None) -> None:
+        if getattr(rc, "is_failure", False):
+            refused.append(str(rc))
+        answered.set()
+
+    client.on_connect = on_connect
+    client.connect(broker.host, broker.port, broker.keepalive)
+    client.loop_start()
     n = 0
     try:
-        connect_and_start(client, broker, 10.0)
+        if not answered.wait(10.0):
+            raise ConnectionError(f"no connection to {broker.host}:{broker.port}")
+        if refused:
+            raise ConnectionError(f"broker {broker.host}:{broker.port} refused the "
+                                  f"connection: {refused[0]}")
         t0 = time.perf_counter()
         last = None
         for s in strokes:

@@ -30,7 +30,7 @@ from typing import Any
 import paho.mqtt.client as mqtt
 
 from formtwin.service.messages import dumps
-from formtwin.service.mqtt import BrokerConfig, Topics, connect_and_start, make_client
+from formtwin.service.mqtt import BrokerConfig, Topics, make_client
 from formtwin.service.opcua_map import OpcUaMapping, StrokeAssembler
 from formtwin.service.processor import Outcome, Processor
 
@@ -267,6 +267,22 @@ class OpcUaService:
         topic = self.topics.errors if out.is_error else self.topics.results
         self._last = self.client.publish(topic, out.payload or dumps(out.message), qos=1)
 
+    def _connect_broker(self, timeout: float) -> None:
+        answered = threading.Event()
+        refused: list[str] = []
+
+        def on_connect(c: mqtt.Client, u: Any, f: Any, rc: Any, p: Any = None) -> None:
+            if getattr(rc, "is_failure", False):
+                refused.append(str(rc))
+            answered.set()
+
+        self.client.on_connect = on_connect
+        self.client.connect_async(self.broker.host, self.broker.port, self.broker.keepalive)
+        self.client.loop_start()
+        if not answered.wait(timeout) or refused:
+            raise ConnectionError(f"no connection to the broker at {self.broker.host}:"
+                                  f"{self.broker.port} within {timeout:g} s"
+                                  + (f": {refused[0]}" if refused else ""))
 
     def run(self, stop: threading.Event, timeout: float = 10.0,
             on_connected: Callable[[], None] | None = None) -> None:
@@ -281,7 +297,7 @@ class OpcUaService:
         """
         self.source.start()
         try:
-            connect_and_start(self.client, self.broker, timeout)
+            self._connect_broker(timeout)
             if not self.source.connected.wait(timeout):
                 raise ConnectionError(f"no subscription on the OPC UA server {self.source.url}"
                                       f" within {timeout:g} s: {self.source.last_error}")
