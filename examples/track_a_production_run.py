@@ -25,7 +25,9 @@ from formtwin.tracker import TrackerConfig, build_tracker
 
 
 def main(n_products: int = 300, n_particles: int = 300, seed: int = 0) -> dict[str, float]:
-    """Returns the normalised RMSE over the last half of the run, per component."""
+    """Returns the normalised RMSE over the last half of the run, per component, and for the
+    two angles also that of a twin without measurements (``<angle>_no_measurement``: the
+    prior predictive mean, the same for every product)."""
     spec = load_spec()
     rng = np.random.default_rng(seed)
     with TemporaryDirectory() as tmp:  # offline: DOE and metamodel
@@ -46,8 +48,17 @@ def main(n_products: int = 300, n_particles: int = 300, seed: int = 0) -> dict[s
     score = normalised_rmse(spec, est.mean, truth, est.angles_mean, angles,
                             window=n_products // 2)
     names = list(spec.augmented.names) + ["angle_stage1", "angle_stage2"]
-    return {n: float(v) for n, v in zip(names, score, strict=True) if np.isfinite(v)
-            and not n.startswith(("force_scaling", "speed_scaling"))}
+    result = {n: float(v) for n, v in zip(names, score, strict=True) if np.isfinite(v)
+              and not n.startswith(("force_scaling", "speed_scaling"))}
+
+    # the baseline that uses no measurement: the prior's predictive mean of the angles
+    prior = tracker.ssm.sample_initial(4000, rng)
+    prior_angles = np.broadcast_to(tracker.ssm.predict_angles(prior).mean(axis=0), angles.shape)
+    baseline = normalised_rmse(spec, est.mean, truth, prior_angles, angles,
+                               window=n_products // 2)[-2:]
+    result.update({f"{n}_no_measurement": float(v) for n, v in zip(names[-2:], baseline,
+                                                                      strict=True)})
+    return result
 
 
 if __name__ == "__main__":
