@@ -127,3 +127,16 @@ def test_whitened_residuals_give_the_same_distance() -> None:
     assert white.distance2 == pytest.approx(full.distance2, rel=1e-9)
     assert white.health == full.health and white.log10_p == pytest.approx(full.log10_p,
                                                                          rel=1e-9)
+
+
+def test_one_distance_in_scalars_is_the_array_tail() -> None:
+    """The step's scalar tail (``_distance_logsf1``) is :func:`distance_logsf` of one value,
+    across scipy's range, beyond its underflow, and for inf, NaN and the Student-t."""
+    from formtwin.tracker.fit import _distance_logsf1
+
+    for mm in (MeasurementModel(basis=np.eye(101)[:, :3], lam=np.ones(3) * 2, s2=1.0),
+               _mm(nu=5.0)):
+        for m2 in (0.0, 3.0, 50.0, 150.0, 900.0, 1e4, 1e6, math.inf, math.nan):
+            want = float(distance_logsf(np.array([m2]), mm)[0])
+            got = _distance_logsf1(m2, mm)
+            assert got == pytest.approx(want, rel=1e-13, abs=0.0) or got == want

@@ -404,3 +404,23 @@ def test_gated_floors_give_the_target_coverage_on_their_data() -> None:
     inside = np.abs(err[:, 0]) <= Z90 * np.sqrt(1.0 + s * b[0] ** 2)
     assert inside.mean() == pytest.approx(0.9, abs=1e-3)
     assert inside[:1000].all()  # no floor needed where the gate is shut
+
+
+def test_gated_floors_follow_fit_ewma_and_gate_scale_through_gaps() -> None:
+    """The floors' gate, updated one distance at a time, is :func:`fit_ewma` and
+    :func:`gate_scale` of the whole sequence: non-finite distances (a collapsed step) leave
+    the running mean as it was, before the first finite one the gate is shut."""
+    from formtwin.tracker.intervals import Floors, fit_ewma, gate_scale
+
+    fl = Floors.__new__(Floors)
+    fl.gated, fl.ewma, fl.d0, fl.a, fl.s_max = True, (0.0, 0.0), 1.5, 0.3, 4.0
+    fl.b, fl.b_angles = np.full(3, 0.5), np.full(2, 0.25)
+    d2 = np.array([np.inf, np.nan, 1.0, 2.5, np.inf, 9.0, 40.0, 0.2, 1e300, 3.0])
+    E, end = fit_ewma(d2, fl.a)
+    s_ref = np.asarray(gate_scale(E, fl.d0, fl.s_max))
+    for d, s in zip(d2, s_ref, strict=True):
+        std, astd = fl.apply(np.full(3, 0.1), np.full(2, 0.2), float(d))
+        np.testing.assert_allclose(std, np.sqrt(0.01 + s * 0.25), rtol=1e-15)
+        np.testing.assert_allclose(astd, np.sqrt(0.04 + s * 0.0625), rtol=1e-15)
+    assert fl.ewma == pytest.approx(end, rel=1e-15)
+    assert s_ref[0] == 0.0 and s_ref[-2] == fl.s_max  # shut at first, capped far out

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -124,9 +125,19 @@ class Discrepancy:
         """Particle columns of the statistics: ``S`` (n_t) and ``n`` (1)."""
         return self.n_t + 1
 
-    def _coefficients(self, n: float) -> tuple[FloatArray, FloatArray]:
+    @cached_property
+    def _coefficients0(self) -> tuple[FloatArray, FloatArray]:
+        """:meth:`_coefficients` before any product (``n = 0``, also nothing shared): the
+        same arrays every product, computed once (read-only)."""
+        a, v = self._coefficients(0.0, cache=False)
+        a.flags.writeable = v.flags.writeable = False
+        return a, v
+
+    def _coefficients(self, n: float, cache: bool = True) -> tuple[FloatArray, FloatArray]:
         """After ``n`` products: ``a = p / s`` (the predictive mean is ``a S``) and the
         predictive variance ``v = s + p``, both (n_k, n_t)."""
+        if cache and n == 0.0:
+            return self._coefficients0
         s = 1.0 + self.shares[:, None] * self.gamma
         q = (1.0 - self.shares[:, None]) * self.gamma * self.shared
         p = q * s / (s + n * q)  # q = 0 gives p = 0

@@ -20,6 +20,7 @@ import dataclasses
 import functools
 import json
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -242,9 +243,14 @@ class Floors:
         """The reported std (18,) and angle std (2,) from the cloud's ``std`` and
         ``astd`` after a product whose curve had the fit distance ``distance2``."""
         s = 1.0
-        if self.gated:
-            E, self.ewma = fit_ewma(np.array([distance2]), self.a, self.ewma)
-            s = float(gate_scale(E[0], self.d0, self.s_max))
+        if self.gated:  # fit_ewma and gate_scale of one distance, in scalars
+            sum_, w = self.ewma
+            if math.isfinite(distance2):
+                a = self.a
+                sum_, w = (1.0 - a) * sum_ + a * distance2, (1.0 - a) * w + a
+                self.ewma = (sum_, w)
+            excess = sum_ / w - self.d0 if w > 0 else math.nan
+            s = 0.0 if math.isnan(excess) else min(max(excess, 0.0), self.s_max)
         return np.sqrt(std**2 + s * self.b**2), np.sqrt(astd**2 + s * self.b_angles**2)
 
     def state(self) -> dict[str, list[float]]:

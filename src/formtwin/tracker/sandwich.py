@@ -163,6 +163,7 @@ class Sandwich:
         self.Ja: FloatArray | None = None
         #: ``(J, T, T J)``: the Jacobian in the adaptive likelihood's whitened coordinates
         self._tj: tuple[FloatArray, FloatArray, FloatArray] | None = None
+        self._j_finite = False  # every entry of J finite (checked when J changes)
 
     def weight(self) -> float:
         """The factor on ``B``: 1, or (gated, adaptive likelihood) ``P(kappa > 0)``."""
@@ -184,7 +185,7 @@ class Sandwich:
         if self.J is None or t % EVERY == 0:
             self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
         assert self.J is not None and self.Ja is not None
-        if np.all(np.isfinite(self.J)) and np.all(np.isfinite(P)):
+        if self._j_finite and np.all(np.isfinite(P)):
             M, K = _gains(self.P, *self._information(), self.F, self.Q)
             if K is not None:
                 self.G = _next_G(M, K, self.F, self.G)
@@ -229,6 +230,7 @@ class Sandwich:
         # C order, as restored from a checkpoint: the same BLAS path, the same last bits
         self.J = np.ascontiguousarray(J)
         self.Ja = np.ascontiguousarray((a[1:] - a[0]).T / step[:n_in])
+        self._j_finite = bool(np.all(np.isfinite(self.J)))
 
     def snapshot(self) -> tuple[Any, ...]:
         """The recursion's arrays, for :meth:`restore` (they are replaced, never changed in
@@ -238,6 +240,7 @@ class Sandwich:
     def restore(self, snap: tuple[Any, ...]) -> None:
         """Back to a :meth:`snapshot`."""
         self.G, self.P, self.J, self.Ja, self.G_mu = snap
+        self._j_finite = self.J is not None and bool(np.all(np.isfinite(self.J)))
 
     def state(self) -> dict[str, FloatArray]:
         """The recursion's arrays (for the tracker's checkpoint; not copies: they are
@@ -258,6 +261,7 @@ class Sandwich:
         self.G = np.array(d["sandwich_G"], dtype=np.float64).reshape(m, n_t)
         self.P = np.array(d["sandwich_P"], dtype=np.float64).reshape(m, m)
         self.J = np.array(d["sandwich_J"], dtype=np.float64).reshape(n_t, m)
+        self._j_finite = bool(np.all(np.isfinite(self.J)))
         self.Ja = np.array(d["sandwich_Ja"], dtype=np.float64).reshape(2, n_in)
         self.G_mu = np.array(d["sandwich_Gmu"], dtype=np.float64).reshape(m, nx) \
             if "sandwich_Gmu" in d else self.G_mu0

@@ -297,7 +297,7 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
     def residuals(self, x: FloatArray, y: FloatArray) -> FloatArray:
         """Residuals ``obs - model`` (N, n_t) N of curve ``y`` for particles ``x``, as the
         likelihood compares them (does not touch :meth:`last_residuals`)."""
-        return self._loglik(x, y)[1]
+        return self._compare(x, y)[2]
 
     def last_residuals(self) -> FloatArray:
         """Residuals (N, n_t) N of the curve of the last :meth:`loglik` call: ``obs - model``
@@ -359,6 +359,20 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
                 ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
         """Log-likelihoods (N,) of ``y`` for ``x``, the residuals (N, n_t) and, with the
         discrepancy likelihood, their whitened coordinates (N, n_t)."""
+        curves, obs, r = self._compare(x, y)
+        if self.discrepancy is not None:
+            c = self.discrepancy.whiten(r)
+            stats = x[:, self._disc:] if self.discrepancy.shared else None
+            return self.discrepancy.loglik(r, stats, c), r, c
+        ll = self.measurement.loglik_scaled(curves, obs, np.array(SCALES)) \
+            if self.config.learn_scale else self.measurement.loglik(curves, obs)
+        return ll, r, None
+
+    def _compare(self, x: FloatArray, y: FloatArray
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """What the likelihood compares for particles ``x`` (N, d) and curve ``y`` (n_t,):
+        the model side (N, n_t), the observed side ((n_t,) or (N, n_t)) and the residuals
+        ``obs - model`` (N, n_t), N."""
         curves = self.model.predict_curves(x[:, : self.n_in])
         obs: FloatArray = y
         if self.config.estimate_deviation:
@@ -367,14 +381,7 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
                 curves = self.deviation.apply(curves, td)
             else:
                 obs = self.deviation.invert(y, td)
-        r = np.atleast_2d(obs - curves)
-        if self.discrepancy is not None:
-            c = self.discrepancy.whiten(r)
-            stats = x[:, self._disc:] if self.discrepancy.shared else None
-            return self.discrepancy.loglik(r, stats, c), r, c
-        ll = self.measurement.loglik_scaled(curves, obs, np.array(SCALES)) \
-            if self.config.learn_scale else self.measurement.loglik(curves, obs)
-        return ll, r, None
+        return curves, obs, np.atleast_2d(obs - curves)
 
 
 def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
