@@ -181,3 +181,29 @@ def test_a_store_of_the_schema_before_the_episodes_opens(tmp_path: Path) -> None
         == [(e["chart"], e["raised_seq"], e["signals"], e["cleared_seq"]) for e in ref.alarms()]
     store.close()
     ref_store.close()
+
+
+def test_rollback_after_every_product_gives_the_undisturbed_charts(tmp_path: Path) -> None:
+    """Each product charted, rolled back and charted again, through warm-up, Phase I (the
+    mean learned) and charting with alarms: the charts' state after every product is the
+    state of a monitor that charted each product once."""
+    from formtwin.monitoring.glr import Glr, level_signature
+
+    cfg = MonitorConfig({"thickness": InControl(mean=None, sigma=1.0, phi=(0.3,))},
+                        warmup=5, phase1=20, ewma=Ewma(0.2, 3.5), cusum=Cusum(0.5, 8.0),
+                        glr={"thickness": Glr(level_signature((0.9,)), h=12.0, window=30)})
+    ref, mon = (ServiceMonitor(Store(tmp_path / f"{k}.sqlite"), cfg) for k in "ab")
+    charts = set()
+    for i, v in enumerate(values(300)):
+        msg: dict[str, Any] = {"seq": i + 1, "index": i, "mean": {"thickness": v}}
+        want = ref.observe(dict(msg))
+        ref.committed()
+        charts |= {a["chart"] for a in want["alarms"]}
+        before = mon.monitor.state()
+        mon.observe(dict(msg))
+        mon.rollback()
+        assert mon.monitor.state() == before
+        assert mon.observe(dict(msg)) == want
+        mon.committed()
+        assert mon.monitor.state() == ref.monitor.state()
+    assert {"ewma", "cusum", "glr"} <= charts  # the excursions signalled on every chart

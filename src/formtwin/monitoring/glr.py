@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from scipy.optimize import brentq
 
@@ -155,17 +156,31 @@ class Glr:
         if self.clip is not None:
             z = min(max(z, -self.clip), self.clip)
         m = min(state.i + 1, self.window)
-        sums = np.empty(m)
-        sums[0] = 0.0
-        sums[1:] = state.sums[: m - 1]
-        sums += s[:m] * z
-        llr = sums * sums / self._d2[:m]  # type: ignore[attr-defined]
-        k = int(np.argmax(llr))
-        g = float(llr[k])
+        sums, k, g = _glr_step(state.sums, s, self._d2, float(z), m)  # type: ignore[attr-defined]
         side = "" if g <= self.h else ("high" if sums[k] > 0 else "low")
         if side:
             return GlrState(), Signal(g, self.h, side)
         return GlrState(sums, state.i + 1), Signal(g, self.h, "")
+
+
+@njit(cache=True)
+def _glr_step(prev, s, d2, z, m):  # type: ignore[no-untyped-def]
+    """One :meth:`Glr.update` in one pass (Numba), the NumPy steps' operations in their
+    order: the sums ``[0, prev[:m-1]] + s[:m] z`` (m,), and the age ``k`` of the largest
+    ``sums^2 / d2`` with its value (the first largest; the first NaN if any, as argmax)."""
+    sums = np.empty(m)
+    sums[0] = 0.0
+    for j in range(1, m):
+        sums[j] = prev[j - 1]
+    k, g = 0, -np.inf
+    for j in range(m):
+        sums[j] = sums[j] + s[j] * z
+        v = sums[j] * sums[j] / d2[j]
+        if v != v:  # NaN: argmax stops at the first
+            return sums, j, v
+        if v > g:
+            k, g = j, v
+    return sums, k, g
 
 
 def glr_statistics(signature: Sequence[float], window: int, z: FloatArray,

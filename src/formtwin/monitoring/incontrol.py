@@ -34,6 +34,7 @@ scores (:class:`Reference`), oriented so that large means "worse fit".
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -77,8 +78,7 @@ class InControl:
         if q and (len(q) < 20 or any(b < a for a, b in zip(q, q[1:], strict=False))):
             raise ValueError("in-control quantiles: expected >= 20 sorted values")
         object.__setattr__(self, "quantiles", q)
-        # the array and the outermost score once (score runs for every product and chart)
-        object.__setattr__(self, "_q", np.asarray(q, dtype=np.float64))
+        # the outermost score once (score runs for every product and chart)
         object.__setattr__(self, "_zmax", float(ndtri(1.0 - 0.5 / len(q))) if q else 0.0)
 
     @property
@@ -94,7 +94,7 @@ class InControl:
         e = (y - pred) / self.sigma
         if not self.quantiles:
             return e
-        return _score(e, self._q, self._zmax)  # type: ignore[attr-defined]
+        return _score(e, self.quantiles, self._zmax)  # type: ignore[attr-defined]
 
     def to_dict(self) -> dict[str, Any]:
         return {"mean": self.mean, "sigma": self.sigma, "phi": list(self.phi),
@@ -116,13 +116,15 @@ def normal_score(e: float, q: Sequence[float]) -> float:
     >>> normal_score(0.0, q), round(normal_score(12.0, q), 3)   # 1.981 + 2 beyond the last
     (0.0, 3.981)
     """
-    a = np.asarray(q, dtype=np.float64)
-    return _score(e, a, float(ndtri(1.0 - 0.5 / a.size)))
+    a = tuple(float(v) for v in q)
+    return _score(e, a, float(ndtri(1.0 - 0.5 / len(a))))
 
 
-def _score(e: float, q: FloatArray, zmax: float) -> float:
-    """:func:`normal_score` with the quantiles as an array and ``zmax = Phi^-1(1 - 1/(2m))``."""
-    m = q.size
+def _score(e: float, q: Sequence[float], zmax: float) -> float:
+    """:func:`normal_score` with the quantiles (a sequence of floats, sorted) and
+    ``zmax = Phi^-1(1 - 1/(2m))``; a tuple is searched fastest (:func:`bisect.bisect_right`,
+    the index NumPy's ``searchsorted(..., "right")`` gives)."""
+    m = len(q)
     lo, hi = float(q[0]), float(q[-1])
     if not math.isfinite(e):
         return math.copysign(math.inf, e) if not math.isnan(e) else math.nan
@@ -130,7 +132,7 @@ def _score(e: float, q: FloatArray, zmax: float) -> float:
         return -zmax - (lo - e)
     if e >= hi:
         return zmax + (e - hi)
-    k = int(np.searchsorted(q, e, "right")) - 1  # q[k] <= e < q[k + 1]
+    k = bisect_right(q, e) - 1  # q[k] <= e < q[k + 1]
     span = float(q[k + 1] - q[k])
     f = (k + 0.5 + ((e - float(q[k])) / span if span > 0 else 0.5)) / m
     return float(ndtri(f))
@@ -211,7 +213,7 @@ class Reference:
         if not math.isfinite(v):  # NaN is worst; an infinity is worst on its bad side
             u = 0.0 if (v > 0) == (self.bad == "low") and not math.isnan(v) else 1.0
         else:  # mid-rank: ties (ESS = 1) get the middle of their probability mass
-            below = np.searchsorted(s, v, "left") + np.searchsorted(s, v, "right")
+            below = bisect_left(self.sample, v) + bisect_right(self.sample, v)
             f = float(below) / (2.0 * n)
             u = 1.0 - f if self.bad == "low" else f
         return float(ndtri(min(max(u, 0.5 / n), 1.0 - 0.5 / n)))
