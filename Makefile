@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # pytest workers (pytest-xdist; one test file per worker at a time): the 2 cores CI has
 TEST_WORKERS ?= 2
 
-.PHONY: demo test lint docs bench live-demo system-deps fe-deps clean
+.PHONY: demo test lint docs bench live-demo system-deps fe-deps apt-deps clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -35,8 +35,32 @@ lint: $(STAMP)
 docs: $(STAMP)
 	$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs docs/_build/html
 
-test: $(STAMP) lint docs system-deps fe-deps
-	OMP_NUM_THREADS=1 $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile
+# the venv (pip) and the Debian packages (apt) install at once; then the lint, and the docs
+# site built beside pytest (its log shown if it fails): the workers' idle tail is used
+test:
+	@$(MAKE) --no-print-directory -j2 $(STAMP) apt-deps
+	@$(MAKE) --no-print-directory lint
+	@mkdir -p docs/_build
+	@echo "docs site: building beside pytest (docs/_build/sphinx.log)"
+	@$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs \
+	    docs/_build/html > docs/_build/sphinx.log 2>&1 & docs=$$!; \
+	OMP_NUM_THREADS=1 $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile; rc=$$?; \
+	if wait $$docs; then echo "docs site: built"; \
+	else cat docs/_build/sphinx.log; echo "docs site: FAILED"; rc=1; fi; exit $$rc
+
+# every missing Debian package of system-deps and fe-deps in one apt-get run
+apt-deps:
+	@need=""; \
+	{ command -v mosquitto || test -x /usr/sbin/mosquitto; } >/dev/null || need="$$need mosquitto"; \
+	command -v chromium >/dev/null || need="$$need chromium"; \
+	command -v openssl >/dev/null || need="$$need openssl"; \
+	command -v ccx >/dev/null || need="$$need calculix-ccx"; \
+	if [ -z "$$need" ]; then :; \
+	elif [ "$$(id -u)" = 0 ]; then \
+	    echo "apt-get install$$need"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+	        apt-get install -y -qq -o DPkg::Lock::Timeout=300 $$need; \
+	else echo "apt-deps:$$need missing and not root: their tests will skip"; fi
 
 # the service tests need a real mosquitto broker and a headless chromium (Debian packages)
 system-deps:
