@@ -26,9 +26,17 @@ def model(spec: ProcessSpec) -> AnalyticModel:
 def service_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """The services the tests start keep their chart calibrations and measurement models in
     one folder of this test session (``serve --cache``'s default, ``$FORMTWIN_CACHE``), not
-    in the user's cache: a later service with the same inputs reuses them, as in use."""
+    in the user's cache: a later service with the same inputs reuses them, as in use.
+    Under pytest-xdist the workers of one session share the folder (its entries are
+    written by an atomic rename), so a calibration is made once per session, not per
+    worker."""
     old = os.environ.get("FORMTWIN_CACHE")
-    os.environ["FORMTWIN_CACHE"] = str(tmp_path_factory.mktemp("formtwin-cache"))
+    if os.environ.get("PYTEST_XDIST_WORKER"):  # basetemp is .../popen-gwN, one per worker
+        folder = tmp_path_factory.getbasetemp().parent / "formtwin-cache"
+        folder.mkdir(exist_ok=True)
+    else:
+        folder = tmp_path_factory.mktemp("formtwin-cache")
+    os.environ["FORMTWIN_CACHE"] = str(folder)
     yield
     if old is None:
         del os.environ["FORMTWIN_CACHE"]

@@ -36,6 +36,13 @@ def _jsonable(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
+def _jsonable_list(a: Any) -> list[float | None]:
+    """Numbers (n,) as Python floats, non-finite ones ``None`` (one ``tolist``, not a
+    NumPy scalar per entry)."""
+    return [v if math.isfinite(v) else None
+            for v in np.asarray(a, dtype=np.float64).reshape(-1).tolist()]
+
+
 @dataclass(frozen=True)
 class Fit:
     """Absolute goodness of fit of one curve (see :mod:`formtwin.tracker.fit`).
@@ -122,10 +129,10 @@ class Estimate:
         ``mu_mean``/``mu_std`` (lists of 7) only when mu is learned."""
         out: dict[str, Any] = {
             "index": int(self.index),
-            "mean": {n: _jsonable(v) for n, v in zip(self.names, self.mean, strict=True)},
-            "std": {n: _jsonable(v) for n, v in zip(self.names, self.std, strict=True)},
-            "angles_mean": [_jsonable(v) for v in self.angles_mean],
-            "angles_std": [_jsonable(v) for v in self.angles_std],
+            "mean": dict(zip(self.names, _jsonable_list(self.mean), strict=True)),
+            "std": dict(zip(self.names, _jsonable_list(self.std), strict=True)),
+            "angles_mean": _jsonable_list(self.angles_mean),
+            "angles_std": _jsonable_list(self.angles_std),
             "output_names": list(self.output_names),
             "ess": _jsonable(self.ess),
             "collapsed": bool(self.collapsed),
@@ -136,8 +143,8 @@ class Estimate:
         if self.fit is not None:
             out["fit"] = self.fit.to_dict()
         if self.mu_mean is not None and self.mu_std is not None:
-            out["mu_mean"] = [_jsonable(v) for v in self.mu_mean]
-            out["mu_std"] = [_jsonable(v) for v in self.mu_std]
+            out["mu_mean"] = _jsonable_list(self.mu_mean)
+            out["mu_std"] = _jsonable_list(self.mu_std)
         return out
 
 

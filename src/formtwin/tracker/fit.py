@@ -51,6 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.blas import dsyrk as _syrk
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dtrtrs as _trtrs
 from scipy.special import gammaincc, gammaln
@@ -165,7 +166,7 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     stride = max(1, -(-r.shape[0] // MAX_SPREAD))
     rs, vs = r[::stride], v[::stride]
     rc = (rs - r_bar) * np.sqrt(vs / vs.sum())[:, None]
-    cov = rc.T @ rc
+    cov = _syrk(1.0, rc, trans=1, lower=1)  # rc^T rc, its lower triangle (all potrf reads)
     if covariance is None:
         cov += scale * measurement.covariance()
     elif covariance.ndim == 1:
