@@ -121,3 +121,23 @@ def test_track_predicts_angles_at_each_products_setting(tmp_path: Path) -> None:
     np.savetxt(tmp_path / "u.csv", np.full(6, 0.5))  # 0.5 mm: beyond the +-0.1 mm box
     assert main(["track", *common, "--u", str(tmp_path / "u.csv"),
                  "--out", str(tmp_path / "c.csv")]) == 2
+
+
+def test_each_command_is_parsed_with_its_own_module_alone() -> None:
+    """``main`` imports only the chosen command's module: for every command group, the
+    parser built from it alone knows that command (its name maps back to the module), and
+    the full parser has exactly these commands."""
+    import argparse
+
+    from formtwin.cli import COMMANDS, MODULE_OF, build_parser
+
+    def names(p: argparse.ArgumentParser) -> list[str]:
+        sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+        return list(sub.choices)
+
+    every = []
+    for module in COMMANDS:
+        (name,) = names(build_parser((module,)))
+        assert MODULE_OF.get(name, name) == module
+        every.append(name)
+    assert names(build_parser()) == every

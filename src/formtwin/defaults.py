@@ -30,7 +30,6 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import qmc
 
 from formtwin.dataset import DoeDataset
 from formtwin.measurement import ProcessModel
@@ -94,6 +93,8 @@ def analytic_dataset(n: int, seed: int = 0, spec: ProcessSpec | None = None,
 
     spec = spec or load_spec()
     sim = AnalyticBending(spec, failure_clearance=failure_clearance)
+    from scipy.stats import qmc  # on use: ~1.3 s CPU to import
+
     box = spec.run_inputs
     U = qmc.LatinHypercube(d=len(box), rng=np.random.default_rng(seed)).random(n)
     X = qmc.scale(U, box.lo, box.hi)

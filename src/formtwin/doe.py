@@ -34,7 +34,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import qmc
 from tqdm import tqdm
 
 from formtwin.dataset import DoeDataset, open_for_run
@@ -56,6 +55,8 @@ def full_factorial(spec: ProcessSpec) -> FloatArray:
 
 def latin_hypercube(spec: ProcessSpec, n: int, seed: int = 0) -> FloatArray:
     """A seeded, optimised (random-CD) Latin hypercube of ``n`` points, ``(n, d)``."""
+    from scipy.stats import qmc  # on use: ~1.3 s CPU to import
+
     box = spec.run_inputs
     sampler = qmc.LatinHypercube(d=len(box), optimization="random-cd",
                                  rng=np.random.default_rng(seed))

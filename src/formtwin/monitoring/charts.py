@@ -34,7 +34,6 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import brentq
-from scipy.stats import norm
 
 #: the chart kinds of a monitor
 CHARTS = ("ewma", "cusum")
@@ -176,6 +175,8 @@ def ewma_arl(lam: float, L: float, shift: float = 0.0, states: int = 201) -> flo
     """ARL of a two-sided EWMA with asymptotic limits ``+-L sqrt(lam/(2-lam))``, started at
     0, for a mean shift ``shift`` (sigma units): Brook & Evans' Markov chain over
     ``states`` cells of the in-control region (Lucas & Saccucci 1990 used the same)."""
+    from scipy.stats import norm  # on use: ~1.3 s CPU to import
+
     c = L * math.sqrt(lam / (2.0 - lam))
     m = states
     w = 2.0 * c / m

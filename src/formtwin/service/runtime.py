@@ -20,13 +20,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from formtwin.defaults import load_model
 from formtwin.measurement import MeasurementModel
 from formtwin.service import cache as _cache
 from formtwin.service.gate import OutlierGate
-from formtwin.service.health import HealthRule, ModelHealth
+from formtwin.service.health import HealthRule, ModelHealth, chi2_quantile
 from formtwin.service.messages import Limits
 from formtwin.service.plausibility import CLIP_SAMPLES, Plausibility
 from formtwin.service.processor import Processor, replay
@@ -138,7 +137,7 @@ def explainer(tracker: Tracker) -> Callable[[FloatArray, FloatArray | None], flo
     """``explain(curve, mean)`` for :class:`ModelHealth`: the best fit of the curve over the
     model's whole box (:func:`formtwin.tracker.explain.best_distance2`), stopping at the
     99.9 % quantile, from the posterior mean, the box centre and 4 Sobol points."""
-    q = float(chi2.ppf(0.999, tracker.measurement.n_t))
+    q = chi2_quantile(0.999, tracker.measurement.n_t)
 
     def explain(curve: FloatArray, mean: FloatArray | None) -> float:
         return best_distance2(tracker.ssm, curve, default_starts(tracker.ssm, mean), target=q,

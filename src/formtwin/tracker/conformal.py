@@ -37,7 +37,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import norm
 
 
 @dataclass
@@ -80,6 +79,8 @@ class AdaptiveConformal:
             return 0.0
         n = len(self.scores)
         if n < self.warmup:
+            from scipy.stats import norm  # on use: ~1.3 s CPU to import
+
             return float(norm.ppf(1.0 - a / 2.0))
         k = min(math.ceil((n + 1) * (1.0 - a)), n)  # beyond the scores: the largest
         return float(np.partition(np.asarray(self.scores), k - 1)[k - 1])
