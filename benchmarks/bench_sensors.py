@@ -30,6 +30,13 @@ study does):
   measured final angle; ``final_coverage90_min/max`` over series 1, 5, 6 with curve +
   camera (targets 0.87 and 0.93).
 
+* ``linear_discrepancy_bound[series]`` (and over the best single source,
+  ``linear_discrepancy_bound_vs_best_single``): the least final-angle nRMSE of a
+  discrepancy linear in the twin's own numbers (its predicted angle, posterior means,
+  the curve's principal scores) learned from the 0.2 deg camera
+  (:func:`linear_discrepancy_bound`; optimistic: the best coefficients on the scored
+  products' true angles, plus the cost of learning them from the camera);
+
 * ``bound_s1_final[set]``: the linear-Gaussian bound of ``formtwin sensors`` on the
   study's series-1 lines (their mu and theta, seed 0), for ``curve``, ``gauge_0.5um``,
   ``camera_0.05deg`` and ``both`` (gauge 0.5 um + camera 0.2 deg, the sets simulated);
@@ -83,6 +90,42 @@ def _final_nrmse(pred: np.ndarray, true: np.ndarray, window: int) -> float:
     return float(np.sqrt(np.mean((p[ok] - t[ok]) ** 2)) / t[ok].std())
 
 
+def linear_discrepancy_bound(run: dict[str, np.ndarray], curves: np.ndarray,
+                             true: np.ndarray, camera_sd: float, window: int) -> float:
+    """What a discrepancy linear in the twin's own numbers can reach at best, in the
+    study's nRMSE: for nested feature sets ``F`` of each product (the curve-only twin's
+    predicted final angle; + its posterior means of ``[x, theta]``; + the curve's 10
+    leading principal scores, fitted on the products before the scored window),
+
+        nRMSE^2 >= r^2(F) + (camera_sd^2 + r^2 v) p / (n v),
+
+    ``r^2`` the in-sample residual of the least-squares fit of the *true* final angles of
+    the scored window on ``F`` over their variance ``v`` (the best coefficients, known:
+    optimistic), the second term the excess risk of ``p = |F|`` coefficients learned from
+    ``n`` values of the camera instead (least squares with Gaussian noise, ``n`` the mean
+    number of camera values before a scored product). The smallest over the sets."""
+    m, mean = run["angles_mean"][:, 1], run["mean"][:, :10]
+    n_all = true.size
+    ok = np.isfinite(true) & np.isfinite(m) & np.all(np.isfinite(curves), axis=1)
+    test = ok & (np.arange(n_all) >= n_all - window)
+    train = ok & ~test
+    c0 = curves[train].mean(axis=0)
+    vt = np.linalg.svd(curves[train] - c0, full_matrices=False)[2][:10]
+    scores = np.where(ok[:, None], np.nan_to_num(curves) - c0, 0.0) @ vt.T
+    y, v = true[test], float(true[test].var())
+    n_cam = float(np.mean(np.flatnonzero(test)))  # camera values known before each
+    best = np.inf
+    for feats in ([m[:, None]], [m[:, None], mean], [m[:, None], mean, scores]):
+        X = np.hstack([np.ones((n_all, 1)), *feats])[test]
+        X = (X - X.mean(axis=0)) / np.where(X.std(axis=0) > 0, X.std(axis=0), 1.0)
+        X[:, 0] = 1.0
+        res = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
+        r2 = float(np.mean(res**2)) / v
+        p = X.shape[1]
+        best = min(best, r2 + (camera_sd**2 + r2 * v) * p / (n_cam * v))
+    return float(np.sqrt(best))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="benchmarks/.cache/sensors")
@@ -109,8 +152,9 @@ def main() -> None:
     runs_dir.mkdir(parents=True, exist_ok=True)
     # a run's file is named for its task and the code that makes it
     import formtwin.study.sensor_study as ss
+    import formtwin.tracker.angle_discrepancy as ad
     import formtwin.tracker.fusion as fu
-    code = "".join(file_digest(m.__file__ or "")[:6] for m in (ss, fu))
+    code = "".join(file_digest(m.__file__ or "")[:6] for m in (ss, fu, ad))
     jobs = [(t, name, str(runs_dir / f"series{t.series}_real{t.realisation}_{name}_"
                                      f"{t.key[:12]}_{code}.npz"))
             for t in tasks for name in SENSOR_SETS]
@@ -155,6 +199,18 @@ def main() -> None:
             scores.append(float(np.mean(per)))
         best = int(np.argmin(scores))
         ewma[s], ewma_w[s] = scores[best], LAMBDAS[best]
+    cam_sd = next(s for s in line_sensors(spec) if s.name == "camera").noise
+    lin_bound: dict[int, list[float]] = {s: [] for s in SERIES_RUN}
+    for task, name, path in jobs:
+        if name != "curve":
+            continue
+        real = study.realisations[task.realisation]
+        data = SERIES[task.series - 1].data
+        with np.load(path, allow_pickle=False) as f:
+            run = {k: f[k] for k in ("angles_mean", "mean")}
+        true = np.where(real.ok[data], real.angles[data][:, 1], np.nan)
+        lin_bound[task.series].append(linear_discrepancy_bound(
+            run, real.curves[data], true, cam_sd, w))
 
     def mean(d: dict[int, dict[str, list[float]]]) -> dict[str, dict[str, float]]:
         return {str(s): {n: round(float(np.mean(v)), 4) for n, v in d[s].items()}
@@ -196,6 +252,11 @@ def main() -> None:
         "final_nrmse": fm, "state_nrmse": mean(state), "state_coverage90": mean(scov),
         "final_coverage90": mean(fcov),
         "ewma_final_nrmse": {str(s): round(v, 4) for s, v in ewma.items()},
+        "linear_discrepancy_bound": {str(s): round(float(np.mean(v)), 4)
+                                     for s, v in lin_bound.items()},
+        "linear_discrepancy_bound_vs_best_single": {
+            str(s): round(float(np.mean(v)) / min(fm[str(s)]["curve"], ewma[s]), 4)
+            for s, v in lin_bound.items()},
         "ewma_weight": {str(s): v for s, v in ewma_w.items()},
         "values_rejected": rejected,
         "settings": {"series": list(SERIES_RUN), "datasets": settings.n_realisations,

@@ -140,6 +140,49 @@ def test_out_of_order_values_match_the_exact_posterior() -> None:
     assert np.all(np.abs(est - mean) < 5 * se), (est, mean, se)
 
 
+@pytest.mark.parametrize("lag", [1, 2, 3])
+def test_late_value_then_more_steps_matches_the_exact_posterior(lag: int) -> None:
+    """A late value fused in the middle of the run (after product 4, of product 4 - lag),
+    then three more curves, each step resampling: the filter's x_{T-1} is the exact
+    posterior given every curve and the value (the weights carry the value into the next
+    step's resampling, the lag columns stay aligned with their particles)."""
+    n = 200_000
+    rng = np.random.default_rng(50 + lag)
+    truth = np.empty((T, 2))
+    x = np.sqrt(P0) * rng.standard_normal(2)
+    for t in range(T):
+        x = A * x + np.sqrt(Q) * rng.standard_normal(2)
+        truth[t] = x
+    ys = truth.sum(axis=1) + math.sqrt(R_CURVE) * rng.standard_normal(T)
+    f = SIR(FixedLag(LinearGaussian(), d=2, width=2, depth=3), n, np.random.default_rng(lag))
+    j = 4 - lag
+    s = float(truth[j, 0] + 0.8)
+    for t, y in enumerate(ys):
+        f.step(float(y))
+        if t == 4:
+            _fuse(f, j, s, 3)
+    mean, cov = exact_posterior(ys, [(j, s)])
+    without, _ = exact_posterior(ys, [])
+    assert f.x is not None
+    w = np.exp(f.logw)
+    est = w @ f.x[:, :2]
+    se = np.sqrt(np.diag(cov) / (1.0 / np.sum(w**2)))
+    assert np.all(np.abs(est - mean) < 5 * se), (est, mean, se)
+    assert np.max(np.abs(mean - without) / se) > 5  # the value still matters at T - 1
+
+
+def test_tracker_fuses_out_of_order_to_the_same_weights() -> None:
+    """The tracker's gauge of the newest product and camera of the one before, fused in
+    either order, give the same weights (to rounding) and the same evidence in total."""
+    a, b = _tracker(camera_discrepancy=False), _tracker(camera_discrepancy=False)
+    for c in _curves(3):
+        a.step(c), b.step(c)
+    ia = a.fuse(2, "gauge", 0.3) + a.fuse(1, "camera", 88.0)
+    ib = b.fuse(1, "camera", 88.0) + b.fuse(2, "gauge", 0.3)
+    np.testing.assert_allclose(a.filter.logw, b.filter.logw, rtol=0, atol=1e-12)
+    assert ia == pytest.approx(ib, rel=1e-12)
+
+
 def test_reweight_refuses_a_value_no_particle_explains() -> None:
     logw = np.log(np.full(3, 1 / 3))
     with pytest.raises(ValueError, match="no particle"):
@@ -265,34 +308,51 @@ def test_config_names_unknown_sensors_and_a_short_lag() -> None:
 
 
 def test_posterior_carries_the_camera_calibrated_interval() -> None:
-    """The posterior's final angle is the model's plus the bias learned from the camera (an
-    EWMA, weight 0.1, of the issued predictions' errors), its interval ACI on the fused
-    camera values: the same numbers as a standalone calibrator fed the same predictions
-    (predictive std with the camera's 0.2 deg) and values. A model 1 deg off is learned;
-    everything survives the state bytes."""
+    """The posterior's final angle is the model's mapped by the discrepancy learned from
+    the camera, its interval ACI on the fused camera values: the same numbers as a
+    standalone discrepancy and calibrator fed the same model angles and values (the
+    prior variance: the camera's 0.2 deg and the metamodel's error). A model 1 deg off is
+    learned; the camera's likelihood uses the learned map; everything survives the state
+    bytes; with ``camera_discrepancy=False`` the model's angle is used as it is."""
+    from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
     from formtwin.tracker.conformal import AdaptiveConformal
 
     tr = _tracker(("camera",))
-    ref, bias = AdaptiveConformal(), 0.0
+    noise = 0.2**2 + float(tr.ssm.angle_error()[1])
+    ref, disc = AdaptiveConformal(), AngleDiscrepancy(noise)
     rng = np.random.default_rng(0)
     prev = None
     for k, c in enumerate(_curves(30)):
         tr.step(c)
         if prev is not None:  # the camera value of the product before: the model + 1 deg
             value = prev + 1.0 + 0.2 * float(rng.standard_normal())
+            if k == 29:  # the likelihood: the parents' angles through the learned map
+                logw = tr.filter.logw.copy()
+                assert tr.particles is not None
+                a = tr.ssm.predict_angles(tr.ssm.lagged_inputs(tr.particles, 1), None)[:, 1]
+                r0, b0, b1 = disc.coefficients()
+                sd = max(math.sqrt(noise), math.sqrt(disc.variance()))
+                w = np.exp(logw - 0.5 * ((value - r0 - b0 - b1 * (a - r0)) / sd) ** 2)
             tr.fuse(k - 1, "camera", value)
-            bias += 0.1 * (value - ref.pending[k - 1][0])
+            if k == 29:
+                np.testing.assert_allclose(np.exp(tr.filter.logw), w / w.sum(), rtol=1e-9,
+                                           atol=1e-300)
+            disc.update_product(k - 1, value)
             ref.update(k - 1, value)
         p = tr.posterior()
-        assert p.final_mean == pytest.approx(float(p.angles_mean[1]) + bias, rel=1e-12)
-        sd = math.sqrt(float(p.angles_std[1]) ** 2 + 0.2**2)
-        lo, hi = ref.interval(k, p.final_mean, sd)
+        mean, var = disc.issue(k, float(p.angles_mean[1]))
+        assert p.final_mean == pytest.approx(mean, rel=1e-12)
+        lo, hi = ref.interval(k, mean, math.sqrt(var))
         assert p.final_interval == pytest.approx((lo, hi), rel=1e-12)
         prev = float(p.angles_mean[1])
-    assert 0.5 < tr.fused.bias < 1.2
+    assert 0.7 < p.final_mean - prev < 1.3
     again = Tracker.from_state_bytes(tr.state_bytes(), tr.model, tr.measurement)
     assert again.fused == tr.fused
     assert again.state_bytes() == tr.state_bytes()
+    plain = _tracker(("camera",), camera_discrepancy=False)
+    plain.step(_curves(1)[0])
+    p = plain.posterior()
+    assert p.final_mean == p.angles_mean[1] and plain.fused.discrepancy is None
     gauge_only = _tracker(("gauge",))
     gauge_only.step(_curves(1)[0])
     p = gauge_only.posterior()

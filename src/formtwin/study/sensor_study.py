@@ -15,8 +15,9 @@ dataset, repetition, measurement model), reads the dataset's sensor pseudo-data
    (:class:`~formtwin.tracker.conformal.AdaptiveConformal`), scored when the camera's value
    arrives one product later. The camera is read in every set (its values calibrate the
    interval); the sets with ``camera`` fuse it into the particles and take the predicted
-   final angle and its interval from the tracker (with the bias it learns from the
-   camera, ``TrackerConfig.sensor_trim``), the others run the same calibration beside it.
+   final angle and its interval from the tracker (through the discrepancy it learns from the
+   camera, ``TrackerConfig.camera_discrepancy``), the others run the same calibration
+   beside it.
 
 :func:`ewma_prediction` is the camera-only predictor the fused twin is compared with: a
 run-to-run EWMA of the measured final angles, known one product late.

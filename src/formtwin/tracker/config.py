@@ -144,9 +144,11 @@ class TrackerConfig:
         (:meth:`~formtwin.tracker.Tracker.fuse`); empty (default): the curve alone.
     sensor_lag : how many products back a value may arrive, ``L`` (the particles keep
         their last ``L`` states); ``None`` (default): the largest delay of ``sensors``.
-    sensor_trim : with a fused camera (a sensor of the final angle), the weight of the EWMA
-        of its residuals that learns the metamodel's final-angle bias (added to the model's
-        angle in the camera's likelihood and the prediction); 0: none.
+    camera_discrepancy : with a fused camera (a sensor of the final angle), learn the model's
+        final-angle discrepancy from the camera's values (:mod:`formtwin.tracker.
+        angle_discrepancy`: bias and slope, weighed by their evidence against the model as
+        it is), used in the camera's likelihood and the predicted final angle; False: the
+        model's angle as it is.
     """
 
     n_particles: int = field(default=500, metadata=_help("particles N", "--particles"))
@@ -201,8 +203,8 @@ class TrackerConfig:
         "entries (e.g. gauge,camera)"))
     sensor_lag: int | None = field(default=None, metadata=_help(
         "products back a sensor value may arrive (default: the largest delay)"))
-    sensor_trim: float = field(default=0.1, metadata=_help(
-        "EWMA weight learning the final angle's bias from a fused camera (0: none)"))
+    camera_discrepancy: bool = field(default=True, metadata=_help(
+        "learn the final angle's discrepancy (bias, slope) from a fused camera"))
     intervals: str = field(default="calibrated_fit", metadata=_help(
         "reported std: cloud (the particles'), cloud_mu (+ the assumed mu's term, which "
         "all but cloud add), calibrated (+ floors learned offline on "
@@ -265,8 +267,9 @@ class TrackerConfig:
                                                 and self.sensor_lag >= 0):
             raise ValueError(f"sensor_lag = {self.sensor_lag!r}, expected a whole number "
                              ">= 0 or None")
-        if not 0.0 <= self.sensor_trim <= 1.0:
-            raise ValueError(f"sensor_trim = {self.sensor_trim}, expected in [0, 1]")
+        if not isinstance(self.camera_discrepancy, bool):
+            raise ValueError(f"camera_discrepancy = {self.camera_discrepancy!r}, expected "
+                             "true or false")
         if not self.discrepancy_memory >= 1:
             raise ValueError(f"discrepancy_memory = {self.discrepancy_memory}, expected >= 1 "
                              "(inf: no forgetting)")

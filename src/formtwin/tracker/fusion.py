@@ -13,8 +13,11 @@ ancestor ``j`` (ancestor reweighting)::
 
 with ``h`` the measured state variable (``v_model = 0``) or the model output (the
 metamodel's angle at the product's setting ``u_j``; ``v_model`` its held-out error as the
-predicted angles carry it, :meth:`~formtwin.tracker.BendingSSM.angle_error`; for the final
-angle ``offset`` adds the model's bias learned from the camera, see :meth:`posterior`). The weights
+predicted angles carry it, :meth:`~formtwin.tracker.BendingSSM.angle_error`). For the final
+angle with ``config.camera_discrepancy``, ``h`` is the model's angle mapped by the
+discrepancy learned from the camera (:mod:`formtwin.tracker.angle_discrepancy`: ``ref + b0
++ b1 (a - ref)``) and the variance is at least that discrepancy's residual variance ``V``
+(see :meth:`SensorFusion.posterior`). The weights
 stay with the particles; the next step multiplies its curve likelihood in and resamples.
 Each (product, sensor) is fused once. Everything is in the particles, their weights and
 the small :class:`FusedLog`, so it is part of the state bytes and checkpoints, and a
@@ -36,6 +39,7 @@ from numpy.typing import NDArray
 from formtwin.filters.lagged import lagged, reweight, shift
 from formtwin.spec import ProcessSpec
 from formtwin.spec.sensors import Sensor, line_sensors, output_column
+from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
 from formtwin.tracker.config import TrackerConfig
 from formtwin.tracker.conformal import AdaptiveConformal
 from formtwin.tracker.validate import validate_controls
@@ -123,19 +127,21 @@ class FusedLog:
     sensors: tuple[str, ...]
     done: set[tuple[int, str]] = field(default_factory=set)
     conformal: AdaptiveConformal = field(default_factory=AdaptiveConformal)
-    #: the model's final-angle bias learned from the camera (``TrackerConfig.sensor_trim``)
-    bias: float = 0.0
+    #: the model's final-angle discrepancy learned from the camera (None: not yet made)
+    discrepancy: AngleDiscrepancy | None = None
 
     def state(self) -> dict[str, list[float]]:
         """The log as JSON numbers: ``fused`` ``[product, sensor position, ...]``, the
         calibration's ``aci_alpha``, ``aci_scores`` and ``aci_pending`` ``[product, mean,
-        scale, q, ...]`` (keys only where there is something)."""
+        scale, q, ...]``, ``final_discrepancy`` ``[noise_var, *AngleDiscrepancy.state()]``
+        (keys only where there is something)."""
         out: dict[str, list[float]] = {}
         if self.done:
             pairs = sorted((p, self.sensors.index(s)) for p, s in self.done)
             out["fused"] = [float(v) for pair in pairs for v in pair]
-        if self.bias != 0.0:
-            out["final_bias"] = [self.bias]
+        d = self.discrepancy
+        if d is not None and math.isfinite(d.ref):
+            out["final_discrepancy"] = [d.noise_var, *d.state()]
         c = self.conformal
         if c.scores or c.pending:
             out["aci_alpha"], out["aci_scores"] = [c.alpha], list(c.scores)
@@ -153,7 +159,26 @@ class FusedLog:
         c.pending = {int(pend[i]): (float(pend[i + 1]), float(pend[i + 2]), float(pend[i + 3]))
                      for i in range(0, len(pend), 4)}
         self.conformal = c
-        self.bias = float(model.get("final_bias", [0.0])[0])
+        disc = model.get("final_discrepancy")
+        self.discrepancy = None
+        if disc:
+            self.discrepancy = AngleDiscrepancy(float(disc[0]))
+            self.discrepancy.set_state(list(disc[1:]))
+
+    def forget(self, oldest: int) -> None:
+        """Drop the predictions issued for products before ``oldest`` (their camera
+        values can no longer be fused)."""
+        for pending in (self.conformal.pending, {} if self.discrepancy is None
+                        else self.discrepancy.pending):
+            for p in [p for p in pending if p < oldest]:
+                del pending[p]
+
+    def learned(self, noise_var: float) -> AngleDiscrepancy:
+        """The final angle's discrepancy, made with the prior variance ``noise_var``
+        (degrees^2) at first use."""
+        if self.discrepancy is None:
+            self.discrepancy = AngleDiscrepancy(noise_var)
+        return self.discrepancy
 
 
 class SensorFusion:
@@ -215,16 +240,21 @@ class SensorFusion:
         if not sd > 0:
             raise FusionError(f"fuse: {sensor} has noise 0 and the model no error: the "
                               "likelihood is degenerate (give the sensor a noise)")
-        bias = self.fused.bias if s.measures == FINAL else 0.0
-        inc = self._reweight(pred + float(offset) + bias, float(value), sd,
+        learn = s.measures == FINAL and self.config.camera_discrepancy
+        if learn:  # the model's angle as the camera sees it: the learned discrepancy
+            d = self.fused.learned(sd**2)
+            if math.isfinite(d.ref):
+                ref, b0, b1 = d.coefficients()
+                pred = ref + b0 + b1 * (pred - ref)
+                sd = max(sd, math.sqrt(d.variance()))
+        inc = self._reweight(pred + float(offset), float(value), sd,
                              f"{sensor} of product {product}")
         self.fused.done = {d for d in self.fused.done if d[0] >= newest - depth}
         self.fused.done.add((int(product), sensor))
         if s.measures == FINAL:  # how good was the prediction issued for it
-            issued = self.fused.conformal.pending.get(int(product))
             self.fused.conformal.update(int(product), float(value))
-            if issued is not None:  # the bias: an EWMA of the issued predictions' errors
-                self.fused.bias += self.config.sensor_trim * (float(value) - issued[0])
+            if learn:
+                self.fused.learned(sd**2).update_product(int(product), float(value))
         return inc
 
     def _reweight(self, pred: FloatArray, value: float, sd: float, what: str) -> float:
@@ -248,10 +278,12 @@ class SensorFusion:
         (a sensor of the final angle), the 90 % interval of the current product's
         measured final angle, calibrated by adaptive conformal inference on the camera
         values fused so far (:mod:`formtwin.tracker.conformal`; the interval issued last
-        for a product is the one its camera value scores), centred on the model's angle
-        plus the bias learned from the camera: an EWMA (weight ``config.sensor_trim``) of
-        the errors of the issued predictions, also added to the model's angle in the
-        camera's likelihood."""
+        for a product is the one its camera value scores), centred on the measured angle
+        predicted from the model's by the discrepancy learned from the camera
+        (``config.camera_discrepancy``; its predictive std is the interval's scale), else
+        on the model's angle with the camera's noise added to its std. The model's angle
+        issued here for the current product is the one its camera value will teach the
+        discrepancy with."""
         if self.filter.x is None:
             raise RuntimeError("posterior: no particles yet (call step first)")
         na = self.ssm.n_aug
@@ -268,8 +300,13 @@ class SensorFusion:
         if camera:  # the measured angle's interval: the camera's noise added
             col = output_column(self.spec, FINAL)
             sd = math.sqrt(float(astd[col]) ** 2 + camera[0].noise ** 2)
-            final = float(am[col]) + self.fused.bias
+            final = float(am[col])
+            if self.config.camera_discrepancy:
+                noise = camera[0].noise ** 2 + float(self.ssm.angle_error()[col])
+                final, var = self.fused.learned(noise).issue(self.filter.t - 1, final)
+                sd = math.sqrt(var) if var > 0 else sd
             lo, hi = self.fused.conformal.interval(self.filter.t - 1, final, sd)
+            self.fused.forget(self.filter.t - 1 - self.ssm.lag_depth)
         return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi),
                          final if camera else math.nan)
 
@@ -293,8 +330,8 @@ class Posterior:
     ess : effective sample size of the current weights.
     final_interval : ``(lo, hi)`` degrees, the camera-calibrated 90 % interval of the
         measured final angle (NaN without a camera among the fused sensors).
-    final_mean : degrees, the predicted final angle with the bias learned from the camera
-        (NaN without a camera).
+    final_mean : degrees, the predicted (measured) final angle, through the discrepancy
+        learned from the camera (NaN without a camera).
     """
 
     mean: FloatArray
