@@ -127,8 +127,9 @@ class AngleDiscrepancy:
         return mean, float(w @ (var + (f - mean) ** 2))
 
     def coefficients(self) -> tuple[float, float, float]:
-        """The mixture's ``(ref, b0, b1)`` and, as a fourth use, see :meth:`variance`:
-        the measured angle of a model angle ``a`` is ``ref + b0 + b1 (a - ref)``."""
+        """``(ref, b0, b1)``, the coefficients averaged over the hypotheses: the measured
+        angle of a model angle ``a`` is ``ref + b0 + b1 (a - ref)`` (its residual
+        variance: :meth:`variance`)."""
         b = self.weights() @ self.a
         return (self.ref, float(b[0]), float(b[1]))
 
