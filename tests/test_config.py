@@ -61,3 +61,10 @@ def test_json_round_trip_keeps_inf_and_tuples() -> None:
     assert TrackerConfig.from_json(cfg.to_json()) == cfg
     assert '"nu": null' in cfg.to_json()
     assert TrackerConfig.from_json('{"n_particles": 10}') == TrackerConfig(n_particles=10)
+
+
+@pytest.mark.parametrize(("trim", "learn"), [(0.1, True), (0.0, False)])
+def test_an_older_configs_sensor_trim_becomes_camera_discrepancy(trim: float,
+                                                                 learn: bool) -> None:
+    cfg = TrackerConfig.from_dict({"n_particles": 10, "sensor_trim": trim})
+    assert cfg == TrackerConfig(n_particles=10, camera_discrepancy=learn)

@@ -285,8 +285,12 @@ class TrackerConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrackerConfig:
-        """Inverse of :meth:`to_dict` (missing keys take their defaults)."""
+        """Inverse of :meth:`to_dict` (missing keys take their defaults; an older version's
+        ``sensor_trim``, the weight of an EWMA of the camera's residuals, becomes
+        ``camera_discrepancy = sensor_trim > 0``)."""
         d = dict(d)
+        if "sensor_trim" in d:
+            d.setdefault("camera_discrepancy", float(d.pop("sensor_trim")) > 0)
         for key in ("nu", "discrepancy_memory"):
             if key in d:
                 d[key] = math.inf if d[key] is None else float(d[key])
