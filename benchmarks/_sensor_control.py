@@ -5,7 +5,8 @@
 1. ``ff_vs_ewma_within_curve`` (target <= 0.80) and ``ff_vs_ewma_within_gauge`` (<= 0.65):
    the closed-loop study with the line's real sensors
    (:mod:`formtwin.study.control_sensors`: the physics model as the plant under series-6
-   conditions, 6 datasets x 1000 products, N = 500, the plants of ``bench_control.py``):
+   conditions, 4 datasets x 1000 products, N = 500, the first 4 plants of
+   ``bench_control.py``):
    the feedforward's final-angle std over the run-to-run EWMA's, within each dataset, median
    over the datasets, both reading the camera's angle with 0.2 deg noise one product late;
    ``curve``: the feedforward on the posterior of the curve alone, ``gauge``: of the curve
@@ -48,7 +49,7 @@ def control_figures(smoke: bool = False, out: Path = CACHE / "control") -> dict[
     t0 = time.perf_counter()
     metamodel, _ = default_metamodel(out / "model", "bending")
     physics = physics_model("bending", metamodel.spec)
-    base = ControlStudySettings(products=150 if smoke else 1000, datasets=2 if smoke else 6,
+    base = ControlStudySettings(products=150 if smoke else 1000, datasets=2 if smoke else 4,
                                 burn_in=30 if smoke else 100, workers=2)
     s = run_sensor_control(metamodel, physics, SensorControlSettings(base=base), out)
     return {"ff_vs_ewma_within_curve": s["curve"]["0.2"]["ff_vs_ewma"]["median"],

@@ -47,7 +47,8 @@ class Pass:
         setting is chosen.
     angle_sd : the ``sd`` of the angle likelihood, degrees (NaN without angles in the filter).
     input_mean : (n, n_in) the posterior means of the run inputs (state, machine
-        parameters) after each product's curve (NaN where not tracked).
+        parameters) after each product's curve and the readings fused with it (NaN where
+        not tracked).
     """
 
     u: FloatArray
@@ -117,6 +118,8 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                     if np.isfinite(values[i]):
                         tracker.fuse(stepped, name, float(values[i]))
                 w = tracker.weights()
+                if w is not None:  # the fused posterior's means
+                    input_mean[i] = w @ tracker.filter.x[:, :n_in] / w.sum()
                 nominal_mean[i] = ctl[0].reference(tracker.final_angle, w)
                 for c, ctrl in enumerate(ctl):
                     shift = ctrl.offset(nominal_mean[i])
