@@ -118,8 +118,9 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                     if np.isfinite(values[i]):
                         tracker.fuse(stepped, name, float(values[i]))
                 w = tracker.weights()
-                if w is not None:  # the fused posterior's means
-                    input_mean[i] = w @ tracker.filter.x[:, :n_in] / w.sum()
+                x = tracker.filter.x
+                if w is not None and x is not None:  # the fused posterior's means
+                    input_mean[i] = w @ x[:, :n_in] / w.sum()
                 nominal_mean[i] = ctl[0].reference(tracker.final_angle, w)
                 for c, ctrl in enumerate(ctl):
                     shift = ctrl.offset(nominal_mean[i])
