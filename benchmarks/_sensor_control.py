@@ -41,15 +41,16 @@ from formtwin.study.run import StudySettings, run_study
 COVERAGE_SERIES = (1, 3, 4, 5)
 
 
-def control_figures(smoke: bool = False, out: Path = CACHE / "control") -> dict[str, Any]:
-    """Figure 1 of the module doc (``smoke``: 2 datasets x 150 products in a folder of
-    their own)."""
+def control_figures(smoke: bool = False, out: Path = CACHE / "control", datasets: int = 4
+                    ) -> dict[str, Any]:
+    """Figure 1 of the module doc with ``datasets`` datasets (``smoke``: 2 datasets x 150
+    products in a folder of their own)."""
     if smoke:
         out = out.with_name(out.name + "_smoke")
     t0 = time.perf_counter()
     metamodel, _ = default_metamodel(out / "model", "bending")
     physics = physics_model("bending", metamodel.spec)
-    base = ControlStudySettings(products=150 if smoke else 1000, datasets=2 if smoke else 4,
+    base = ControlStudySettings(products=150 if smoke else 1000, datasets=2 if smoke else datasets,
                                 burn_in=30 if smoke else 100, workers=2)
     s = run_sensor_control(metamodel, physics, SensorControlSettings(base=base), out)
     return {"ff_vs_ewma_within_curve": s["curve"]["0.2"]["ff_vs_ewma"]["median"],
@@ -96,6 +97,7 @@ def main() -> None:
                    help="the sensor benchmark's folder (its study's cached runs reused)")
     p.add_argument("--quick", action="store_true", help="smoke test")
     p.add_argument("--only", choices=("control", "coverage"), help="one of the two figures")
+    p.add_argument("--datasets", type=int, default=4, help="datasets of the control study")
     args = p.parse_args()
     out = Path(args.out)
     figures: dict[str, Any] = {}
@@ -106,7 +108,7 @@ def main() -> None:
         settings = StudySettings(n_repetitions=1, paper_repetitions=0, **sizes)
         figures.update(coverage_figures(settings, out, mm, mm_path))
     if args.only != "coverage":
-        figures.update(control_figures(args.quick))
+        figures.update(control_figures(args.quick, datasets=args.datasets))
     print(json.dumps(figures, indent=1))
     if args.quick:
         return
