@@ -6,7 +6,7 @@
    the closed-loop study with the line's real sensors
    (:mod:`formtwin.study.control_sensors`: the physics model as the plant under series-6
    conditions, 4 datasets x 1000 products, N = 500, the first 4 plants of
-   ``bench_control.py``):
+   ``bench_control.py``; ``--datasets`` changes the 4):
    the feedforward's final-angle std over the run-to-run EWMA's, within each dataset, median
    over the datasets, both reading the camera's angle with 0.2 deg noise one product late;
    ``curve``: the feedforward on the posterior of the curve alone, ``gauge``: of the curve
@@ -55,7 +55,26 @@ def control_figures(smoke: bool = False, out: Path = CACHE / "control", datasets
     s = run_sensor_control(metamodel, physics, SensorControlSettings(base=base), out)
     return {"ff_vs_ewma_within_curve": s["curve"]["0.2"]["ff_vs_ewma"]["median"],
             "ff_vs_ewma_within_gauge": s["gauge"]["0.2"]["ff_vs_ewma"]["median"],
+            "ff_vs_ewma_bound": control_bound(s),
             "sensor_control": {**s, "wall_s": round(time.perf_counter() - t0, 1)}}
+
+
+def control_bound(s: dict[str, Any]) -> dict[str, Any]:
+    """The least feedforward / EWMA std ratio the information allows, camera 0.2 deg: a
+    feedforward that cancels its prediction of each product's final angle leaves the
+    prediction's error, at least ``b`` times the angle's in-run std (fixed ``u``'s std
+    within a line), ``b`` the linear-Gaussian bound of ``formtwin sensors``
+    (``bound_s1_final`` of ``bench_sensors.json``: theta and mu known, metamodel exact, no
+    deviation: the study's lines know less), over the EWMA's measured std."""
+    path = ROOT / "benchmarks" / "results" / "bench_sensors.json"
+    bound = json.loads(path.read_text()).get("figures", {}).get("bound_s1_final", {}) \
+        if path.exists() else {}
+    out: dict[str, Any] = {}
+    for name, key in (("curve", "curve"), ("gauge", "gauge_0.5um")):
+        if key in bound:
+            out[name] = round(bound[key] * s["fixed_std_deg"] / s[name]["0.2"]["ewma_std_deg"],
+                              4)
+    return out
 
 
 def coverage_figures(settings: StudySettings, out: Path, metamodel: Any, metamodel_path: Path
@@ -68,7 +87,8 @@ def coverage_figures(settings: StudySettings, out: Path, metamodel: Any, metamod
     study = run_study(s, out, metamodel, metamodel_path,
                       physics_model("bending", metamodel.spec))
     nx = len(metamodel.spec.state)
-    cov = np.nanmean(study.coverage[:, :, 0, :nx], axis=1)  # (series, 7) mean over datasets
+    rows = [n - 1 for n in COVERAGE_SERIES]  # the study's arrays are indexed by series - 1
+    cov = np.nanmean(study.coverage[rows, :, 0, :nx], axis=1)  # (4, 7) mean over datasets
     per = {str(n): round(float(np.mean(c)), 4) for n, c in zip(COVERAGE_SERIES, cov,
                                                                strict=True)}
     i, j = np.unravel_index(int(np.nanargmin(cov)), cov.shape)
