@@ -43,9 +43,10 @@ study does):
 * ``bound_vs_sim[set]``: the simulated series-1 nRMSE over the bound at the same noise
   (curve, gauge 0.5 um, camera 0.2 deg, both); ``bound_vs_sim_min/max``.
 
-Not measured here: ``state_coverage90_min`` (the default study's intervals, measured by
-``bench_model_error``), the feedforward figures (``ff_vs_ewma_*``, the closed-loop study)
-and ``study_s`` (``make demo``).
+``state_coverage90_min`` (the default study's intervals, series 1, 3, 4, 5) and the
+feedforward's ``ff_vs_ewma_within_curve`` / ``_gauge`` (the closed-loop study with the
+camera's noise and the gauge): ``benchmarks/_sensor_control.py``. Not measured here:
+``study_s`` (``make demo``).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _sensor_control import sensor_control_figures
 
 from formtwin._bench import bundled_metamodel, file_digest, write_result
 from formtwin.defaults import physics_model
@@ -267,6 +269,7 @@ def main() -> None:
         "study_data_and_curve_runs_s": round(t_study, 1),
         "sensor_runs_s": round(t_runs, 1), "sensor_runs": len(jobs),
     }
+    figures.update(sensor_control_figures(settings, out, mm, mm_path, smoke))
     write_result("sensors", figures, directory=out if smoke else None,
                  model=model_info)
 

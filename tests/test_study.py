@@ -152,6 +152,7 @@ def test_cli_quick_study_on_the_embedded_default(tmp_path: Path) -> None:
     assert main(["study", "--quick", "--out", str(tmp_path), "--workers", "2"]) == 0
     text = (tmp_path / "report.md").read_text()
     assert f"bending ({physics_model('bending').version})" in text
+    assert "## Sensors besides the curve" in text  # the sensor section, figures or how-to
     lines = (tmp_path / "nrmse.csv").read_text().splitlines()
     assert len(lines) == 1 + 6 * 2 * 1
     s1 = np.array([[float(v) for v in line.split(",")[3:]] for line in lines[1:3]])

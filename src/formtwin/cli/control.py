@@ -43,6 +43,14 @@ def register(sub: Any) -> None:
     p.add_argument("--angle-sd", type=float, help="sd of the measured angle's likelihood, "
                    "deg (default: the metamodel's held-out error of the final angle)")
     p.add_argument("--seed", type=int, default=0, help="master seed")
+    p.add_argument("--sensor-study", action="store_true",
+                   help="the study with the line's real sensors instead: the EWMA and the "
+                   "trim read the camera's angle with noise (--camera-noise), the feedforward "
+                   "chooses on the curve's and on the curve-and-gauge posterior "
+                   "(sensors_study.json in --out)")
+    p.add_argument("--camera-noise", default="0,0.1,0.2",
+                   help="camera noise sds with --sensor-study, deg, comma-separated "
+                   "(default: %(default)s)")
     p.add_argument("--workers", type=int, help="physics worker processes")
     add_tracker_options(p, exclude=FIXED)
     p.set_defaults(run=run)
@@ -68,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
         angle_sd=args.angle_sd, seed=args.seed, workers=args.workers)
     print(f"control study into {out}: {settings.datasets} datasets x {settings.products} "
           f"products, N = {tracker.n_particles}", flush=True)
+    if args.sensor_study:
+        return _run_sensors(args, metamodel, physics, settings, out)
     s = run_control_study(metamodel, physics, settings, out)
     for c in ("fixed", "ewma", "feedforward", "feedforward_fixed", "feedforward_full",
               "feedforward_open", "trim_only", "feedforward_angle", "oracle"):
@@ -86,4 +96,29 @@ def run(args: argparse.Namespace) -> int:
     print(f"  what the estimates know of the final angle: correlation with the plant's "
           f"{s['estimate_level_corr']} (levels), {s['estimate_change_corr']} (changes)")
     print(f"  -> {out / 'control_study.json'}, {out / 'control_study.png'}")
+    return 0
+
+
+def _run_sensors(args: argparse.Namespace, metamodel: Any, physics: Any, settings: Any,
+                 out: Path) -> int:
+    """``--sensor-study``: the closed-loop study with the camera's noise and the gauge."""
+    import json
+
+    from formtwin.study.control_sensors import SensorControlSettings, run_sensor_control
+
+    try:
+        noises = tuple(float(v) for v in str(args.camera_noise).split(","))
+    except ValueError:
+        print(f"error: --camera-noise {args.camera_noise!r}: expected numbers, e.g. 0,0.1,0.2")
+        return 2
+    s = run_sensor_control(metamodel, physics, SensorControlSettings(
+        base=settings, camera_noises=noises), out)
+    for name in ("curve", "gauge"):
+        for sd in noises:
+            v = s[name][f"{sd:g}"]
+            print(f"  {name:5s} camera {sd:g} deg: feedforward / EWMA std within a line "
+                  f"(median) {v['ff_vs_ewma']['median']}, stds {v['ff_std_deg']} / "
+                  f"{v['ewma_std_deg']} deg")
+    (out / "sensors_study.json").write_text(json.dumps(s, indent=2) + "\n")
+    print(f"  -> {out / 'sensors_study.json'}")
     return 0

@@ -15,6 +15,8 @@ from formtwin.study.run import StudySettings
 QUICK = {"n_products": 120, "window": 60, "n_realisations": 2, "n_repetitions": 1}
 #: the tracker settings of --quick
 QUICK_TRACKER = {"n_particles": 200}
+#: the sensor benchmark's results in a source checkout (``python benchmarks/bench_sensors.py``)
+SENSOR_FIGURES = "benchmarks/results/bench_sensors.json"
 #: TrackerConfig fields each series sets itself (no flags)
 SERIES_FIELDS = ("estimate_deviation", "mu", "seed", "learn_mu", "mu_known")
 
@@ -43,6 +45,9 @@ def register(sub: Any) -> None:
     p.add_argument("--series", help="comma-separated series numbers (default: the paper's "
                    "1,2,3,4,5,6; 7, 8: series 4, 6 with learned mu)")
     p.add_argument("--seed", type=int, default=0, help="master seed (default: %(default)s)")
+    p.add_argument("--sensor-figures", default=SENSOR_FIGURES, metavar="JSON",
+                   help="the sensor benchmark's results, shown in the report's sensor section "
+                   "(default: %(default)s, when present)")
     p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     add_tracker_options(p, exclude=SERIES_FIELDS)
@@ -111,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
     from formtwin.defaults import default_metamodel
     from formtwin.study.report import write_report
     from formtwin.study.run import run_study
+    from formtwin.study.sensor_report import load_sensor_figures
     from formtwin.tracker.intervals import find_calibration
 
     settings = settings_from_args(args)
@@ -131,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"WARNING: {calibration}; the report's intervals are the particle cloud's")
     report = write_report(result, metamodel.spec, out, sources={
         "metamodel": f"{mm_path} (fit {metamodel.fit_id or 'without id'})",
-        "physics model": f"{label} ({physics.version})"}, calibration=calibration)
+        "physics model": f"{label} ({physics.version})"}, calibration=calibration,
+        sensors=load_sensor_figures(args.sensor_figures), sensor_source=args.sensor_figures)
     print(f"study done in {result.timings['total_s']:.0f} s; report: {report}")
     print(f"markdown: {out / 'report.md'}; numbers: {out / 'nrmse.csv'}")
     return 0

@@ -48,6 +48,7 @@ products after ``burn_in``, pooled over datasets and within each.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -368,9 +369,11 @@ def finish_dataset(metamodel: ProcessModel, physics: Simulator,
     return out
 
 
-def r2r(plant: PlantAngles, ok: NDArray[np.bool_], n: int, target: float, gain: float,
-        lam: float, act: Actuator, nominal: float, delay: int) -> FloatArray:
-    """Settings (n,) of the run-to-run EWMA controller on the plant's measured angles."""
+def r2r(plant: Callable[[int, float], float], ok: NDArray[np.bool_], n: int, target: float,
+        gain: float, lam: float, act: Actuator, nominal: float, delay: int) -> FloatArray:
+    """Settings (n,) of the run-to-run EWMA controller on the measured angles ``plant(j,
+    u)`` of product ``j`` made at ``u`` (a :class:`PlantAngles`, or one read by a noisy
+    camera)."""
     ctl = EwmaRunToRun(target, gain, lam, act, u=nominal)
     u = np.full(n, nominal)
     for i in range(n):

@@ -15,7 +15,7 @@ that controller alone.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +47,8 @@ class Pass:
         setting is chosen.
     angle_sd : the ``sd`` of the angle likelihood, degrees (NaN without angles in the filter).
     input_mean : (n, n_in) the posterior means of the run inputs (state, machine
-        parameters) after each product's curve (NaN where not tracked).
+        parameters) after each product's curve and the readings fused with it (NaN where
+        not tracked).
     """
 
     u: FloatArray
@@ -61,7 +62,8 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                      ok: NDArray[np.bool_], plant: Callable[[int, float], float],
                      ff: Feedforward, controllers: Sequence[tuple[float, float, float]],
                      nominal: float, delay: int = 1, angle_in_filter: bool = False,
-                     sd: float | None = None) -> Pass:
+                     sd: float | None = None, noise: FloatArray | None = None,
+                     readings: Mapping[str, FloatArray] | None = None) -> Pass:
     """Run a tracker (``config``) over the measured ``curves`` (n, n_t) of the products with
     ``ok``; after each curve every controller ``Combined(ff, lam, weight, rho=rho)`` (one
     per ``(lam, weight, rho)`` of ``controllers``, ``weight`` :data:`ADAPTIVE`: learned;
@@ -70,7 +72,15 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
     final angle at ``u``, known ``delay`` products later. With ``angle_in_filter`` (one
     controller, ``delay`` 1: the angle arrives before the next curve) the measured angle also
     reweights the particles (likelihood sd ``sd``, None: the metamodel's held-out error;
-    offset: the controller's trim before this angle)."""
+    offset: the controller's trim before this angle).
+
+    ``noise`` (m, n), degrees, is added to what controller ``c`` measures of product ``j``
+    (a camera's error: the plant's angle stays exact, the controller reads
+    ``plant(j, u) + noise[c, j]``; None: exact). ``readings`` are values (n,) of sensors of
+    ``config.sensors`` that read a product before it is formed (delay 0, internal units),
+    fused by :meth:`~formtwin.tracker.Tracker.fuse` right after the product's curve, so
+    that its setting is chosen on the fused posterior (NaN: no value).
+    """
     if angle_in_filter and (len(controllers) != 1 or delay != 1):
         raise ValueError("angles in the filter: one controller and delay 1 (got "
                          f"{len(controllers)} controllers, delay {delay})")
@@ -78,6 +88,11 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
     ctl = [Combined(ff, lam, max(weight, 0.0), nominal, rho=rho, adaptive=weight == ADAPTIVE)
            for lam, weight, rho in controllers]
     m, n = len(ctl), curves.shape[0]
+    err = np.zeros((m, n)) if noise is None else np.asarray(noise, dtype=np.float64)
+    if err.shape != (m, n):
+        raise ValueError(f"noise: shape {err.shape}, expected ({m}, {n}) (controllers, "
+                         "products)")
+    stepped = -1  # the tracker's index of the newest product stepped
     u = np.full((m, n), nominal)
     pred = np.full((m, n, 3), np.nan)
     model_pred = np.full((m, n), np.nan)  # m_j(u_j): the prediction without the trim
@@ -91,12 +106,21 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
             j = i - delay  # the newest product whose angle is known now
             if j >= 0 and ok[j]:
                 if angle_in_filter:  # the particles are still product j's posterior
-                    update_angle(tracker, plant(j, u[0, j]), u[0, j], s_angle, ctl[0].bias)
+                    update_angle(tracker, plant(j, u[0, j]) + err[0, j], u[0, j], s_angle,
+                                 ctl[0].bias)
                 for c, ctrl in enumerate(ctl):
-                    ctrl.measured(plant(j, u[c, j]), model_pred[c, j], nominal_mean[j])
+                    ctrl.measured(plant(j, u[c, j]) + err[c, j], model_pred[c, j],
+                                  nominal_mean[j])
             if ok[i]:
                 input_mean[i] = tracker.step(curves[i]).mean[:n_in]
+                stepped += 1
+                for name, values in (readings or {}).items():
+                    if np.isfinite(values[i]):
+                        tracker.fuse(stepped, name, float(values[i]))
                 w = tracker.weights()
+                x = tracker.filter.x
+                if w is not None and x is not None:  # the fused posterior's means
+                    input_mean[i] = w @ x[:, :n_in] / w.sum()
                 nominal_mean[i] = ctl[0].reference(tracker.final_angle, w)
                 for c, ctrl in enumerate(ctl):
                     shift = ctrl.offset(nominal_mean[i])

@@ -18,6 +18,7 @@ from formtwin.study.honest import honest_summary, honest_table, plot_honest
 from formtwin.study.metrics import summarise
 from formtwin.study.pseudodata import data_digest
 from formtwin.study.run import StudyResult
+from formtwin.study.sensor_report import sensor_blocks
 from formtwin.study.series import SERIES
 
 Block = tuple[str, ...] | tuple[str, list[str], list[list[str]]]
@@ -79,10 +80,13 @@ def comparison(spec: ProcessSpec, overall: np.ndarray, series: tuple[int, ...]) 
 
 
 def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
-                 sources: dict[str, str], calibration: str = "") -> Path:
+                 sources: dict[str, str], calibration: str = "",
+                 sensors: dict[str, Any] | None = None, sensor_source: str = "") -> Path:
     """Write ``report.md``, ``report.html``, ``nrmse.csv``, ``results.json`` and figures;
     ``calibration`` says which interval calibration the trackers used
-    (:meth:`~formtwin.tracker.intervals.Calibration.describe`), on the first page."""
+    (:meth:`~formtwin.tracker.intervals.Calibration.describe`), on the first page;
+    ``sensors`` the sensor benchmark's figures read from ``sensor_source``
+    (:mod:`formtwin.study.sensor_report`; None: the section says how to make them)."""
     folder.mkdir(parents=True, exist_ok=True)
     st = result.settings
     labels = component_labels(spec)
@@ -178,6 +182,7 @@ def write_report(result: StudyResult, spec: ProcessSpec, folder: Path,
               "below 1 % of N. Counted over all products of all runs of the series."),
         ("p", "Physics-model failures per realisation (products skipped in series 5 and 6): "
               + ", ".join(f"{k}: {v}" for k, v in failures.items()) + "."),
+        *sensor_blocks(sensors, folder, sensor_source),
     ]
     (folder / "report.md").write_text(_markdown(blocks), encoding="utf-8")
     (folder / "report.html").write_text(_html(blocks), encoding="utf-8")

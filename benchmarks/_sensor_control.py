@@ -1,0 +1,143 @@
+"""The sensor benchmark's figures of control and of the default study's state intervals
+(issue 34), called by ``bench_sensors.py`` and runnable alone (then merged into
+``benchmarks/results/bench_sensors.json``, its other figures kept).
+
+1. ``ff_vs_ewma_within_curve`` (target <= 0.80) and ``ff_vs_ewma_within_gauge`` (<= 0.65):
+   the closed-loop study with the line's real sensors
+   (:mod:`formtwin.study.control_sensors`: the physics model as the plant under series-6
+   conditions, 4 datasets x 1000 products, N = 500, the first 4 plants of
+   ``bench_control.py``; ``--datasets`` changes the 4):
+   the feedforward's final-angle std over the run-to-run EWMA's, within each dataset, median
+   over the datasets, both reading the camera's angle with 0.2 deg noise one product late;
+   ``curve``: the feedforward on the posterior of the curve alone, ``gauge``: of the curve
+   and the 0.5 um strip gauge fused. ``sensor_control`` holds every camera noise (0, 0.1,
+   0.2 deg), per dataset, the stds and the weights chosen.
+2. ``state_coverage90_min`` (target >= 0.80): the default study (``formtwin study``'s
+   settings: calibrated intervals, repetition 0) of series 1, 3, 4 and 5 on the sensor
+   benchmark's datasets: how often each state's reported 90 % interval holds the truth
+   over the last ``window`` products, mean over the 7 states and the datasets, the least
+   over the series (``state_coverage90`` per series); ``state_coverage90_min_per_state``
+   the least single state's (mean over datasets) and which.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from formtwin._bench import CACHE, ROOT, bundled_metamodel, write_result
+from formtwin.defaults import default_metamodel, physics_model
+from formtwin.study.control import ControlStudySettings
+from formtwin.study.control_sensors import SensorControlSettings, run_sensor_control
+from formtwin.study.run import StudySettings, run_study
+
+#: the series of ``state_coverage90_min`` (the issue's: model right or g(MM) modelled, mu
+#: known or assumed, physics data)
+COVERAGE_SERIES = (1, 3, 4, 5)
+
+
+def control_figures(smoke: bool = False, out: Path = CACHE / "control", datasets: int = 4
+                    ) -> dict[str, Any]:
+    """Figure 1 of the module doc with ``datasets`` datasets (``smoke``: 2 datasets x 150
+    products in a folder of their own)."""
+    if smoke:
+        out = out.with_name(out.name + "_smoke")
+    t0 = time.perf_counter()
+    metamodel, _ = default_metamodel(out / "model", "bending")
+    physics = physics_model("bending", metamodel.spec)
+    base = ControlStudySettings(products=150 if smoke else 1000, datasets=2 if smoke else datasets,
+                                burn_in=30 if smoke else 100, workers=2)
+    s = run_sensor_control(metamodel, physics, SensorControlSettings(base=base), out)
+    return {"ff_vs_ewma_within_curve": s["curve"]["0.2"]["ff_vs_ewma"]["median"],
+            "ff_vs_ewma_within_gauge": s["gauge"]["0.2"]["ff_vs_ewma"]["median"],
+            "ff_vs_ewma_bound": control_bound(s),
+            "sensor_control": {**s, "wall_s": round(time.perf_counter() - t0, 1)}}
+
+
+def control_bound(s: dict[str, Any]) -> dict[str, Any]:
+    """The least feedforward / EWMA std ratio the information allows, camera 0.2 deg: a
+    feedforward that cancels its prediction of each product's final angle leaves the
+    prediction's error, at least ``b`` times the angle's in-run std (fixed ``u``'s std
+    within a line), ``b`` the linear-Gaussian bound of ``formtwin sensors``
+    (``bound_s1_final`` of ``bench_sensors.json``: theta and mu known, metamodel exact, no
+    deviation: the study's lines know less), over the EWMA's measured std."""
+    path = ROOT / "benchmarks" / "results" / "bench_sensors.json"
+    bound = json.loads(path.read_text()).get("figures", {}).get("bound_s1_final", {}) \
+        if path.exists() else {}
+    out: dict[str, Any] = {}
+    for name, key in (("curve", "curve"), ("gauge", "gauge_0.5um")):
+        if key in bound:
+            out[name] = round(bound[key] * s["fixed_std_deg"] / s[name]["0.2"]["ewma_std_deg"],
+                              4)
+    return out
+
+
+def coverage_figures(settings: StudySettings, out: Path, metamodel: Any, metamodel_path: Path
+                     ) -> dict[str, Any]:
+    """Figure 2 of the module doc: the study of ``settings`` (its sizes, seed, tracker) run
+    for :data:`COVERAGE_SERIES` in ``out`` (its cached runs reused)."""
+    import dataclasses
+
+    s = dataclasses.replace(settings, series=COVERAGE_SERIES)
+    study = run_study(s, out, metamodel, metamodel_path,
+                      physics_model("bending", metamodel.spec))
+    nx = len(metamodel.spec.state)
+    rows = [n - 1 for n in COVERAGE_SERIES]  # the study's arrays are indexed by series - 1
+    cov = np.nanmean(study.coverage[rows, :, 0, :nx], axis=1)  # (4, 7) mean over datasets
+    per = {str(n): round(float(np.mean(c)), 4) for n, c in zip(COVERAGE_SERIES, cov,
+                                                               strict=True)}
+    i, j = np.unravel_index(int(np.nanargmin(cov)), cov.shape)
+    return {"state_coverage90_min": min(per.values()), "state_coverage90_default": per,
+            "state_coverage90_min_per_state": {
+                "value": round(float(cov[i, j]), 4), "series": COVERAGE_SERIES[int(i)],
+                "state": metamodel.spec.state.names[int(j)]},
+            "state_coverage90_default_per_state": {
+                str(n): dict(zip(metamodel.spec.state.names, np.round(c, 3).tolist(),
+                                 strict=True)) for n, c in zip(COVERAGE_SERIES, cov,
+                                                               strict=True)}}
+
+
+def sensor_control_figures(settings: StudySettings, out: Path, metamodel: Any,
+                           metamodel_path: Path, smoke: bool) -> dict[str, Any]:
+    """Both figures (``bench_sensors.py``'s call): the coverage on its study's datasets in
+    its folder ``out``, the control study in its own."""
+    return {**coverage_figures(settings, out, metamodel, metamodel_path),
+            **control_figures(smoke)}
+
+
+def main() -> None:
+    """Compute the figures alone and merge them into ``bench_sensors.json``."""
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--out", default="benchmarks/.cache/sensors",
+                   help="the sensor benchmark's folder (its study's cached runs reused)")
+    p.add_argument("--quick", action="store_true", help="smoke test")
+    p.add_argument("--only", choices=("control", "coverage"), help="one of the two figures")
+    p.add_argument("--datasets", type=int, default=4, help="datasets of the control study")
+    args = p.parse_args()
+    out = Path(args.out)
+    figures: dict[str, Any] = {}
+    if args.only != "control":
+        mm, mm_path, _ = bundled_metamodel(out / "model")
+        sizes: dict[str, Any] = {"n_products": 200, "n_realisations": 2, "window": 100} \
+            if args.quick else {}
+        settings = StudySettings(n_repetitions=1, paper_repetitions=0, **sizes)
+        figures.update(coverage_figures(settings, out, mm, mm_path))
+    if args.only != "coverage":
+        figures.update(control_figures(args.quick, datasets=args.datasets))
+    print(json.dumps(figures, indent=1))
+    if args.quick:
+        return
+    path = ROOT / "benchmarks" / "results" / "bench_sensors.json"
+    old = json.loads(path.read_text()) if path.exists() else {"figures": {}}
+    model = old.get("model")
+    write_result("sensors", {**old["figures"], **figures},
+                 **({"model": model} if model is not None else {}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,239 @@
+"""Closed-loop control with the line's real sensors: the camera's noisy, late final angle and
+the strip gauge.
+
+The plants, trackers and controllers of the control study (:mod:`formtwin.study.control`:
+series-6 conditions, the physics model as the plant) with two changes:
+
+* the camera: every controller that reads a product's final angle (the run-to-run EWMA,
+  the feedforward's trim) reads it with the camera's Gaussian error of sd ``s`` in
+  :data:`CAMERA_NOISES` (degrees), one product late; the plant's own angle, the one
+  scored, stays exact. The errors are one standard normal draw per product and dataset
+  (its own random stream), scaled by ``s``, so the noise levels share their draws;
+* the posterior the feedforward chooses on: ``curve`` the stage-1 curve alone (the
+  paper), ``gauge`` the curve and the strip gauge's thickness of the same product
+  (the spec's noise, 0.5 um), fused by :meth:`~formtwin.tracker.Tracker.fuse` before the
+  setting is chosen.
+
+Per dataset, camera noise and set, the feedforward (:class:`~formtwin.control.Combined`,
+the weight learned on the line) runs with each ``(lam, rho)`` of :data:`GRID`, and the
+run-to-run EWMA with each weight of :data:`~formtwin.study.control.R2R_LAMS`. As in the
+control study, dataset ``k`` is scored with the weights best on the other datasets (least
+mean ratio of the final angle's std to fixed ``u``'s), and the figure is the median over
+the datasets of the feedforward's std over the EWMA's (within each dataset, after
+``burn_in``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from formtwin.measurement import ProcessModel
+from formtwin.simulator import Simulator
+from formtwin.spec.sensors import line_sensors, sensor_by_name
+from formtwin.study.control import (
+    R2R_LAMS,
+    ControlStudySettings,
+    _setup,
+    default_target,
+    metamodel_final,
+    plant_run,
+    r2r,
+    r2r_gain,
+)
+from formtwin.study.control_ff import ADAPTIVE, track_and_choose
+from formtwin.study.control_run import _key, _load, _save
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+#: the camera's noise sd tried, degrees (0: the plant's exact angle, as the control study)
+CAMERA_NOISES = (0.0, 0.1, 0.2)
+#: the posteriors the feedforward chooses on: name -> sensors fused besides the curve
+SETS: dict[str, tuple[str, ...]] = {"curve": (), "gauge": ("gauge",)}
+#: the feedforward's ``(lam, rho)`` tried (the weight learned on the line): the trim's EWMA
+#: weight, the persistence of the last product's deviation (a noisy camera wants small ones)
+GRID = tuple((lam, rho) for rho in (0.0, 0.7) for lam in (0.02, 0.05, 0.1))
+
+
+@dataclass(frozen=True)
+class SensorControlSettings:
+    """Settings of the closed-loop study with sensors.
+
+    Attributes
+    ----------
+    base : the control study's settings (products, datasets, burn-in, tracker, seed...).
+    camera_noises : the camera's noise sds, degrees.
+    sets : names of :data:`SETS` run.
+    """
+
+    base: ControlStudySettings = field(default_factory=ControlStudySettings)
+    camera_noises: tuple[float, ...] = CAMERA_NOISES
+    sets: tuple[str, ...] = tuple(SETS)
+
+    def __post_init__(self) -> None:
+        bad = [s for s in self.sets if s not in SETS]
+        if bad:
+            raise ValueError(f"sets = {bad}: unknown, expected some of {', '.join(SETS)}")
+        if not all(np.isfinite(s) and s >= 0 for s in self.camera_noises):
+            raise ValueError(f"camera_noises = {self.camera_noises}: expected sds >= 0 deg")
+
+
+def sensor_draws(seed: int, k: int, n: int) -> tuple[FloatArray, FloatArray]:
+    """Standard normals (n,) of the camera and of the gauge of dataset ``k``: children 0 and
+    1 of ``SeedSequence([seed, k])`` (the plant draws from the sequence itself)."""
+    cam, gauge = np.random.SeedSequence([seed, k]).spawn(2)
+    return (np.random.default_rng(cam).standard_normal(n),
+            np.random.default_rng(gauge).standard_normal(n))
+
+
+def sensor_dataset(metamodel: ProcessModel, physics: Simulator,
+                   settings: SensorControlSettings, k: int, folder: Path, target: float,
+                   gain: float) -> dict[str, Any]:
+    """Dataset ``k``'s plant angles (n,) under fixed ``u`` (``angle_fixed``) and the oracle
+    (``angle_oracle``); per camera noise ``c`` (index into ``camera_noises``) those of the
+    EWMA for each weight, ``angle_r2r_<c>`` (len(R2R_LAMS), n), and per set those of the
+    feedforward for each ``(lam, rho)`` of :data:`GRID`, ``angle_<set>_<c>``
+    (len(GRID), n)."""
+    base = settings.base
+    spec = metamodel.spec
+    run, curves, ok, plant = plant_run(spec, physics, base, k, folder)
+    n = run.n
+    act, ff, nominal = _setup(metamodel, base, target)
+    z_cam, z_gauge = sensor_draws(base.seed, k, n)
+    noises = np.asarray(settings.camera_noises, dtype=np.float64)
+
+    def angles(us: FloatArray) -> FloatArray:
+        return np.where(ok, [plant(i, us[i]) for i in range(n)], np.nan)
+
+    out: dict[str, Any] = {"ok": ok, "angle_fixed": angles(np.full(n, nominal))}
+    u_or, prev = np.full(n, nominal), nominal  # the oracle: the true inputs
+    for i in range(n):
+        def truth(uu: FloatArray, x: FloatArray = run.inputs[i: i + 1]) -> FloatArray:
+            return metamodel_final(metamodel, x, uu)
+
+        prev = u_or[i] = ff.choose(truth, u_prev=prev).u
+    out["angle_oracle"] = angles(u_or)
+    for c, sd in enumerate(noises):
+        def camera(j: int, u: float, sd: float = float(sd)) -> float:
+            return plant(j, u) + sd * float(z_cam[j])
+        out[f"angle_r2r_{c}"] = np.array([angles(r2r(camera, ok, n, target, gain, lam, act,
+                                                     nominal, base.r2r_delay))
+                                          for lam in R2R_LAMS])
+    controllers = [(lam, ADAPTIVE, rho) for _ in noises for lam, rho in GRID]
+    noise = np.repeat(noises[:, None] * z_cam[None, :], len(GRID), axis=0)
+    gauge = sensor_by_name(line_sensors(spec), "gauge")
+    thickness = run.x[:, spec.state.index[gauge.measures]] + gauge.noise * z_gauge
+    for name in settings.sets:
+        config = replace(base.tracker, seed=base.seed + k, sensors=SETS[name])
+        readings = {"gauge": thickness} if "gauge" in SETS[name] else None
+        p = track_and_choose(metamodel, config, curves, ok, plant, ff, controllers, nominal,
+                             base.r2r_delay, noise=noise, readings=readings)
+        for c in range(noises.size):
+            rows = p.u[c * len(GRID):(c + 1) * len(GRID)]
+            out[f"angle_{name}_{c}"] = np.array([angles(v) for v in rows])
+    return out
+
+
+def _run(args: tuple[Any, ...]) -> dict[str, Any]:
+    """:func:`sensor_dataset` of one argument tuple (for a pool)."""
+    log.info("control study with sensors: dataset %d", args[3])
+    return sensor_dataset(*args)
+
+
+def loo_ratios(ff_std: FloatArray, r2r_std: FloatArray, fixed_std: FloatArray
+               ) -> tuple[FloatArray, list[int], list[int]]:
+    """Per dataset ``k``: the feedforward's std over the EWMA's, each with the weights best
+    on the other datasets (least mean ratio to fixed ``u``'s std); ``ff_std`` (K, m),
+    ``r2r_std`` (K, r), ``fixed_std`` (K,). Returns the ratios (K,) and the indices chosen.
+
+    >>> ff = np.array([[1.0, 2.0], [1.0, 2.0], [3.0, 1.0]])
+    >>> ratio, a, b = loo_ratios(ff, np.full((3, 1), 2.0), np.ones(3))
+    >>> ratio.tolist(), a      # dataset 2 alone prefers column 1: scored with column 0
+    ([0.5, 0.5, 1.5], [0, 0, 0])
+    """
+    scale = np.asarray(fixed_std, dtype=np.float64)[:, None]
+    K = ff_std.shape[0]
+    a = [int(np.argmin(np.mean(np.delete(ff_std / scale, k, 0), axis=0))) for k in range(K)]
+    b = [int(np.argmin(np.mean(np.delete(r2r_std / scale, k, 0), axis=0))) for k in range(K)]
+    ratio = np.array([ff_std[k, a[k]] / r2r_std[k, b[k]] for k in range(K)])
+    return ratio, a, b
+
+
+def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
+                       settings: SensorControlSettings, out: str | Path) -> dict[str, Any]:
+    """Run (or reuse, ``sensors_<k>.npz`` in ``out``) every dataset and score it; returns
+    per set and camera noise (``<set>`` -> ``"<sd>"``) the within-dataset ratios
+    ``ff_vs_ewma`` (per dataset and their median), the stds of the feedforward, the EWMA,
+    fixed ``u`` and the oracle (mean over datasets, degrees) and the weights chosen on
+    all datasets."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    base = settings.base
+    target = default_target(metamodel) if base.target is None else base.target
+    gain = r2r_gain(metamodel, np.random.default_rng(base.seed))
+    key = _key(base, target, str(getattr(physics, "version", "")), metamodel) + repr(
+        (settings.camera_noises, settings.sets, GRID, R2R_LAMS))
+    paths = [out / f"sensors_{k}.npz" for k in range(base.datasets)]
+    res = [_load(p, key) for p in paths]
+    todo = [k for k, r in enumerate(res) if r is None]
+    for k in todo:  # the plants first, one after the other (their physics uses the workers)
+        plant_run(metamodel.spec, physics, base, k, out)
+    args = [(metamodel, physics, settings, k, out, target, gain) for k in todo]
+    workers = min(base.workers or os.cpu_count() or 1, max(len(todo), 1))
+    if workers > 1:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(
+                "forkserver")) as pool:
+            done = list(pool.map(_run, args))
+    else:
+        done = [_run(a) for a in args]
+    for k, r in zip(todo, done, strict=True):
+        _save(paths[k], key, r)
+        res[k] = r
+    results = [r for r in res if r is not None]
+    b = base.burn_in
+
+    def std(name: str) -> FloatArray:
+        return np.array([np.nanstd(r[name][..., b:], axis=-1) for r in results])
+
+    fixed, oracle = std("angle_fixed"), std("angle_oracle")
+    summary: dict[str, Any] = {}
+    for name in settings.sets:
+        summary[name] = {}
+        for c, sd in enumerate(settings.camera_noises):
+            ff, ew = std(f"angle_{name}_{c}"), std(f"angle_r2r_{c}")
+            ratio, a, e = loo_ratios(ff, ew, fixed)
+            best = int(np.argmin(np.mean(ff / fixed[:, None], axis=0)))
+            summary[name][f"{sd:g}"] = {
+                "ff_vs_ewma": {"per_dataset": np.round(ratio, 3).tolist(),
+                               "median": round(float(np.median(ratio)), 4)},
+                "ff_vs_oracle_median": round(float(np.median(
+                    [ff[k, a[k]] / oracle[k] for k in range(len(results))])), 4)
+                if np.all(oracle > 1e-9 * fixed) else None,  # an oracle on target: no ratio
+                "ff_std_deg": round(float(np.mean([ff[k, a[k]] for k in range(len(a))])), 4),
+                "ewma_std_deg": round(float(np.mean([ew[k, e[k]] for k in range(len(e))])), 4),
+                "ff_lam": GRID[best][0], "ff_rho": GRID[best][1],
+                "ewma_lam": R2R_LAMS[int(np.argmin(np.mean(ew / fixed[:, None], axis=0)))]}
+    summary["fixed_std_deg"] = round(float(np.mean(fixed)), 4)
+    summary["oracle_std_deg"] = round(float(np.mean(oracle)), 4)
+    summary["target_deg"] = target
+    summary["settings"] = {
+        "camera_noises_deg": list(settings.camera_noises), "sets": list(settings.sets),
+        "grid_lam_rho": [list(g) for g in GRID], "r2r_lams": list(R2R_LAMS),
+        **{k: v for k, v in dataclasses.asdict(base).items() if k != "tracker"},
+        "tracker": base.tracker.to_dict()}
+    return summary
+
+
+__all__ = ["CAMERA_NOISES", "GRID", "SETS", "SensorControlSettings", "loo_ratios",
+           "run_sensor_control", "sensor_dataset", "sensor_draws"]
