@@ -120,7 +120,9 @@ def test_every_reason_is_covered() -> None:
     parse_level = {r for r, _ in CASES}
     processor_level = {"duplicate_part_id", "out_of_order", "tracker_rejected", "outlier_gated"}
     plausibility_level = {"no_stroke", "clipped_sensor", "peak_outside_window"}  # own tests
-    assert parse_level | processor_level | plausibility_level == set(REASONS)
+    sensor_level = {"unknown_sensor", "duplicate_measurement", "hold_full", "hold_expired",
+                    "fusion_rejected", "product_gated"}  # test_service_sensors.py
+    assert parse_level | processor_level | plausibility_level | sensor_level == set(REASONS)
 
 
 @settings(max_examples=300, deadline=None)

@@ -184,7 +184,7 @@ def test_restart_replays_the_products_after_the_checkpoint(
     ck = proc.store.checkpoint()
     assert ck is not None and ck[0] == 24 // k * k  # seq of the k-th, 2k-th, ... product
     proc.close()
-    with caplog.at_level(logging.INFO, logger="formtwin.service.processor"):
+    with caplog.at_level(logging.INFO, logger="formtwin.service.restore"):
         proc = open_processor(tmp_path / "k.sqlite", gated, checkpoint_every=k)
     assert f"replayed {27 - ck[0] - 1} products" in caplog.text  # the gated one skipped
     assert not [r for r in caplog.records if r.levelname == "ERROR"]

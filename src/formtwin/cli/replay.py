@@ -37,6 +37,14 @@ def register(sub: Any) -> None:
                    help="NetCDF files with a source dimension: which source (default: gFE)")
     add_broker_options(p)
     p.add_argument("--topic", default=DEFAULT_TOPIC, help="stroke topic (default: %(default)s)")
+    p.add_argument("--sensor-topic", help="topic of the sensor messages (default: sibling "
+                   "'sensor' of --topic)")
+    p.add_argument("--sensors", default="", metavar="NAMES",
+                   help="with --synthetic: draw these of the spec's sensors (comma-separated, "
+                   "e.g. gauge,camera) for every product; a stream file's sensor values "
+                   "(sensor_<name>) are sent anyway, each after the stroke its delay puts "
+                   "it behind")
+    p.add_argument("--no-sensors", action="store_true", help="do not send sensor messages")
     p.add_argument("--press", metavar="URL",
                    help="opc.tcp://HOST:PORT[/PATH]: instead of publishing to MQTT, be a "
                    "simulated OPC UA press there (docs/reference/opcua.md): wait for "
@@ -89,14 +97,15 @@ def synthetic_model(metamodel: str | None, analytic: bool, draw_from: str) -> tu
 def _replay(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from formtwin.service.mqtt import publish_strokes
-    from formtwin.service.streams import make_stream, read_stream
+    from formtwin.service.mqtt import Topics, publish_strokes
+    from formtwin.service.streams import interleave, make_stream, read_readings, read_stream
 
     if args.synthetic is not None:
         model, what = synthetic_model(args.metamodel, args.analytic, args.draw_from)
         print(f"drawing {args.synthetic} products from {what}", flush=True)
         path = make_stream(args.write, args.synthetic, seed=args.seed, model=model,
-                           noise_N=args.noise)
+                           noise_N=args.noise, sensors=tuple(
+                               n.strip() for n in args.sensors.split(",") if n.strip()))
         print(f"synthetic stream of {args.synthetic} products -> {path}")
     elif args.file:
         if args.metamodel or args.analytic:
@@ -110,21 +119,26 @@ def _replay(args: argparse.Namespace) -> int:
     strokes = strokes[args.start:end]
     if args.no_angles:
         strokes = [dataclasses.replace(s, angles_deg=None) for s in strokes]
+    readings = [] if args.no_sensors else read_readings(path)
     if args.rate < 0:
         raise ValueError(f"--rate {args.rate}: expected >= 0")
     if args.press:
         return _replay_press(strokes, args.press, args.rate)
     broker = broker_config(args)
     rate = "full speed" if args.rate == 0 else f"{args.rate:g}/s"
-    print(f"publishing {len(strokes)} strokes to {args.topic} on {broker.host}:{broker.port} "
-          f"at {rate}", flush=True)
+    messages = interleave(strokes, readings, args.start)
+    topics = Topics.from_input(args.topic, sensors=args.sensor_topic)
+    print(f"publishing {len(strokes)} strokes to {args.topic}"
+          + (f" and {len(messages) - len(strokes)} sensor messages to {topics.sensors}"
+             if len(messages) > len(strokes) else "")
+          + f" on {broker.host}:{broker.port} at {rate}", flush=True)
     import sys
 
     from tqdm import tqdm
 
     with tqdm(total=len(strokes), unit="stroke", disable=not sys.stderr.isatty()) as bar:
-        n = publish_strokes(strokes, broker, args.topic, rate=args.rate,
-                            on_sent=lambda s, t: bar.update(1))
+        n = publish_strokes(messages, broker, args.topic, rate=args.rate,
+                            on_sent=lambda s, t: bar.update(1), sensor_topic=topics.sensors)
     print(f"published {n} strokes")
     return 0
 

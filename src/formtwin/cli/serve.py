@@ -226,6 +226,7 @@ def register(sub: Any) -> None:
     p.add_argument("--results-topic", help="default: sibling 'estimate' of --topic")
     p.add_argument("--errors-topic", help="default: sibling 'errors' of --topic")
     p.add_argument("--alarms-topic", help="default: sibling 'alarms' of --topic")
+    p.add_argument("--sensor-topic", help="sensor messages; default: sibling 'sensor'")
     p.add_argument("--client-id", default="formtwin-serve",
                    help="persistent MQTT session id; keep it across restarts (--check runs "
                    "on a clean session <id>-check-<pid> of its own)")
@@ -285,7 +286,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     broker = broker_config(args)
     topics = Topics.from_input(args.topic, args.results_topic, args.errors_topic,
-                               args.alarms_topic)
+                               args.alarms_topic, args.sensor_topic)
     source = opcua_source(args)
     if args.metamodel and not Path(args.metamodel).exists():
         raise ValueError(f"--metamodel {args.metamodel}: no such file")
@@ -357,7 +358,8 @@ def _serve(args: argparse.Namespace) -> int:
         if args.status_every > 0:
             threading.Thread(target=_status, args=(proc, service, stop, args.status_every),
                              daemon=True, name="formtwin-status").start()
-        strokes = f"{topics.strokes} on {broker.host}:{broker.port}" if args.source is None \
+        strokes = f"{topics.strokes} (sensor messages on {topics.sensors}) on " \
+            f"{broker.host}:{broker.port}" if args.source is None \
             else f"{args.source} (OPC UA; results on {broker.host}:{broker.port})"
         print(f"serving {strokes} -> "
               f"{topics.results}, errors -> {topics.errors}"

@@ -1,7 +1,9 @@
-"""Export a service store (products with estimates, or rejections) to Parquet or CSV.
+"""Export a service store (products with estimates, rejections or sensor messages) to
+Parquet or CSV.
 
 >>> import tempfile, os
->>> from formtwin.service.store import Store
+>>> from formtwin.service.sensors import MEASUREMENTS_DDL
+from formtwin.service.store import Store
 >>> d = tempfile.mkdtemp(); Store(os.path.join(d, "s.sqlite")).close()
 >>> export_store(os.path.join(d, "s.sqlite"), os.path.join(d, "e.csv"))[1]
 0
@@ -10,9 +12,11 @@
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 from typing import Any
 
+from formtwin.service.sensors import MEASUREMENTS_DDL
 from formtwin.service.store import Store
 
 
@@ -30,6 +34,7 @@ def product_table(store: Store, curves: bool = False) -> dict[str, list[Any]]:
                         or [None, None])
             break
     n_t = rows[0].curve.size if rows else 0
+    camera = any((r.estimate or {}).get("final") for r in rows)
 
     def put(key: str, value: Any) -> None:
         cols.setdefault(key, []).append(value)
@@ -62,6 +67,12 @@ def product_table(store: Store, curves: bool = False) -> dict[str, list[Any]]:
         put("fit_distance2", fit.get("distance2"))
         put("fit_quantile", fit.get("quantile"))
         put("model_mismatch", (e.get("flags") or {}).get("model_mismatch"))
+        if camera:  # the final angle's prediction and interval issued for the camera
+            final = e.get("final") or {}
+            lo, hi = final.get("interval90_deg") or (None, None)
+            put("final_predicted_deg", final.get("predicted_deg"))
+            put("final_lo90_deg", lo)
+            put("final_hi90_deg", hi)
         if curves:
             for j in range(n_t):
                 put(f"f{j}", float(r.curve[j]))
@@ -75,9 +86,31 @@ def rejection_table(store: Store) -> dict[str, list[Any]]:
     return {k: [r[i] for r in rows] for i, k in enumerate(keys)}
 
 
+def measurement_table(store: Store) -> dict[str, list[Any]]:
+    """Column name -> values, one row per stored sensor message (in arrival order): part
+    id, sensor, value, status, the product's step index, the seq of the product it
+    followed, the fusion's log evidence and, for a camera, the prediction issued for its
+    product (``predicted_deg``, ``lo90_deg``, ``hi90_deg``)."""
+    store.ensure_tables(MEASUREMENTS_DDL)
+    rows = store.query("SELECT id, received_at, part_id, sensor, value, status, product, "
+                       "at_seq, message FROM measurements ORDER BY id")
+    cols: dict[str, list[Any]] = {k: [] for k in (
+        "id", "received_at", "part_id", "sensor", "value", "status", "index", "at_seq",
+        "log_evidence", "predicted_deg", "lo90_deg", "hi90_deg")}
+    for rid, t, pid, sensor, value, status, index, at, text in rows:
+        msg = json.loads(text)
+        lo, hi = msg.get("interval90_deg") or (None, None)
+        for k, v in zip(cols, (rid, t, pid, sensor, value, status, index, at,
+                               msg.get("log_evidence"), msg.get("predicted_deg"), lo, hi),
+                        strict=True):
+            cols[k].append(v)
+    return cols
+
+
 def export_store(store_path: str | Path, out: str | Path, curves: bool = False,
-                 rejections: bool = False) -> tuple[Path, int]:
-    """Write the store's products (or rejections) to ``out`` (.parquet or .csv).
+                 rejections: bool = False, measurements: bool = False) -> tuple[Path, int]:
+    """Write the store's products (or rejections, or sensor messages) to ``out``
+    (.parquet or .csv).
 
     Returns
     -------
@@ -91,7 +124,8 @@ def export_store(store_path: str | Path, out: str | Path, curves: bool = False,
         raise ValueError(f"{op}: unknown export format {suffix!r} (expected .parquet or .csv)")
     store = Store(sp)
     try:
-        table = rejection_table(store) if rejections else product_table(store, curves)
+        table = rejection_table(store) if rejections else measurement_table(store) \
+            if measurements else product_table(store, curves)
     finally:
         store.close()
     n = len(next(iter(table.values()), []))

@@ -71,6 +71,13 @@ REASONS: dict[str, str] = {
     "out_of_order": "cycle count not greater than the last accepted cycle",
     "tracker_rejected": "the tracker refused the curve",
     "outlier_gated": "curve gated as a single outlier (robust mode); state not updated",
+    "unknown_sensor": "sensor message for a sensor this service does not fuse",
+    "duplicate_measurement": "sensor value of a (part id, sensor) already stored with "
+                             "another value",
+    "hold_full": "sensor value for a product not yet seen, and the hold is full",
+    "hold_expired": "held sensor value whose product did not come in time (a notice)",
+    "fusion_rejected": "the tracker refused the sensor value (e.g. no particle explains it)",
+    "product_gated": "sensor value of a product gated as an outlier (not in the tracker)",
 }
 
 _PART_ID_MAX = 128
@@ -79,7 +86,7 @@ CYCLE_MAX = 2**63 - 1
 
 
 class MessageError(ValueError):
-    """A stroke message was rejected; ``reason`` is a key of :data:`REASONS`."""
+    """A stroke or sensor message was rejected; ``reason`` is a key of :data:`REASONS`."""
 
     def __init__(self, reason: str, detail: str, part_id: str | None = None) -> None:
         if reason not in REASONS:

@@ -9,10 +9,13 @@ it had already committed (same part id, same curve) and answers them with the st
 estimate instead of counting them twice. Answers are published with QoS 1: a kill can
 double an answer but never lose one, and consumers de-duplicate by ``part_id``.
 
-Only its own stroke topic. A persistent session keeps its subscriptions and queued
+Sensor messages (:mod:`formtwin.service.sensors`) come on their own topic,
+:attr:`Topics.sensors`, on the same session and with the same guarantees.
+
+Only its own input topics. A persistent session keeps its subscriptions and queued
 messages across runs: a session id once used on another topic (a ``serve --check`` on a
 test topic, an older configuration) would deliver that topic's strokes to this service.
-A message on any other topic than :attr:`Topics.strokes` is acknowledged (so the broker
+A message on any other topic than :attr:`Topics.inputs` is acknowledged (so the broker
 drops it), never processed, counted in :attr:`MqttService.foreign`, and its topic is
 unsubscribed from the session. ``serve --check`` runs on a clean session of its own id
 (:func:`check_client_id`), which the broker discards when the check disconnects.
@@ -35,6 +38,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from formtwin.service.messages import Stroke, dumps
 from formtwin.service.processor import Outcome, Processor
+from formtwin.service.sensors import Reading
 
 log = logging.getLogger(__name__)
 
@@ -111,17 +115,25 @@ class Topics:
     results: str
     errors: str
     alarms: str = ""
+    #: sensor messages (:mod:`formtwin.service.sensors`); "" : none
+    sensors: str = ""
 
     @classmethod
     def from_input(cls, topic: str, results: str | None = None,
-                   errors: str | None = None, alarms: str | None = None) -> Topics:
-        """Topics from the stroke topic and optional results/errors/alarms topics (default:
-        siblings ``estimate``, ``errors`` and ``alarms``)."""
+                   errors: str | None = None, alarms: str | None = None,
+                   sensors: str | None = None) -> Topics:
+        """Topics from the stroke topic and optional results/errors/alarms/sensor topics
+        (default: siblings ``estimate``, ``errors``, ``alarms`` and ``sensor``)."""
         if not topic or any(c in topic for c in "#+\x00"):
             raise ValueError(f"topic {topic!r}: expected a plain topic without wildcards")
         base = topic.rsplit("/", 1)[0] + "/" if "/" in topic else ""
         return cls(topic, results or base + "estimate", errors or base + "errors",
-                   alarms or base + "alarms")
+                   alarms or base + "alarms", sensors or base + "sensor")
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The topics the service subscribes to: strokes, and sensor messages if any."""
+        return (self.strokes, self.sensors) if self.sensors else (self.strokes,)
 
 
 class MqttService:
@@ -172,14 +184,14 @@ class MqttService:
             self.refused = str(rc)
             self._answered.set()
             return
-        client.subscribe(self.topics.strokes, qos=1)
+        client.subscribe([(t, 1) for t in self.topics.inputs])
         log.info("connected to %s:%d, subscribing to %s", self.broker.host, self.broker.port,
-                 self.topics.strokes)
+                 ", ".join(self.topics.inputs))
 
     def _on_subscribe(self, client: mqtt.Client, userdata: Any, mid: int, rcs: Any,
                       props: Any = None) -> None:
         if any(getattr(rc, "is_failure", False) for rc in rcs):
-            log.error("broker refused the subscription to %s: %s", self.topics.strokes, rcs)
+            log.error("broker refused the subscription to %s: %s", self.topics.inputs, rcs)
             self.refused = f"subscription refused: {rcs}"
             self._answered.set()
             return
@@ -199,20 +211,22 @@ class MqttService:
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         if self.fatal is not None:
             return  # stopping: leave the stroke unacknowledged for the next start
-        if msg.topic != self.topics.strokes:  # an old subscription of a persistent session
+        if msg.topic not in self.topics.inputs:  # an old subscription of a persistent session
             if msg.qos > 0:
                 client.ack(msg.mid, msg.qos)
             if self.foreign == 0 or msg.topic not in self._dropped:
-                log.warning("ignoring messages on %s (not the stroke topic %s: an earlier "
+                log.warning("ignoring messages on %s (not an input topic %s: an earlier "
                             "subscription of session %s); unsubscribing", msg.topic,
-                            self.topics.strokes, self.client_id)
+                            ", ".join(self.topics.inputs), self.client_id)
                 client.unsubscribe(msg.topic)
                 self._dropped.add(msg.topic)
             self.foreign += 1
             return
         t0 = time.perf_counter()
         try:
-            out: Outcome = self.processor.handle(bytes(msg.payload), msg.topic)
+            handle = self.processor.handle_sensor if msg.topic == self.topics.sensors \
+                else self.processor.handle
+            out: Outcome = handle(bytes(msg.payload), msg.topic)
             for alarm in out.alarms:  # before the answer: acknowledged once it is in
                 client.publish(self.topics.alarms or self.topics.errors, dumps(alarm), qos=1)
             for note in out.notices:  # model_mismatch: once per episode, errors topic
@@ -280,14 +294,15 @@ def check_client_id(client_id: str) -> str:
     return f"{client_id}-check-{os.getpid()}"
 
 
-def publish_strokes(strokes: Iterable[Stroke], broker: BrokerConfig, topic: str,
+def publish_strokes(strokes: Iterable[Stroke | Reading], broker: BrokerConfig, topic: str,
                     rate: float = 0.0, client_id: str = "",
                     on_sent: Callable[[Stroke, float], None] | None = None,
-                    max_seconds: float | None = None) -> int:
-    """Publish strokes with QoS 1 (``rate`` per second; 0 = as fast as possible).
+                    max_seconds: float | None = None, sensor_topic: str = "") -> int:
+    """Publish strokes with QoS 1 (``rate`` per second; 0 = as fast as possible), and
+    the sensor readings among them, in their order, on ``sensor_topic``.
 
-    Returns the number published. ``on_sent(stroke, t_publish)`` is called after each
-    publish (the benchmark measures latency from there).
+    Returns the number of strokes published. ``on_sent(stroke, t_publish)`` is called
+    after each stroke's publish (the benchmark measures latency from there).
     """
     client = make_client(broker, client_id or f"formtwin-replay-{time.time_ns()}")
     answered = threading.Event()
@@ -311,6 +326,11 @@ def publish_strokes(strokes: Iterable[Stroke], broker: BrokerConfig, topic: str,
         t0 = time.perf_counter()
         last = None
         for s in strokes:
+            if isinstance(s, Reading):
+                if not sensor_topic:
+                    raise ValueError("sensor readings to publish, but no sensor topic")
+                last = client.publish(sensor_topic, dumps(s.to_message()), qos=1)
+                continue
             if rate > 0:
                 delay = t0 + n / rate - time.perf_counter()
                 if delay > 0:

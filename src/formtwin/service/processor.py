@@ -15,13 +15,13 @@ For every message :meth:`Processor.handle`
 A process killed at any instant restarts from a store in which every product is either
 fully in (and its redelivery is recognised) or not at all; the tracker is restored from the
 last checkpoint and stepped again through the curves stored after it
-(:func:`formtwin.service.runtime.replay`: the steps are deterministic), so a product not
+(:func:`formtwin.service.restore.replay`: the steps are deterministic), so a product not
 yet in is processed from the same tracker state, giving bit-for-bit the same estimate.
+Sensor messages (:meth:`Processor.handle_sensor`) go to :mod:`formtwin.service.sensors`.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import sqlite3
 import threading
@@ -45,6 +45,8 @@ from formtwin.service.messages import (
     estimate_message,
     parse_stroke,
 )
+from formtwin.service.restore import replay
+from formtwin.service.sensors import SensorDesk, issue, refuse
 from formtwin.service.store import Store
 
 log = logging.getLogger(__name__)
@@ -102,31 +104,6 @@ class TrackerLike(Protocol):
     def load_state_bytes(self, data: bytes) -> None:
         """Continue from bytes made by :meth:`state_bytes`."""
         ...
-
-
-def replay(store: Store, tracker: TrackerLike) -> int:
-    """Restore ``tracker`` from the store's last checkpoint (if any) and step it through
-    the curves (and press settings) of the accepted products stored after it, in commit
-    order; return how many were stepped. The steps are deterministic, so the tracker ends
-    in the state it had after the last stored product (at a restart, and to undo a gated
-    or failed step); an estimate the replay does not reproduce (its log-likelihood) is
-    logged as an error."""
-    ck = store.checkpoint()
-    if ck is not None:
-        tracker.load_state_bytes(ck[1])
-        log.info("restored tracker from checkpoint of product seq %d", ck[0])
-    n = 0
-    for row in store.products(since_seq=0 if ck is None else ck[0], status="accepted"):
-        stored = row.estimate or {}
-        u = stored.get("u")
-        est = tracker.step(row.curve, None if u is None else np.asarray(u, dtype=np.float64))
-        n += 1
-        if "loglik" in stored and float(est.loglik) != stored["loglik"]:
-            log.error("replaying product seq %d gave loglik %r, stored %r: the tracker does "
-                      "not continue bit for bit", row.seq, float(est.loglik), stored["loglik"])
-    if n:
-        log.info("replayed %d products stored after the checkpoint", n)
-    return n
 
 
 @dataclass(frozen=True)
@@ -220,6 +197,8 @@ class Processor:
             "SELECT COUNT(*) FROM products WHERE status = 'accepted' AND seq > ?",
             (0 if ck is None else ck[0],))[0][0])
         self.redelivered = 0
+        #: the sensor messages' part (:mod:`formtwin.service.sensors`)
+        self.sensors = SensorDesk(store, tracker, limits.max_bytes)
 
     def tracker_names(self) -> tuple[str, ...]:
         """Names of the estimated quantities (the tracker's, else the spec's)."""
@@ -246,13 +225,7 @@ class Processor:
                 m.rollback()
 
     def _reject(self, err: MessageError, payload: bytes, topic: str, now: float) -> Outcome:
-        digest = hashlib.sha256(payload).hexdigest()
-        fresh = self.store.add_rejection(payload_digest=digest, reason=err.reason,
-                                         detail=err.detail, part_id=err.part_id,
-                                         received_at=now)
-        log.warning("rejected message on %s (%s): %s%s", topic, err.reason, err.detail,
-                    "" if fresh else " [redelivered, counted once]")
-        return Outcome("rejected", error_message(err, topic, now), err.part_id)
+        return Outcome("rejected", refuse(self.store, err, payload, topic, now), err.part_id)
 
     def _emit(self, out: Outcome) -> Outcome:
         if self.on_outcome is not None:
@@ -270,6 +243,20 @@ class Processor:
         now = time.time() if received_at is None else received_at
         with self._lock:
             return self._emit(self._handle(payload, topic, now))
+
+    def handle_sensor(self, payload: bytes, topic: str = "",
+                      received_at: float | None = None) -> Outcome:
+        """Process one sensor message (:meth:`SensorDesk.handle`): kind fused, held,
+        too_late, redelivered or rejected (never raises for bad input; storage errors
+        propagate after the tracker has been restored)."""
+        now = time.time() if received_at is None else received_at
+        with self._lock:
+            try:
+                kind, msg = self.sensors.handle(payload, topic, now, self._next_seq - 1)
+            except BaseException:
+                replay(self.store, self.tracker)
+                raise
+            return self._emit(Outcome(kind, msg, msg.get("part_id")))
 
     def _handle(self, payload: bytes, topic: str, now: float) -> Outcome:
         try:
@@ -356,6 +343,10 @@ class Processor:
         msg = estimate_message(stroke, est.to_dict(), seq=-1, flags=flags)
         seq = self._next_seq
         msg["seq"] = seq
+        u = None if stroke.u is None else [float(v) for v in stroke.u]
+        if self.sensors.active:  # what went in, and the final angle's calibrated interval
+            msg["measurements"] = self.sensors.since_last()
+            msg["final"] = issue(self.tracker, stroke.u)
         if self.health is not None:
             msg["peak_force_N"] = float(np.max(stroke.force_N))
             msg["model_health"] = self.health.observe(msg, stroke.force_N)
@@ -373,6 +364,9 @@ class Processor:
             if self.health is not None:
                 notices[:] = self.health.write(cur, seq, stroke.part_id, msg["model_health"],
                                                now)
+            if self.sensors.active:
+                notices.extend(self.sensors.at_product(cur, seq, stroke.part_id, msg["index"],
+                                                       u, msg["final"]))
 
         save = self._unsaved + 1 >= self.checkpoint_every
         ckpt = self.tracker.state_bytes() if save else None
@@ -386,6 +380,7 @@ class Processor:
             raise RuntimeError(f"store sequence {got} != expected {seq}: is another "
                                "service writing to the same store?")
         self._unsaved = 0 if save else self._unsaved + 1
+        self.sensors.committed(seq)
         self._last_cycle = stroke.cycle
         self._next_seq = seq + 1
         if self.gate is not None:

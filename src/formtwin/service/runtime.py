@@ -28,7 +28,8 @@ from formtwin.service.gate import OutlierGate
 from formtwin.service.health import HealthRule, ModelHealth, chi2_quantile
 from formtwin.service.messages import Limits
 from formtwin.service.plausibility import CLIP_SAMPLES, Plausibility
-from formtwin.service.processor import Processor, replay
+from formtwin.service.processor import Processor
+from formtwin.service.restore import replay
 from formtwin.service.store import Store
 from formtwin.tracker import Tracker, TrackerConfig, build_measurement, build_tracker
 from formtwin.tracker.explain import best_distance2, default_starts

@@ -23,6 +23,7 @@ import csv
 from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +32,9 @@ from formtwin.deviation import DeviationModel
 from formtwin.measurement import ProcessModel
 from formtwin.production import draw_production_run
 from formtwin.service.messages import Stroke, stroke_digest
+from formtwin.service.sensors import Reading
 from formtwin.spec import ProcessSpec
+from formtwin.spec.sensors import output_column
 
 FloatArray = NDArray[np.float64]
 
@@ -40,7 +43,8 @@ _T0 = datetime(2026, 1, 1, tzinfo=UTC)
 
 def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
                 spec: ProcessSpec | None = None, deviation: bool = True,
-                period_s: float = 0.5, model: ProcessModel | None = None) -> Path:
+                period_s: float = 0.5, model: ProcessModel | None = None,
+                sensors: tuple[str, ...] = ()) -> Path:
     """Write ``n`` synthetic strokes to an ``.npz`` stream file and return its path.
 
     Parameters
@@ -61,6 +65,11 @@ def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
         Nominal time between strokes (for the timestamps), s.
     model : ProcessModel, optional
         The model making the curves and angles; default the analytic stand-in.
+    sensors : tuple of str
+        The spec's ``[[sensor]]`` entries to draw for every product besides the curve
+        (the measured state variable or model output plus the sensor's Gaussian noise),
+        saved as ``sensor_<name> (n,)`` and sent by ``formtwin replay`` as sensor messages
+        (:func:`read_readings`).
     """
     if n < 1:
         raise ValueError(f"n = {n}, expected >= 1")
@@ -79,9 +88,16 @@ def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
     cycles = np.arange(1, n + 1, dtype=np.int64)
     stamps = [(_T0 + timedelta(seconds=period_s * float(c))).isoformat().replace("+00:00", "Z")
               for c in cycles]
+    extra: dict[str, Any] = {}
+    srng = np.random.default_rng(np.random.SeedSequence([seed, 11]))
+    for name in sensors:
+        sensor = spec.sensor(name)
+        true = X[:, spec.state.index[sensor.measures]] if sensor.kind == "state" else \
+            angles[:, output_column(spec, sensor.measures)]
+        extra[f"sensor_{name}"] = true + sensor.noise * srng.standard_normal(n)
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(out, curves=curves, angles=angles, part_ids=np.array(
+    np.savez(out, **extra, curves=curves, angles=angles, part_ids=np.array(
         [f"P{seed:03d}-{c:07d}" for c in cycles]), cycles=cycles,
         timestamps=np.array(stamps), truth=np.hstack([X, np.tile(theta_d, (n, 1))]),
         names=np.array(spec.augmented.names), mu=run.mu)
@@ -168,3 +184,44 @@ def read_stream(path: str | Path, source: str = "gFE") -> list[Stroke]:
         stamps = [r.get("timestamp") or d_stamps[i] for i, r in enumerate(rows)]
         return list(_strokes(curves, angles, ids, cycles, stamps))
     raise ValueError(f"{p}: unknown stream format {suffix!r} (expected .npz, .nc or .csv)")
+
+
+def read_readings(path: str | Path, spec: ProcessSpec | None = None
+                  ) -> list[tuple[int, Reading]]:
+    """The sensor values of an ``.npz`` stream (arrays ``sensor_<name> (n,)``, NaN: none)
+    as ``(k, reading)``: sent after the ``k``-th stroke, ``k`` the product plus the
+    sensor's delay in ``spec`` (default the demonstrator's; the last stroke at the most)."""
+    p = Path(path)
+    if p.suffix.lower() != ".npz":
+        return []
+    if spec is None:
+        from formtwin.spec import load_spec
+
+        spec = load_spec()
+    delays = {s.name: s.delay for s in spec.sensors}
+    out: list[tuple[int, Reading]] = []
+    with np.load(p, allow_pickle=False) as z:
+        n = int(z["curves"].shape[0])
+        ids = [str(s) for s in z["part_ids"]] if "part_ids" in z else _defaults(n, p.stem)[0]
+        for key in sorted(k for k in z.files if k.startswith("sensor_")):
+            name = key[len("sensor_"):]
+            for i, v in enumerate(np.asarray(z[key], dtype=np.float64)):
+                if np.isfinite(v):
+                    out.append((min(i + delays.get(name, 0), n - 1),
+                                Reading(ids[i], name, float(v))))
+    out.sort(key=lambda t: t[0])  # stable: by product within a position
+    return out
+
+
+def interleave(strokes: list[Stroke], readings: list[tuple[int, Reading]], start: int = 0
+               ) -> list[Stroke | Reading]:
+    """``strokes`` (the stream's from its ``start``-th) with each reading after the stroke
+    it is due after (:func:`read_readings`); readings due outside them are left out."""
+    by: dict[int, list[Reading]] = {}
+    for k, r in readings:
+        by.setdefault(k - start, []).append(r)
+    out: list[Stroke | Reading] = []
+    for k, s in enumerate(strokes):
+        out.append(s)
+        out.extend(by.get(k, ()))
+    return out

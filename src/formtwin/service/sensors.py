@@ -1,0 +1,400 @@
+"""Sensor messages on their own topic: the line's values besides the curve, late and in
+any order.
+
+Sensor (line -> formtwin), schema ``formtwin.sensor/1``::
+
+    {"schema": "formtwin.sensor/1", "part_id": "P-000123", "sensor": "camera",
+     "value": 86.41,                    # in the measured quantity's internal unit
+                                        # (mm for thickness, degrees for an angle)
+     "timestamp": "2026-11-21T23:59:59.9Z"}   # optional
+
+Each value is one of the spec's ``[[sensor]]`` entries that the service fuses
+(``[tracker] sensors``), of one product, keyed by ``(part_id, sensor)``. What happens to
+it, each case stored once (table ``measurements``) in the same SQLite transaction as its
+effect on the tracker:
+
+* the product is one of the last ``L + 1`` the tracker stepped (``L``: the tracker's
+  ``sensor_lag``): **fused** (:meth:`~formtwin.tracker.Tracker.fuse`), late and out of
+  order alike; the next estimate lists it in ``measurements``;
+* the product is older: **too_late**, stored and flagged, not fused;
+* the product is not yet seen: **held**, and fused in the transaction of its stroke when
+  the curve arrives (listed by the estimate after it). At most :data:`HOLD_COUNT` values
+  are held (one more is rejected, ``hold_full``), each for at most :data:`HOLD_PRODUCTS`
+  products (then it is stored as **expired** with a ``hold_expired`` notice on the errors
+  topic). Both bounds count messages and products, never wall time, so a restarted
+  service decides exactly as an uninterrupted one;
+* the same ``(part_id, sensor)`` again with the same value: acknowledged with the stored
+  answer (``redelivered``), no second effect; with another value: rejected,
+  ``duplicate_measurement``;
+* an unknown sensor, a non-finite value, a malformed message, a product the gate kept out
+  of the tracker, a value no particle explains: rejected with its reason
+  (:data:`formtwin.service.messages.REASONS`).
+
+The answer, schema ``formtwin.measurement/1`` on the results topic: the message's fields,
+``status`` (fused, held, too_late), the product's step ``index`` when known, the fusion's
+``log_evidence``, and for a sensor of the final angle the prediction the twin issued for
+that product (``predicted_deg`` and the camera-calibrated ``interval90_deg``).
+
+A restart restores the tracker from its checkpoint and replays the stored curves and, in
+their original order, the fusions stored after it (:func:`fused_after`), so the estimates
+continue bit for bit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import sqlite3
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from formtwin.service.messages import MessageError, dumps, error_message
+from formtwin.service.store import Store
+
+log = logging.getLogger(__name__)
+
+SENSOR_SCHEMA = "formtwin.sensor/1"
+MEASUREMENT_SCHEMA = "formtwin.measurement/1"
+
+#: at most this many values are held for products not yet seen (a strip gauge upstream of
+#: the die runs a few products ahead of the press; 64 covers two sensors 32 products ahead)
+HOLD_COUNT = 64
+#: a held value whose curve has not come after this many more products is expired
+HOLD_PRODUCTS = 32
+
+#: the model output a camera measures (the final angle)
+FINAL = "angle_stage2"
+
+MEASUREMENTS_DDL = """
+CREATE TABLE IF NOT EXISTS measurements (
+    id INTEGER PRIMARY KEY,
+    part_id TEXT NOT NULL,
+    sensor TEXT NOT NULL,
+    value REAL NOT NULL,
+    status TEXT NOT NULL,
+    at_seq INTEGER NOT NULL,
+    product INTEGER,
+    u TEXT,
+    received_at REAL NOT NULL,
+    message TEXT NOT NULL,
+    UNIQUE (part_id, sensor)
+);
+CREATE INDEX IF NOT EXISTS measurements_status_seq ON measurements (status, at_seq);
+"""
+
+_PART_ID_MAX = 128
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One validated sensor message: ``value`` in internal units."""
+
+    part_id: str
+    sensor: str
+    value: float
+    timestamp: str | None = None
+
+    def to_message(self) -> dict[str, Any]:
+        """The reading as a ``formtwin.sensor/1`` JSON object."""
+        msg: dict[str, Any] = {"schema": SENSOR_SCHEMA, "part_id": self.part_id,
+                               "sensor": self.sensor, "value": self.value}
+        if self.timestamp is not None:
+            msg["timestamp"] = self.timestamp
+        return msg
+
+
+def _reject_constant(name: str) -> float:
+    raise MessageError("non_finite", f"JSON literal {name} is not a finite number")
+
+
+def parse_reading(payload: bytes, sensors: tuple[str, ...], max_bytes: int = 65536
+                  ) -> Reading:
+    """Parse and validate one sensor payload; ``sensors`` are the names the service fuses.
+
+    Raises
+    ------
+    MessageError
+        ``oversized``, ``malformed_json``, ``unknown_schema``, ``missing_field``,
+        ``bad_field``, ``non_finite`` or ``unknown_sensor``, naming the field, the value and
+        what was expected.
+    """
+    if len(payload) > max_bytes:
+        raise MessageError("oversized", f"{len(payload)} bytes > limit {max_bytes}")
+    try:
+        doc = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)
+    except MessageError:
+        raise
+    except (ValueError, RecursionError) as exc:
+        raise MessageError("malformed_json", f"{type(exc).__name__}: {exc}"[:200]) from None
+    if not isinstance(doc, dict):
+        raise MessageError("malformed_json", f"top level is {type(doc).__name__}, not object")
+    if doc.get("schema") != SENSOR_SCHEMA:
+        raise MessageError("unknown_schema", f"schema {doc.get('schema')!r:.60}, expected "
+                           f"{SENSOR_SCHEMA!r}")
+    raw = doc.get("part_id")
+    part_id = raw if isinstance(raw, str) and 0 < len(raw) <= _PART_ID_MAX \
+        and raw.isprintable() else None
+    for key in ("part_id", "sensor", "value"):
+        if key not in doc:
+            raise MessageError("missing_field", f"field {key!r} is required", part_id)
+    if part_id is None:
+        raise MessageError("bad_field", f"part_id must be a printable string of 1.."
+                           f"{_PART_ID_MAX} characters, got {raw!r:.60}")
+    sensor, value = doc["sensor"], doc["value"]
+    if not isinstance(sensor, str):
+        raise MessageError("bad_field", f"sensor must be a string, got {sensor!r:.40}",
+                           part_id)
+    if sensor not in sensors:
+        raise MessageError("unknown_sensor", f"sensor {sensor!r:.60} is not fused by this "
+                           f"service (tracker sensors: {', '.join(sensors) or 'none'})",
+                           part_id)
+    if type(value) not in (int, float):
+        raise MessageError("bad_field", f"value must be a number, got {value!r:.40}", part_id)
+    try:
+        v = float(value)
+    except OverflowError:
+        raise MessageError("non_finite", "value is an integer too large for float64",
+                           part_id) from None
+    if not math.isfinite(v):
+        raise MessageError("non_finite", f"value is {v}", part_id)
+    ts = doc.get("timestamp")
+    return Reading(part_id, sensor, v, None if ts is None else str(ts)[:64])
+
+
+def issue(tracker: Any, u: Any) -> dict[str, Any] | None:
+    """The twin's prediction of the current product's measured final angle, issued right
+    after its step (and again in the same place by a replay: it records the interval its
+    camera value will score): ``{"predicted_deg", "interval90_deg"}``, or None when no
+    sensor of the final angle is fused."""
+    if not any(s.measures == FINAL for s in fused_sensors(tracker)):
+        return None
+    p = tracker.posterior(u)
+    lo, hi = p.final_interval
+    ok = all(math.isfinite(v) for v in (p.final_mean, lo, hi))
+    return {"predicted_deg": float(p.final_mean) if ok else None,
+            "interval90_deg": [float(lo), float(hi)] if ok else None}
+
+
+def fused_sensors(tracker: Any) -> tuple[Any, ...]:
+    """The spec's sensors the tracker fuses (none for a tracker without sensor fusion)."""
+    config, spec = getattr(tracker, "config", None), getattr(tracker, "spec", None)
+    if config is None or spec is None or not getattr(config, "sensors", ()):
+        return ()
+    from formtwin.tracker.fusion import used_sensors
+
+    return used_sensors(spec, config)
+
+
+def fused_after(store: Store, seq: int) -> dict[int, list[tuple[str, float, int, Any]]]:
+    """The fusions stored after product ``seq`` (``at_seq >= seq``), by the product seq
+    they follow, in their order: ``(sensor, value, product index, u)``."""
+    store.ensure_tables(MEASUREMENTS_DDL)
+    rows = store.query("SELECT at_seq, sensor, value, product, u FROM measurements WHERE "
+                       "status = 'fused' AND at_seq >= ? ORDER BY at_seq, id", (seq,))
+    out: dict[int, list[tuple[str, float, int, Any]]] = {}
+    for at, sensor, value, product, u in rows:
+        out.setdefault(int(at), []).append(
+            (str(sensor), float(value), int(product), None if u is None else json.loads(u)))
+    return out
+
+
+def refuse(store: Store, err: MessageError, payload: bytes, topic: str, now: float
+           ) -> dict[str, Any]:
+    """Record a rejected message (once per payload) and return its error message."""
+    digest = hashlib.sha256(payload).hexdigest()
+    fresh = store.add_rejection(payload_digest=digest, reason=err.reason, detail=err.detail,
+                                part_id=err.part_id, received_at=now)
+    log.warning("rejected message on %s (%s): %s%s", topic, err.reason, err.detail,
+                "" if fresh else " [redelivered, counted once]")
+    return error_message(err, topic, now)
+
+
+class SensorDesk:
+    """The sensor messages' part of the processor (called under its lock).
+
+    Parameters
+    ----------
+    store : Store
+        The service's store (the ``measurements`` table is created in it).
+    tracker : Tracker
+        The service's tracker; its ``config.sensors`` are the sensors fused.
+    max_bytes : int
+        Largest accepted payload, bytes.
+    """
+
+    def __init__(self, store: Store, tracker: Any, max_bytes: int = 65536) -> None:
+        store.ensure_tables(MEASUREMENTS_DDL)
+        self.store = store
+        self.tracker = tracker
+        self.max_bytes = max_bytes
+        self.sensors = {s.name: s for s in fused_sensors(tracker)}
+        self.lag = int(getattr(getattr(tracker, "ssm", None), "lag_depth", 0))
+        row = store.query("SELECT COALESCE(MAX(seq), 0) FROM products WHERE status = "
+                          "'accepted'")
+        #: seq of the last accepted product (the fusions after it go into the next estimate)
+        self.last_accepted = int(row[0][0])
+
+    @property
+    def active(self) -> bool:
+        """Whether the tracker fuses any sensor."""
+        return bool(self.sensors)
+
+    # ----------------------------------------------------------------- a sensor message
+    def handle(self, payload: bytes, topic: str, now: float, last_seq: int
+               ) -> tuple[str, dict[str, Any]]:
+        """Process one sensor payload; ``last_seq`` is the seq of the last stored product.
+        Returns ``(kind, message)``: kind ``fused``, ``held``, ``too_late``, ``redelivered``
+        (the stored answer) or ``rejected`` (the error message)."""
+        try:
+            r = parse_reading(payload, tuple(self.sensors), self.max_bytes)
+        except MessageError as err:
+            return "rejected", refuse(self.store, err, payload, topic, now)
+        old = self.store.query("SELECT value, message FROM measurements WHERE part_id = ? "
+                               "AND sensor = ?", (r.part_id, r.sensor))
+        if old:
+            if float(old[0][0]) == r.value:
+                msg = dict(json.loads(old[0][1]), redelivered=True)
+                return "redelivered", msg
+            return "rejected", refuse(self.store, MessageError(
+                "duplicate_measurement", f"{r.sensor} of part {r.part_id!r} already stored "
+                f"with value {float(old[0][0])!r}, now {r.value!r}", r.part_id),
+                payload, topic, now)
+        prod = self.store.product(r.part_id)
+        if prod is None:
+            return self._hold(r, payload, topic, now, last_seq)
+        if prod.status != "accepted" or prod.estimate is None:
+            return "rejected", refuse(self.store, MessageError(
+                "product_gated", f"part {r.part_id!r} was gated as an outlier: not in the "
+                "tracker, its sensor values are not fused", r.part_id), payload, topic, now)
+        index = int(prod.estimate["index"])
+        u = prod.estimate.get("u")
+        newest = int(self.tracker.n_steps) - 1
+        msg = self._answer(r, index, prod.estimate)
+        if index < newest - self.lag:
+            msg["status"] = "too_late"
+            msg["detail"] = (f"product {index} is more than L = {self.lag} products before "
+                             f"the newest ({newest}): stored, not fused")
+            self._insert(r, "too_late", last_seq, index, u, now, msg)
+            log.warning("%s of part %s too late: %s", r.sensor, r.part_id, msg["detail"])
+            return "too_late", msg
+        try:
+            with self.store.transaction() as cur:
+                msg["log_evidence"] = self._fuse(r.sensor, r.value, index, u)
+                msg["status"] = "fused"
+                self._insert(r, "fused", last_seq, index, u, now, msg, cur)
+        except MessageError as err:
+            return "rejected", refuse(self.store, err, payload, topic, now)
+        return "fused", msg
+
+    def _fuse(self, sensor: str, value: float, index: int, u: Any) -> float:
+        """Fuse into the tracker; a refusal becomes ``fusion_rejected`` (tracker untouched)."""
+        from formtwin.tracker.fusion import FusionError
+
+        try:
+            return float(self.tracker.fuse(index, sensor, value, u=_setting(u)))
+        except FusionError as exc:
+            raise MessageError("fusion_rejected", str(exc)[:300]) from None
+
+    def _answer(self, r: Reading, index: int | None, estimate: dict[str, Any] | None
+                ) -> dict[str, Any]:
+        msg: dict[str, Any] = {"schema": MEASUREMENT_SCHEMA, "part_id": r.part_id,
+                               "sensor": r.sensor, "value": r.value, "index": index}
+        if r.timestamp is not None:
+            msg["timestamp"] = r.timestamp
+        if self.sensors[r.sensor].measures == FINAL and estimate is not None:
+            final = estimate.get("final") or {}
+            msg["predicted_deg"] = final.get("predicted_deg")
+            msg["interval90_deg"] = final.get("interval90_deg")
+        return msg
+
+    def _hold(self, r: Reading, payload: bytes, topic: str, now: float, last_seq: int
+              ) -> tuple[str, dict[str, Any]]:
+        held = int(self.store.query("SELECT COUNT(*) FROM measurements WHERE status = "
+                                    "'held'")[0][0])
+        if held >= HOLD_COUNT:
+            return "rejected", refuse(self.store, MessageError(
+                "hold_full", f"part {r.part_id!r} not yet seen and {held} values already "
+                f"held (at most {HOLD_COUNT})", r.part_id), payload, topic, now)
+        msg = dict(self._answer(r, None, None), status="held")
+        self._insert(r, "held", last_seq, None, None, now, msg)
+        return "held", msg
+
+    def _insert(self, r: Reading, status: str, at_seq: int, index: int | None, u: Any,
+                now: float, msg: dict[str, Any], cur: sqlite3.Cursor | None = None) -> None:
+        sql = ("INSERT INTO measurements(part_id, sensor, value, status, at_seq, product, u, "
+               "received_at, message) VALUES (?,?,?,?,?,?,?,?,?)")
+        args = (r.part_id, r.sensor, r.value, status, at_seq, index,
+                None if u is None else json.dumps(u), now, dumps(msg).decode())
+        if cur is None:
+            self.store.execute(sql, args)
+        else:
+            cur.execute(sql, args)
+
+    # ----------------------------------------------------------------- a product's commit
+    def since_last(self) -> list[dict[str, Any]]:
+        """The values fused after the last accepted estimate (they went into the next)."""
+        rows = self.store.query("SELECT part_id, sensor, value FROM measurements WHERE "
+                                "status = 'fused' AND at_seq >= ? ORDER BY at_seq, id",
+                                (self.last_accepted,))
+        return [{"part_id": str(p), "sensor": str(s), "value": float(v)} for p, s, v in rows]
+
+    def at_product(self, cur: sqlite3.Cursor, seq: int, part_id: str, index: int, u: Any,
+                   final: dict[str, Any] | None) -> list[dict[str, Any]]:
+        """In the transaction of accepted product ``seq`` (already stepped, its estimate
+        issued with the final-angle prediction ``final``): fuse the values held for it,
+        expire the held values older than :data:`HOLD_PRODUCTS` products; return the
+        notices for the errors topic."""
+        notices: list[dict[str, Any]] = []
+        held = cur.execute("SELECT id, sensor, value, message FROM measurements WHERE "
+                           "status = 'held' AND part_id = ? ORDER BY id", (part_id,)).fetchall()
+        est = {"final": final}
+        for rid, sensor, value, text in held:
+            msg = dict(json.loads(text), index=index)
+            if self.sensors[str(sensor)].measures == FINAL:
+                msg.update({k: v for k, v in self._answer(
+                    Reading(part_id, str(sensor), float(value)), index, est).items()
+                    if k in ("predicted_deg", "interval90_deg")})
+            try:
+                msg["log_evidence"] = self._fuse(str(sensor), float(value), index, u)
+                msg["status"] = "fused"
+            except MessageError as err:
+                msg["status"], msg["detail"] = "rejected", err.detail
+                notices.append(error_message(MessageError(
+                    "fusion_rejected", f"held {sensor} of part {part_id!r}: {err.detail}",
+                    part_id), "held", 0.0))
+            cur.execute("UPDATE measurements SET status = ?, at_seq = ?, product = ?, u = ?, "
+                        "message = ? WHERE id = ?",
+                        (msg["status"], seq, index, None if u is None else json.dumps(u),
+                         dumps(msg).decode(), rid))
+        old = cur.execute("SELECT id, part_id, sensor FROM measurements WHERE status = "
+                          "'held' AND at_seq <= ? ORDER BY id",
+                          (seq - HOLD_PRODUCTS,)).fetchall()
+        for rid, pid, sensor in old:
+            cur.execute("UPDATE measurements SET status = 'expired' WHERE id = ?", (rid,))
+            notices.append(error_message(MessageError(
+                "hold_expired", f"{sensor} of part {pid!r} held for {HOLD_PRODUCTS} "
+                "products without its curve: stored as expired, not fused", str(pid)),
+                "held", 0.0))
+        return notices
+
+    def committed(self, seq: int) -> None:
+        """Accepted product ``seq`` is in."""
+        self.last_accepted = seq
+
+
+def replay_fusions(group: list[tuple[str, float, int, Any]], tracker: Any) -> None:
+    """Fuse a product's stored values again, in their order (a restart's replay)."""
+    for sensor, value, index, u in group:
+        tracker.fuse(index, sensor, value, u=_setting(u))
+
+
+def _setting(u: Any) -> Any:
+    """A product's press setting as the tracker gets it: None (nominal) or float64."""
+    return None if u is None else np.asarray(u, dtype=np.float64)
+
+__all__ = ["HOLD_COUNT", "HOLD_PRODUCTS", "MEASUREMENT_SCHEMA", "SENSOR_SCHEMA", "Reading",
+           "SensorDesk", "fused_after", "issue", "parse_reading", "replay_fusions"]

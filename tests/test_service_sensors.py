@@ -1,0 +1,286 @@
+"""Sensor messages in the broker-free service core: every case of formtwin.sensor/1 (late,
+out of order, duplicated, unknown, non-finite, malformed, held, expired, too late) with its
+stored status or reason, the estimates against the tracker called directly, restarts."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from formtwin.defaults import load_model
+from formtwin.measurement import MeasurementModel
+from formtwin.service import sensors as desk
+from formtwin.service.export import export_store
+from formtwin.service.messages import dumps
+from formtwin.service.processor import Outcome, Processor
+from formtwin.service.runtime import ServiceSettings, measurement_path, open_processor
+from formtwin.service.streams import make_stream, read_stream
+from formtwin.tracker import TrackerConfig, build_tracker
+
+#: a lag of 3: the camera (delay 1) may be up to 3 products late
+SETTINGS = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3,
+                                                 sensors=("gauge", "camera"), sensor_lag=3))
+N = 14
+
+
+@pytest.fixture(scope="module")
+def stream(tmp_path_factory: pytest.TempPathFactory) -> tuple[list[bytes], list[str], Any]:
+    """Stroke payloads, part ids and the stream file's sensor values."""
+    path = make_stream(tmp_path_factory.mktemp("stream") / "s.npz", N, seed=4,
+                       sensors=("gauge", "camera"))
+    strokes = read_stream(path)
+    with np.load(path) as z:
+        values = {"gauge": z["sensor_gauge"].copy(), "camera": z["sensor_camera"].copy()}
+    return [dumps(s.to_message()) for s in strokes], [s.part_id for s in strokes], values
+
+
+def reading(part_id: str, sensor: str, value: Any, **extra: Any) -> bytes:
+    return dumps({"schema": "formtwin.sensor/1", "part_id": part_id, "sensor": sensor,
+                  "value": value, **extra})
+
+
+def play(proc: Processor, items: list[tuple[str, bytes]]) -> list[Outcome]:
+    """``("s", stroke)`` or ``("m", sensor message)`` in order."""
+    return [proc.handle(p) if k == "s" else proc.handle_sensor(p) for k, p in items]
+
+
+def estimates(outs: list[Outcome]) -> list[dict[str, Any]]:
+    return [o.message for o in outs if o.kind == "accepted"]
+
+
+def rows(proc: Processor) -> list[tuple[Any, ...]]:
+    return proc.store.query("SELECT part_id, sensor, value, status FROM measurements "
+                            "ORDER BY id")
+
+
+def scenario(pay: list[bytes], ids: list[str], values: dict[str, Any]
+             ) -> list[tuple[str, bytes]]:
+    """The camera one to three products late and out of order (product 0's and the last
+    product's never come), the gauge after its curve or, for product 5, before it (held),
+    and a camera value redelivered."""
+    cameras = {2: [1], 4: [3, 2], 5: [4], 8: [7, 5, 6], 9: [8, 6]}
+    items: list[tuple[str, bytes]] = []
+    for k in range(N):
+        if k == 5:
+            items.append(("m", reading(ids[5], "gauge", float(values["gauge"][5]))))
+        items.append(("s", pay[k]))
+        if k != 5:
+            items.append(("m", reading(ids[k], "gauge", float(values["gauge"][k]))))
+        for j in cameras.get(k, [k - 1] if k >= 10 else []):
+            items.append(("m", reading(ids[j], "camera", float(values["camera"][j]))))
+    return items
+
+
+def direct(tmp: Path, pay: list[bytes], items: list[tuple[str, bytes]]) -> list[Any]:
+    """The same sequence on a tracker called directly (step, the interval issued, fuse),
+    skipping what the service stores without fusing: the reference of the orchestration."""
+    model = load_model("analytic")
+    tracker = build_tracker(model, SETTINGS.tracker,
+                            MeasurementModel.load(measurement_path(tmp / "a.sqlite")))
+    index: dict[str, int] = {}
+    seen: set[tuple[str, str]] = set()
+    held: dict[str, list[tuple[str, float]]] = {}
+    out = []
+    for kind, p in items:
+        m = json.loads(p)
+        if kind == "s":
+            est = tracker.step(np.array(m["force_N"]))
+            tracker.posterior(None)
+            index[m["part_id"]] = tracker.n_steps - 1
+            out.append(est.to_dict())
+            for sensor, value in held.pop(m["part_id"], []):
+                tracker.fuse(tracker.n_steps - 1, sensor, value)
+            continue
+        key = (m["part_id"], m["sensor"])
+        if key in seen:
+            continue
+        seen.add(key)
+        if m["part_id"] not in index:
+            held.setdefault(m["part_id"], []).append((m["sensor"], m["value"]))
+        elif index[m["part_id"]] >= tracker.n_steps - 1 - 3:
+            tracker.fuse(index[m["part_id"]], m["sensor"], m["value"])
+    return out
+
+
+def test_late_out_of_order_held_and_duplicates_match_the_tracker_called_directly(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any]) -> None:
+    pay, ids, values = stream
+    items = scenario(pay, ids, values)
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    outs = play(proc, items)
+    kinds = [o.kind for o in outs]
+    assert kinds.count("accepted") == N and "rejected" not in kinds
+    assert kinds.count("held") == 1 and kinds.count("redelivered") == 1
+    got = estimates(outs)
+    want = direct(tmp_path, pay, items)
+    for g, w in zip(got, want, strict=True):  # bit for bit: the same calls in the same order
+        assert g["mean"] == w["mean"] and g["loglik"] == w["loglik"], g["part_id"]
+    # every (part, sensor) stored once, with its status
+    stored = rows(proc)
+    assert len(stored) == len({(r[0], r[1]) for r in stored}) == 2 * N - 2
+    assert {r[3] for r in stored} == {"fused"}
+    # which measurements went into each estimate: those fused after the previous one
+    assert got[6]["measurements"] == [
+        {"part_id": ids[5], "sensor": "gauge", "value": float(values["gauge"][5])},  # held
+        {"part_id": ids[4], "sensor": "camera", "value": float(values["camera"][4])}]
+    listed = [(m["part_id"], m["sensor"]) for e in got for m in e["measurements"]]
+    assert len(listed) == len(set(listed)) == 2 * N - 2 - 2  # the last two follow
+    # the camera's answer carries the prediction issued for its product
+    cam = next(o.message for o in outs if o.kind == "fused" and o.message["sensor"] ==
+               "camera" and o.message["part_id"] == ids[3])
+    assert cam["predicted_deg"] == got[3]["final"]["predicted_deg"]
+    lo, hi = cam["interval90_deg"]
+    assert lo < cam["predicted_deg"] < hi and math.isfinite(cam["log_evidence"])
+    # the fusions moved the estimates: a run without sensor messages differs
+    bare = open_processor(tmp_path / "b.sqlite", SETTINGS)
+    plain = estimates(play(bare, [(k, p) for k, p in items if k == "s"]))
+    assert plain[-1]["mean"] != got[-1]["mean"]
+    assert plain[0]["mean"] == got[0]["mean"]  # nothing fused before the first step
+    for p in (proc, bare):
+        p.close()
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+def test_rejections_have_their_reasons_and_leave_the_tracker_untouched(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any]) -> None:
+    pay, ids, values = stream
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    play(proc, [("s", pay[0]), ("s", pay[1]),
+                ("m", reading(ids[1], "gauge", float(values["gauge"][1])))])
+    state = proc.tracker.state_bytes()
+    good = json.loads(reading(ids[1], "camera", 80.0))
+    bad = {
+        "duplicate_measurement": reading(ids[1], "gauge", float(values["gauge"][1]) + 1e-3),
+        "unknown_sensor": reading(ids[1], "thermometer", 20.0),
+        "non_finite": reading(ids[1], "camera", 1.0).replace(b"1.0", b"NaN"),
+        "bad_field": reading(ids[1], "camera", "86"),
+        "malformed_json": b"{oops",
+        "missing_field": dumps({k: v for k, v in good.items() if k != "value"}),
+        "unknown_schema": dumps({**good, "schema": "formtwin.sensor/2"}),
+        "oversized": b"{" + b" " * 70_000 + b"}",
+        "fusion_rejected": reading(ids[0], "gauge", 1.0e200),  # no particle explains it
+    }
+    outs = {r: proc.handle_sensor(p) for r, p in bad.items()}
+    for reason, o in outs.items():
+        assert o.kind == "rejected" and o.message["reason"] == reason, (reason, o.message)
+        assert o.message["detail"] and o.is_error
+    assert proc.tracker.state_bytes() == state
+    assert proc.store.rejection_counts() == {r: 1 for r in bad}
+    assert proc.handle_sensor(bad["unknown_sensor"]).kind == "rejected"  # counted once
+    assert proc.store.counts()["rejected"] == len(bad)
+    assert len(rows(proc)) == 1
+    proc.close()
+
+
+def test_too_late_is_stored_flagged_and_not_fused(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any]) -> None:
+    pay, ids, values = stream
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    play(proc, [("s", p) for p in pay[:6]])
+    state = proc.tracker.state_bytes()
+    o = proc.handle_sensor(reading(ids[1], "camera", float(values["camera"][1])))
+    assert o.kind == "too_late" and o.message["status"] == "too_late" and not o.is_error
+    assert "L = 3" in o.message["detail"] and o.message["index"] == 1
+    assert proc.tracker.state_bytes() == state
+    assert proc.handle_sensor(reading(ids[1], "camera", float(values["camera"][1]))
+                              ).kind == "redelivered"
+    ok = proc.handle_sensor(reading(ids[2], "camera", float(values["camera"][2])))
+    assert ok.kind == "fused"  # 3 products back: the oldest the tracker keeps
+    assert [r[3] for r in rows(proc)] == ["too_late", "fused"]
+    nxt = proc.handle(pay[6]).message
+    assert nxt["measurements"] == [{"part_id": ids[2], "sensor": "camera",
+                                    "value": float(values["camera"][2])}]
+    proc.close()
+
+
+def test_hold_is_bounded_in_count_and_age(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    pay, ids, values = stream
+    monkeypatch.setattr(desk, "HOLD_COUNT", 3)
+    monkeypatch.setattr(desk, "HOLD_PRODUCTS", 4)
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    early = [proc.handle_sensor(reading(f"never-{i}", "gauge", 0.3)).kind for i in range(3)]
+    assert early == ["held"] * 3
+    full = proc.handle_sensor(reading(ids[2], "gauge", float(values["gauge"][2])))
+    assert full.kind == "rejected" and full.message["reason"] == "hold_full"
+    outs = play(proc, [("s", p) for p in pay[:4]])
+    notices = [n for o in outs for n in o.notices]
+    assert [o.kind for o in outs] == ["accepted"] * 4
+    assert [n["reason"] for n in notices] == ["hold_expired"] * 3  # at the 4th product
+    assert "never-0" in notices[0]["detail"]
+    assert [r[3] for r in rows(proc)] == ["expired"] * 3
+    # room again: a value held now is fused when its curve comes
+    assert proc.handle_sensor(reading(ids[4], "gauge", float(values["gauge"][4]))).kind \
+        == "held"
+    proc.handle(pay[4])
+    assert rows(proc)[-1][3] == "fused"
+    assert proc.handle(pay[5]).message["measurements"][0]["part_id"] == ids[4]
+    proc.close()
+
+
+@pytest.mark.parametrize("k", [1, 4])
+def test_restart_at_every_point_continues_bit_for_bit(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any], k: int) -> None:
+    """A restart after any message (checkpoints every k products, fusions after them
+    replayed) gives the estimates and answers of an uninterrupted run."""
+    pay, ids, values = stream
+    items = scenario(pay, ids, values)
+    ref = open_processor(tmp_path / "ref.sqlite", SETTINGS, checkpoint_every=k)
+    want = [o.message for o in play(ref, items)]
+    ref.close()
+    store = tmp_path / "k.sqlite"
+    got = []
+    rng = np.random.default_rng(k)
+    cuts = sorted(rng.choice(len(items), 6, replace=False).tolist()) + [len(items)]
+    start = 0
+    for cut in cuts:
+        proc = open_processor(store, SETTINGS, checkpoint_every=k)
+        got += [o.message for o in play(proc, items[start:cut])]
+        proc.close()
+        start = cut
+    drop = ("received_at",)
+    assert [{a: b for a, b in m.items() if a not in drop} for m in got] == \
+        [{a: b for a, b in m.items() if a not in drop} for m in want]
+
+
+def test_export_carries_the_sensor_messages(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any]) -> None:
+    pay, ids, values = stream
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    play(proc, scenario(pay, ids, values)[:12])
+    want = rows(proc)
+    proc.close()
+    path, n = export_store(tmp_path / "a.sqlite", tmp_path / "m.csv", measurements=True)
+    import csv
+
+    with open(path, newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert n == len(table) == len(want)
+    assert [(r["part_id"], r["sensor"], float(r["value"]), r["status"]) for r in table] == \
+        [(a, b, c, d) for a, b, c, d in want]
+    _, n_products = export_store(tmp_path / "a.sqlite", tmp_path / "p.csv")
+    with open(tmp_path / "p.csv", newline="") as fh:
+        products = list(csv.DictReader(fh))
+    assert n_products == len(products) and float(products[0]["final_lo90_deg"]) < \
+        float(products[0]["final_predicted_deg"]) < float(products[0]["final_hi90_deg"])
+
+
+def test_a_gated_products_values_are_rejected(tmp_path: Path) -> None:
+    path = make_stream(tmp_path / "s.npz", 26, seed=1)
+    pay = [json.loads(dumps(s.to_message())) for s in read_stream(path)]
+    odd = dict(pay[25], part_id="odd", force_N=[3.0 * f + 300.0 for f in pay[25]["force_N"]])
+    proc = open_processor(tmp_path / "a.sqlite", replace(SETTINGS, gate_k=50.0))
+    play(proc, [("s", dumps(m)) for m in pay[:24]])
+    assert proc.handle(dumps(odd)).message["reason"] == "outlier_gated"
+    state = proc.tracker.state_bytes()
+    o = proc.handle_sensor(reading("odd", "gauge", 0.3))
+    assert o.kind == "rejected" and o.message["reason"] == "product_gated"
+    assert proc.tracker.state_bytes() == state and rows(proc) == []
+    proc.close()
