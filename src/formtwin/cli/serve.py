@@ -336,7 +336,8 @@ def _serve(args: argparse.Namespace) -> int:
             units = {v.name: v.internal_unit for v in spec.augmented}
             outputs = [{"name": o.name, "label": o.label, "unit": o.unit}
                        for o in spec.outputs]
-            feed = LiveFeed(proc.tracker_names(), units=units, outputs=outputs)
+            feed = LiveFeed(proc.tracker_names(), units=units, outputs=outputs,
+                            sensors=tuple(proc.sensors.sensors))
             feed.seed(proc.store)
             feed.health_state = getattr(proc.health, "state", None)
             feed.n_particles = getattr(getattr(proc.tracker, "config", None), "n_particles",

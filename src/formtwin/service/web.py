@@ -33,6 +33,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from fastapi.staticfiles import StaticFiles
 
 from formtwin.service.processor import Outcome
+from formtwin.service.sensors import MEASUREMENT_SCHEMA, MEASUREMENTS_DDL
 from formtwin.service.store import Store
 from formtwin.spec import DEFAULT_OUTPUTS
 
@@ -57,11 +58,16 @@ class LiveFeed:
     outputs : list of dict, optional
         The spec's scalar outputs as ``{"name", "label", "unit"}``, one chart each (None:
         the demonstrator's two bend angles).
+    sensors : tuple of str
+        The sensors the service fuses (:mod:`formtwin.service.sensors`): the page shows
+        their last values, and a camera's measured final angle against the prediction and
+        calibrated interval issued for its product.
     """
 
     def __init__(self, names: tuple[str, ...], maxlen: int = 2000,
                  units: dict[str, str] | None = None,
-                 outputs: list[dict[str, str]] | None = None) -> None:
+                 outputs: list[dict[str, str]] | None = None,
+                 sensors: tuple[str, ...] = ()) -> None:
         self.names = names
         self.units = dict(units or {})
         self.outputs = list(outputs) if outputs is not None else [
@@ -79,6 +85,11 @@ class LiveFeed:
         self.health_state: Callable[[], dict[str, Any]] | None = None
         #: N of the tracker (the ESS chart's axis runs from 0 to N)
         self.n_particles: int | None = None
+        #: the sensors the service fuses (:mod:`formtwin.service.sensors`), their last
+        #: values, and the camera's values with the prediction issued for their products
+        self.sensors = list(sensors)
+        self.last_values: dict[str, dict[str, Any]] = {}
+        self._finals: deque[dict[str, Any]] = deque(maxlen=maxlen)
 
     def seed(self, store: Store, n: int = 500) -> None:
         """Load counters and the last ``n`` points from the store (at start-up)."""
@@ -91,6 +102,10 @@ class LiveFeed:
         for r in rows:
             if r.estimate is not None:
                 self._push(_point(r.estimate))
+        store.ensure_tables(MEASUREMENTS_DDL)
+        for (text,) in store.query("SELECT message FROM (SELECT id, message FROM "
+                                   "measurements ORDER BY id DESC LIMIT ?) ORDER BY id", (n,)):
+            self._sensor(json.loads(text))
 
     def push(self, event: dict[str, Any]) -> None:
         """Queue an event for the pages (e.g. an acknowledged alarm)."""
@@ -117,11 +132,26 @@ class LiveFeed:
             if out.notices:  # the model-health state changed: the banner follows
                 self._push({"type": "health", "notices": list(out.notices),
                             "health": self._health()})
+        elif out.message.get("schema") == MEASUREMENT_SCHEMA:
+            self._push({"type": "sensor", **self._sensor(out.message)})
         elif out.is_error:
             self._push({"type": "rejected", "reason": out.message.get("reason"),
                         "detail": out.message.get("detail"), "part_id": out.part_id})
         else:
             self._push({"type": "counts"})
+
+    def _sensor(self, msg: dict[str, Any]) -> dict[str, Any]:
+        """Keep a sensor message's value (and a camera's with its prediction)."""
+        keys = ("part_id", "sensor", "value", "status", "index", "predicted_deg",
+                "interval90_deg")
+        event = {k: msg.get(k) for k in keys}
+        event["redelivered"] = bool(msg.get("redelivered"))
+        with self._lock:
+            self.last_values[str(msg.get("sensor"))] = event
+            if event["predicted_deg"] is not None and event["status"] != "held" \
+                    and not event["redelivered"]:
+                self._finals.append(event)
+        return event
 
     def since(self, n: int) -> tuple[int, list[tuple[int, dict[str, Any]]]]:
         """The newest event number and the ``(number, event)`` pairs after ``n``."""
@@ -145,7 +175,8 @@ class LiveFeed:
                     "last": self._n,
                     "epoch": self.epoch, "counts": dict(self.counts),
                     "reasons": dict(self.reasons), "health": health,
-                    "n_particles": self.n_particles}
+                    "n_particles": self.n_particles, "sensors": list(self.sensors),
+                    "last_values": dict(self.last_values), "finals": list(self._finals)}
 
 
 def _point(msg: dict[str, Any]) -> dict[str, Any]:

@@ -46,7 +46,48 @@
     return (a !== 0 && (a < 1e-3 || a >= 1e5)) ? v.toExponential(3) : v.toPrecision(4);
   }
 
-  function build(names, units, nParticles, outputs) {
+  // the line's sensors: their last values, and the camera's measured final angle against
+  // the prediction and 90 % interval issued for its product (x: the product's index)
+  let finalChart = null;
+  function buildSensors(sensors) {
+    el("sensor-values").hidden = false;
+    finalChart = makeChart("final angle (deg): camera vs predicted, calibrated 90 % interval",
+                           "final", {
+      series: [
+        {label: "lo90", stroke: "transparent", points: {show: false}},
+        {label: "predicted", stroke: "#b5561b", width: 1.5, points: {show: false}},
+        {label: "hi90", stroke: "transparent", points: {show: false}},
+        {label: "camera", stroke: "#222", width: 0, points: {show: true, size: 4}},
+      ],
+      bands: [{series: [3, 1], fill: "rgba(181,86,27,0.18)"}],
+      extract: null,
+    });
+    finalChart.sensorFed = true;
+    el("sensor-values").dataset.sensors = sensors.join(",");
+  }
+
+  function addSensor(e, charted) {
+    lastValues[e.sensor] = e;
+    el("sensor-values").textContent = "sensors, last values: " + Object.keys(lastValues)
+      .sort().map((k) => {
+        const v = lastValues[k];
+        return k + " " + fmt(v.value) + " (" + v.part_id + ", " + v.status + ")";
+      }).join("   ");
+    if (!charted || e.redelivered || !finalChart || e.predicted_deg === null || e.predicted_deg === undefined ||
+        e.status === "held" || !e.interval90_deg) return;
+    const d = finalChart.data;
+    let i = d[0].length;
+    while (i > 0 && d[0][i - 1] > e.index) i -= 1;  // out of order: keep x ascending
+    [e.index, e.interval90_deg[0], e.predicted_deg, e.interval90_deg[1], e.value]
+      .forEach((y, k) => d[k].splice(i, 0, y));
+    if (d[0].length > WINDOW) d.forEach((col) => col.shift());
+    finalChart.latest.textContent = "  " + fmt(e.value) + " measured, " +
+      fmt(e.predicted_deg) + " predicted";
+    document.body.dataset.finals = String(d[0].length);
+  }
+  let lastValues = {};
+
+  function build(names, units, nParticles, outputs, sensors) {
     el("grid").innerHTML = "";
     charts.length = 0;
     names.forEach((name) => {
@@ -73,6 +114,7 @@
         },
       });
     });
+    if (sensors && sensors.length) buildSensors(sensors);
     // a fixed axis 0 .. N: an ESS of 1 of 500 must look like one, not like a flat "1, 1, 1"
     makeChart("effective sample size" + (nParticles ? " (of N = " + nParticles + ")" : ""),
               "ess", {
@@ -216,6 +258,7 @@
   function addPoint(p) {
     const x = p.seq !== null && p.seq !== undefined ? p.seq : nPoints;
     charts.forEach((c) => {
+      if (c.sensorFed) return;
       const ys = c.extract(p);
       c.data[0].push(x);
       ys.forEach((y, i) => c.data[i + 1].push(y));
@@ -259,11 +302,15 @@
     Promise.all([fetch("/api/state").then((r) => r.json()),
                  fetch("/api/monitor").then((r) => r.ok ? r.json() : null)]).then(([st, mon]) => {
       nPoints = 0;
-      build(st.names, st.units, st.n_particles, st.outputs);
+      finalChart = null;
+      lastValues = {};
+      build(st.names, st.units, st.n_particles, st.outputs, st.sensors);
       showHealth(st.health);
       buildMonitor(mon);
       if (mon) loadAlarms();
       st.points.forEach(addPoint);
+      (st.finals || []).forEach((e) => addSensor(e, true));
+      Object.values(st.last_values || {}).forEach((e) => addSensor(e, false));
       redraw();
       showCounts(st.counts, st.reasons);
       source = new EventSource("/events?last=" + st.last + "&epoch=" + st.epoch);
@@ -278,6 +325,7 @@
           return;
         }
         if (e.type === "point") { addPoint(e); schedule(); }
+        if (e.type === "sensor") { addSensor(e, true); schedule(); }
         if (e.type === "alarms") e.alarms.forEach(showAlarm);
         if (e.type === "health") showHealth(e.health);
         if (e.type === "ack") showAlarm(e.alarm);
