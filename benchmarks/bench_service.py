@@ -43,9 +43,18 @@ The stream carries ``NOISE_N`` (2 N) of white sensor noise and the service is to
 assumes a quieter sensor (the default 0), ~30 % of the products are ``no_fit`` and the
 model-health check (a bounded least-squares search, ~0.1 s) runs whenever its rule fires.
 
+Sensor messages: ``--sensor-messages-per-product 1`` (the default) draws the ``--sensor``
+(default ``camera``: the final angle, one product late) for every product, the service
+fuses it (``serve --sensors camera``), and the line sends each value on the sensor topic
+after the stroke its delay puts it behind; ``sensor_messages_per_product`` and
+``sensor_answers`` (the answers by status) are recorded. The tracker step of the ratios is
+the same tracker's (with the sensor's lag columns); the fusion and the final angle's
+calibrated interval are the service's. 0 sends strokes only.
+
 Usage: ``python benchmarks/bench_service.py [--model physics|analytic|FILE] [--n 1000]
-[--particles 500]``; the default model is the metamodel of the bundled physics DOE (what a
-fresh clone serves), fitted once and cached in ``benchmarks/.cache``.
+[--particles 500] [--sensor-messages-per-product 0|1] [--sensor NAME]``; the default model
+is the metamodel of the bundled physics DOE (what a fresh clone serves), fitted once and
+cached in ``benchmarks/.cache``.
 """
 
 from __future__ import annotations
@@ -69,10 +78,10 @@ import numpy as np
 from formtwin._bench import bundled_metamodel, write_result
 from formtwin.defaults import analytic_model
 from formtwin.service.alarms import MonitorSource, ServiceMonitor, monitor_config
-from formtwin.service.messages import dumps
+from formtwin.service.messages import Stroke, dumps
 from formtwin.service.mqtt import BrokerConfig, make_client, publish_strokes
 from formtwin.service.runtime import ServiceSettings, open_processor
-from formtwin.service.streams import make_stream, read_stream
+from formtwin.service.streams import interleave, make_stream, read_readings, read_stream
 from formtwin.service.web import LiveFeed
 from formtwin.tracker import TrackerConfig
 
@@ -83,6 +92,7 @@ TARGETS = {"capacity_over_step": 0.85, "serve_overhead_over_step": 0.15,
 NOISE_N = 2.0
 TOPIC = "plant/line1/press1/stroke"
 RESULTS = "plant/line1/press1/estimate"
+SENSORS = "plant/line1/press1/sensor"
 CLI = [sys.executable, "-c", "import sys; from formtwin.cli import main; sys.exit(main())"]
 
 
@@ -93,10 +103,12 @@ def free_port() -> int:
 
 
 class Receiver:
-    """Consumer of the results topic: perf_counter time of the first estimate per part."""
+    """Consumer of the results topic: perf_counter time of the first estimate per part,
+    and the answers to sensor messages counted by status."""
 
     def __init__(self, broker: BrokerConfig) -> None:
         self.t: dict[str, float] = {}
+        self.sensor_answers: dict[str, int] = {}
         self.lock = threading.Lock()
         self.client = make_client(broker, f"bench-rx-{time.time_ns()}")
         ready = threading.Event()
@@ -110,9 +122,13 @@ class Receiver:
 
     def _on_message(self, c: object, u: object, msg: object) -> None:
         now = time.perf_counter()
-        pid = json.loads(msg.payload)["part_id"]  # type: ignore[attr-defined]
+        doc = json.loads(msg.payload)  # type: ignore[attr-defined]
         with self.lock:
-            self.t.setdefault(pid, now)
+            if doc.get("schema") == "formtwin.measurement/1":
+                key = str(doc.get("status"))
+                self.sensor_answers[key] = self.sensor_answers.get(key, 0) + 1
+                return
+            self.t.setdefault(doc["part_id"], now)
 
     def wait(self, ids: list[str], timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -135,12 +151,14 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_phase(strokes: list, broker: BrokerConfig, rx: Receiver, rate: float
+def run_phase(messages: list, broker: BrokerConfig, rx: Receiver, rate: float
               ) -> tuple[float, np.ndarray]:
+    """Publish strokes (and the sensor messages among them, on the sensor topic); the
+    products per second and the latencies (ms) of the strokes' estimates."""
     sent: dict[str, float] = {}
-    publish_strokes(strokes, broker, TOPIC, rate=rate,
-                    on_sent=lambda s, t: sent.__setitem__(s.part_id, t))
-    ids = [s.part_id for s in strokes]
+    publish_strokes(messages, broker, TOPIC, rate=rate,
+                    on_sent=lambda s, t: sent.__setitem__(s.part_id, t), sensor_topic=SENSORS)
+    ids = [s.part_id for s in messages if isinstance(s, Stroke)]
     rx.wait(ids, timeout=30 + 0.5 * len(ids))
     t_first = min(sent.values())
     t_last = max(rx.t[i] for i in ids)
@@ -211,7 +229,12 @@ def main() -> int:
     ap.add_argument("--particles", type=int, default=500)
     ap.add_argument("--unknown-means", action="store_true",
                     help="do not tell the service the stream's state means (--mu)")
+    ap.add_argument("--sensor-messages-per-product", type=int, choices=(0, 1), default=1,
+                    help="sensor messages per product besides the stroke (default: 1)")
+    ap.add_argument("--sensor", default="camera",
+                    help="the spec's sensor those messages carry (default: camera)")
     args = ap.parse_args()
+    sensors = (args.sensor,) if args.sensor_messages_per_product else ()
     stream_model: Any = analytic_model()
     if args.model == "physics":
         stream_model, mm_path, model_info = bundled_metamodel()
@@ -236,8 +259,14 @@ def main() -> int:
     n_warm = 30
     # the strokes come from the served model (deviated by g, plus sensor noise)
     stream = make_stream(tmp / "s.npz", n_warm + args.n + args.n_latency, seed=9,
-                         noise_N=NOISE_N, model=stream_model)
+                         noise_N=NOISE_N, model=stream_model, sensors=sensors)
     strokes = read_stream(stream)
+    readings = read_readings(stream, stream_model.spec)
+
+    def phase(a: int, b: int) -> list[Any]:
+        """Strokes a..b-1 with the sensor messages due after them."""
+        return interleave(strokes[a:b], readings, a)
+
     with np.load(stream, allow_pickle=False) as z:
         line_mu = tuple(float(v) for v in z["mu"])
     state = stream_model.spec.state
@@ -247,6 +276,8 @@ def main() -> int:
     model = ["--metamodel", metamodel] if metamodel else ["--analytic"]
     if mu is not None:
         model += ["--mu", ",".join(repr(v) for v in mu)]
+    if sensors:
+        model += ["--sensors", ",".join(sensors)]
     procs: list[subprocess.Popen[bytes]] = []
     try:
         procs.append(subprocess.Popen([mosq, "-c", str(tmp / "m.conf")],
@@ -282,12 +313,14 @@ def main() -> int:
         stop()
         startup = serve("b.sqlite", "serve")
         rx = Receiver(broker)
-        run_phase(strokes[:n_warm], broker, rx, rate=0.0)
+        run_phase(phase(0, n_warm), broker, rx, rate=0.0)
         cpu0 = cpu_seconds(procs[-1].pid)
-        rate_full, lat_full = run_phase(strokes[n_warm:n_warm + args.n], broker, rx, 0.0)
+        rate_full, lat_full = run_phase(phase(n_warm, n_warm + args.n), broker, rx, 0.0)
         serve_cpu_ms = (cpu_seconds(procs[-1].pid) - cpu0) / args.n * 1e3
         lat_rate = 0.5 * rate_full  # half the sustained rate: latency, not queueing
-        _, lat = run_phase(strokes[n_warm + args.n:], broker, rx, rate=lat_rate)
+        _, lat = run_phase(phase(n_warm + args.n, len(strokes)), broker, rx, rate=lat_rate)
+        time.sleep(1.0)  # the answers to the last sensor messages
+        sensor_answers = dict(rx.sensor_answers)
         rx.stop()
         stop()
         restart = serve("b.sqlite", "restart")  # after a crash: the same store
@@ -309,22 +342,27 @@ def main() -> int:
     settings = ServiceSettings(model=metamodel or "analytic",
                                tracker=TrackerConfig(n_particles=args.particles,
                                                      sensor_noise=NOISE_N, mu=mu,
-                                                     mu_known=mu is not None))  # as serve --mu
+                                                     mu_known=mu is not None,  # as serve --mu
+                                                     sensors=sensors))
     proc = open_processor(tmp / "peer.sqlite", settings)
     proc.monitor = ServiceMonitor(proc.store, monitor_config(  # as serve sets them up
         proc.store, proc.tracker, MonitorSource(seed=settings.tracker.seed)))
     proc.on_outcome = LiveFeed(proc.tracker_names()).on_outcome
-    payloads = [dumps(s.to_message()) for s in strokes[:500]]
-    peer_warm = min(200, len(payloads) // 2)  # past the charts' warm-up and Phase I
-    for p in payloads[:peer_warm]:
-        proc.handle(p)
+    n_peer = min(500, len(strokes))
+    peer_warm = min(200, n_peer // 2)  # past the charts' warm-up and Phase I
+    handle = {Stroke: proc.handle}
+    calls = [(handle.get(type(m), proc.handle_sensor), dumps(m.to_message()))
+             for m in phase(0, n_peer)]
+    n_warm_calls = len(phase(0, peer_warm))
+    for f, p in calls[:n_warm_calls]:
+        f(p)
     parts = PartTimer(proc)
     t0, c0 = time.perf_counter(), time.thread_time()
-    for p in payloads[peer_warm:]:
-        proc.handle(p)
-    peer_rate = (len(payloads) - peer_warm) / (time.perf_counter() - t0)
-    peer_cpu_ms = (time.thread_time() - c0) / (len(payloads) - peer_warm) * 1e3
-    per_part = parts.ms_per_product(len(payloads) - peer_warm, peer_cpu_ms)
+    for f, p in calls[n_warm_calls:]:
+        f(p)
+    peer_rate = (n_peer - peer_warm) / (time.perf_counter() - t0)
+    peer_cpu_ms = (time.thread_time() - c0) / (n_peer - peer_warm) * 1e3
+    per_part = parts.ms_per_product(n_peer - peer_warm, peer_cpu_ms)
     parts.remove()
     tail = strokes[:200]  # the curves again: the tracker does not mind
     t0, c0 = time.perf_counter(), time.thread_time()
@@ -346,6 +384,9 @@ def main() -> int:
         "model": model_info["name"],
         "n_particles": args.particles,
         "sensor_noise_N": NOISE_N,
+        "sensor_messages_per_product": args.sensor_messages_per_product,
+        "sensor_messages": list(sensors),
+        "sensor_answers": sensor_answers,
         "products_per_s": round(rate_full, 1),
         "latency_rate_per_s": round(lat_rate, 1),
         "latency_p50_ms": round(float(np.percentile(lat, 50)), 2),
