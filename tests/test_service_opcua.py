@@ -270,3 +270,66 @@ def test_source_options_are_checked_before_the_start(tmp_path: Path) -> None:
         opcua_source(Namespace(source="opc.tcp://press:4840", opcua_map=str(f)))
     src = opcua_source(Namespace(source="opc.tcp://press:4840", opcua_map=None))
     assert src.mapping == OpcUaMapping() and src.url == "opc.tcp://press:4840"
+
+
+def test_sensor_nodes_are_fused_as_sensor_messages(mosquitto: Mosquitto,  # noqa: F811
+                                                   tmp_path: Path) -> None:
+    """A gauge and a camera mapped by [opcua.sensors]: the values the press writes become
+    sensor messages, fused as the same messages over MQTT are (same estimates, same rows),
+    and a new session's report of the last values again is answered once."""
+    from formtwin.service.sensors import Reading
+    from formtwin.service.streams import interleave, read_readings
+
+    path = make_stream(tmp_path / "s.npz", 6, seed=4, sensors=("gauge", "camera"))
+    messages = interleave(read_stream(path), read_readings(path))
+    settings = ServiceSettings(tracker=TrackerConfig(n_particles=64, n_mc=1000, seed=3,
+                                                     sensors=("gauge", "camera")))
+    mapping = OpcUaMapping(reconnect_min_s=0.2, reconnect_max_s=1.0,
+                           sensors={"gauge": "StripGauge", "camera": "FlapCamera"})
+    objects = {"gauge": "StripGauge", "camera": "FlapCamera"}
+    proc = open_processor(tmp_path / "a.sqlite", settings)
+    outs: list[object] = []
+    proc.on_outcome = outs.append
+    stop = threading.Event()
+    with SimulatedPress(free_port(), sensors=tuple(objects.values())) as press:
+        service = OpcUaService(proc, OpcUaSource(press.url, mapping),
+                               BrokerConfig.from_url(mosquitto.url), Topics.from_input(TOPIC),
+                               client_id="opcua-sensors")
+        runner = threading.Thread(target=service.run, args=(stop, 30.0), daemon=True)
+        runner.start()
+        try:
+            wait_for(service.connected.is_set, 30, "the OPC UA subscription")
+            for k, m in enumerate(messages, start=1):
+                if isinstance(m, Reading):
+                    press.write_sensor(objects[m.sensor], m.part_id, m.value)
+                else:
+                    press.write(m)
+                wait_for(lambda k=k: service.handled >= k, 30, f"message {k} handled")
+        finally:
+            stop.set()
+            runner.join(20)
+        stop = threading.Event()  # a new session: the last values are reported again
+        again = OpcUaService(proc, OpcUaSource(press.url, mapping),
+                             BrokerConfig.from_url(mosquitto.url), Topics.from_input(TOPIC),
+                             client_id="opcua-sensors-2")
+        runner = threading.Thread(target=again.run, args=(stop, 30.0), daemon=True)
+        runner.start()
+        try:
+            wait_for(lambda: again.handled >= 3, 30, "the last values reported again")
+        finally:
+            stop.set()
+            runner.join(20)
+    kinds = [o.kind for o in outs]  # type: ignore[attr-defined]
+    assert kinds[:len(messages)].count("fused") == len(messages) - 6
+    assert kinds[len(messages):] == ["redelivered"] * 3  # stroke, gauge and camera
+    rows = proc.store.query("SELECT part_id, sensor, value, status FROM measurements "
+                            "ORDER BY id")
+    ref = open_processor(tmp_path / "ref.sqlite", settings)
+    want = [ref.handle(dumps(m.to_message())) if not isinstance(m, Reading)
+            else ref.handle_sensor(dumps(m.to_message())) for m in messages]
+    assert rows == ref.store.query("SELECT part_id, sensor, value, status FROM measurements "
+                                   "ORDER BY id")
+    got = [o.message for o in outs[:len(messages)]]  # type: ignore[attr-defined]
+    assert [g.get("mean") for g in got] == [w.message.get("mean") for w in want]
+    ref.close()
+    proc.close()

@@ -2,10 +2,11 @@
 
 :class:`OpcUaSource` subscribes (asyncua, data-change monitored items) to the nodes of
 :class:`~formtwin.service.opcua_map.OpcUaMapping` in a thread of its own and turns every
-complete stroke into a ``formtwin.stroke/1`` payload. :class:`OpcUaService` hands each
-payload to the same :meth:`~formtwin.service.processor.Processor.handle` as the MQTT source
-(same validation, rejection reasons, store and estimates) and publishes the outcome on the
-same MQTT topics (QoS 1).
+complete stroke into a ``formtwin.stroke/1`` payload, and every value of a mapped sensor
+(``[opcua.sensors]``) into a ``formtwin.sensor/1`` one. :class:`OpcUaService` hands each
+payload to the same :meth:`~formtwin.service.processor.Processor.handle` (or
+``handle_sensor``) as the MQTT source (same validation, rejection reasons, store and
+estimates) and publishes the outcome on the same MQTT topics (QoS 1).
 
 Reconnection. When the connection is lost (the server restarts, the network drops) the
 source reconnects with a doubling wait between ``reconnect_min_s`` and ``reconnect_max_s``,
@@ -31,7 +32,7 @@ import paho.mqtt.client as mqtt
 
 from formtwin.service.messages import dumps
 from formtwin.service.mqtt import BrokerConfig, Topics, make_client
-from formtwin.service.opcua_map import OpcUaMapping, StrokeAssembler
+from formtwin.service.opcua_map import OpcUaMapping, SensorAssembler, StrokeAssembler
 from formtwin.service.processor import Outcome, Processor
 
 log = logging.getLogger(__name__)
@@ -100,10 +101,15 @@ class _Handler:
             return
         dv = getattr(getattr(data, "monitored_item", None), "Value", None)
         stamp = getattr(dv, "SourceTimestamp", None) or getattr(dv, "ServerTimestamp", None)
+        if key.startswith("sensor:"):
+            reading = self.source.sensor_assembler.update(key, val)
+            if reading is not None:
+                self.source.strokes.put((True, reading))
+            return
         asm = self.source.assembler
         asm.update(key, val, stamp)
         while (payload := asm.take()) is not None:
-            self.source.strokes.put(payload)
+            self.source.strokes.put((False, payload))
 
     def status_change_notification(self, status: Any) -> None:
         """The server reported a subscription status (e.g. shutting down)."""
@@ -130,7 +136,9 @@ class OpcUaSource:
         self.mapping = mapping
         self.request_timeout = request_timeout
         self.assembler = StrokeAssembler(mapping)
-        self.strokes: queue.Queue[bytes] = queue.Queue()
+        self.sensor_assembler = SensorAssembler(mapping)
+        #: ``(is a sensor message, payload)`` in the order the values came
+        self.strokes: queue.Queue[tuple[bool, bytes]] = queue.Queue()
         self.connected = threading.Event()
         #: number of sessions established (1 + reconnects)
         self.sessions = 0
@@ -197,6 +205,7 @@ class OpcUaSource:
         try:
             nodes = await _resolve(client, self.mapping)
             self.assembler.reset()
+            self.sensor_assembler.reset()
             handler = _Handler(self, {n.nodeid: k for k, n in nodes.items()})
             sub = await client.create_subscription(self.mapping.publishing_interval_ms,
                                                    handler)
@@ -305,12 +314,13 @@ class OpcUaService:
                 on_connected()
             while not stop.is_set():
                 try:
-                    payload = self.source.strokes.get(timeout=0.2)
+                    sensor, payload = self.source.strokes.get(timeout=0.2)
                 except queue.Empty:
                     continue
                 t0 = time.perf_counter()
+                handle = self.processor.handle_sensor if sensor else self.processor.handle
                 try:
-                    out = self.processor.handle(payload, self.source.url)
+                    out = handle(payload, self.source.url)
                 except Exception as exc:  # storage failure: stop the service
                     raise RuntimeError(f"processing failed, service stopped: {exc!r}") from exc
                 self._publish(out)

@@ -15,6 +15,13 @@ Metal Forming" (Release 1.00) where the companion specification has a name:
 * ``Stage2Setting/Setpoint``: the stage-2 press setting as the ``Setpoint`` of a
   ``CyclicProcessValueType``-like object, in the spec's internal unit (mm).
 
+Sensors besides the curve (``[opcua.sensors]``, sensor name -> browse path of an object):
+each sensor object holds ``PartId`` (String) and ``AnalogSignal`` (Double, the value in
+the measured quantity's internal unit), the press writing the part id first; each value
+makes one ``formtwin.sensor/1`` payload (:class:`SensorAssembler`) for
+:meth:`~formtwin.service.processor.Processor.handle_sensor`. OPC 40503-1 has no sensor
+node of a part, so the layout mirrors its ``CyclicProcessValueType`` as the force curve's.
+
 The press writes every mapped node once per stroke, the cycle counts last. formtwin
 monitors each node with a queue (``queue_size``) and the ``StatusValueTimestamp`` trigger,
 so every write is reported, in order, even when the value repeats (the same part id, the
@@ -48,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 from formtwin.service.messages import STROKE_SCHEMA
+from formtwin.service.sensors import SENSOR_SCHEMA
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +93,9 @@ class OpcUaMapping:
         Key of :data:`NODES` -> browse path below ``root`` (``PartInformation/PartId``),
         NodeId (``ns=2;s=Press.PartId``, ``nsu=URI;i=5``) or ``''`` for an optional node
         the press does not have.
+    sensors : dict
+        Sensor name (the spec's ``[[sensor]]``) -> browse path below ``root`` of the
+        object holding its ``PartId`` and ``AnalogSignal`` (none by default).
     publishing_interval_ms : float
         Requested publishing interval of the subscription, ms.
     queue_size : int
@@ -97,6 +108,7 @@ class OpcUaMapping:
     namespace: str = "urn:formtwin:press"
     root: str = "Press"
     nodes: dict[str, str] = field(default_factory=lambda: {k: v[0] for k, v in NODES.items()})
+    sensors: dict[str, str] = field(default_factory=dict)
     publishing_interval_ms: float = 20.0
     queue_size: int = 1000
     reconnect_min_s: float = 0.5
@@ -116,6 +128,10 @@ class OpcUaMapping:
                 raise ValueError(f"[opcua.nodes] {key} is required: expected a browse path "
                                  "or NodeId, got ''")
         object.__setattr__(self, "nodes", merged)
+        for name, path in self.sensors.items():
+            if not isinstance(path, str) or not path:
+                raise ValueError(f"[opcua.sensors] {name} = {path!r}: expected the browse "
+                                 "path of the sensor's object")
         for name in ("publishing_interval_ms", "reconnect_min_s", "reconnect_max_s"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) \
@@ -145,8 +161,13 @@ class OpcUaMapping:
         return cls(**section)
 
     def active(self) -> dict[str, str]:
-        """The configured nodes (optional ones set to ``''`` left out)."""
-        return {k: v for k, v in self.nodes.items() if v}
+        """The configured nodes (optional ones set to ``''`` left out), and each sensor's
+        two as ``sensor:<name>:part_id`` and ``sensor:<name>:value``."""
+        out = {k: v for k, v in self.nodes.items() if v}
+        for name, path in self.sensors.items():
+            out[f"sensor:{name}:part_id"] = f"{path}/PartId"
+            out[f"sensor:{name}:value"] = f"{path}/AnalogSignal"
+        return out
 
 
 def _jsonable(value: Any) -> Any:
@@ -168,7 +189,7 @@ class StrokeAssembler:
 
     def __init__(self, mapping: OpcUaMapping) -> None:
         self.mapping = mapping
-        self.keys = tuple(mapping.active())
+        self.keys = tuple(k for k, v in mapping.nodes.items() if v)  # the stroke's nodes
         self.queues: dict[str, deque[tuple[Any, datetime | None]]] = {
             k: deque() for k in self.keys}
         self.last_cycle: Any = None
@@ -232,3 +253,33 @@ class StrokeAssembler:
             doc["u"] = _jsonable(values["stage2_setting"])
         # NaN is written as the JSON literal so the validator rejects it as non_finite
         return json.dumps(doc, separators=(",", ":")).encode("utf-8")
+
+
+class SensorAssembler:
+    """Pair each sensor's ``PartId`` and ``AnalogSignal`` values in order; make a
+    ``formtwin.sensor/1`` payload per pair (null values, a server's first state, skipped)."""
+
+    def __init__(self, mapping: OpcUaMapping) -> None:
+        self.queues: dict[str, dict[str, deque[Any]]] = {
+            n: {"part_id": deque(), "value": deque()} for n in mapping.sensors}
+
+    def reset(self) -> None:
+        """Forget queued values (a new session reports every node's current value)."""
+        for q in self.queues.values():
+            q["part_id"].clear()
+            q["value"].clear()
+
+    def update(self, key: str, value: Any) -> bytes | None:
+        """Queue the value of node ``sensor:<name>:<part_id|value>``; the payload of the
+        sensor's oldest complete pair, else None."""
+        _, name, what = key.split(":", 2)
+        q = self.queues[name]
+        q[what].append(value)
+        while q["part_id"] and q["value"]:
+            part_id, value = q["part_id"].popleft(), q["value"].popleft()
+            if part_id in (None, "") or value is None:
+                continue
+            return json.dumps({"schema": SENSOR_SCHEMA, "part_id": part_id, "sensor": name,
+                               "value": _jsonable(value)},
+                              separators=(",", ":")).encode("utf-8")
+        return None

@@ -8,6 +8,8 @@ The address space follows :class:`~formtwin.service.opcua_map.OpcUaMapping`'s de
         StrokeForce/AnalogSignal       Double[n_t], N
         StrokeForce/CycleCount         UInt32
         Stage2Setting/Setpoint         Double or Double[], mm
+        <sensor>/PartId, <sensor>/AnalogSignal   String, Double: a sensor's value of a
+                                       part (``sensors``; mapped by ``[opcua.sensors]``)
 
 All values are null until the first stroke. :meth:`SimulatedPress.write` writes one stroke
 in the order a press would (part id, setting, curve, the curve's cycle count, then the part
@@ -47,10 +49,14 @@ class SimulatedPress:
         Bind address.
     path : str
         Path of the endpoint URL.
+    sensors : tuple of str
+        Sensor objects to serve (browse names below ``Press``), written by
+        :meth:`write_sensor`.
     """
 
-    def __init__(self, port: int, host: str = "127.0.0.1", path: str = "/formtwin/press"
-                 ) -> None:
+    def __init__(self, port: int, host: str = "127.0.0.1", path: str = "/formtwin/press",
+                 sensors: tuple[str, ...] = ()) -> None:
+        self.sensors = tuple(sensors)
         self.host, self.port = host, port
         self.url = f"opc.tcp://{host}:{port}{path}"
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -130,6 +136,10 @@ class SimulatedPress:
             "force_cycle_count": await var(force, "CycleCount", VT.UInt32),
             "stage2_setting": await var(setting, "Setpoint", VT.Double),
         }
+        for name in self.sensors:
+            obj = await press.add_object(ns, name)
+            self._nodes[f"{name}:part_id"] = await var(obj, "PartId", VT.String)
+            self._nodes[f"{name}:value"] = await var(obj, "AnalogSignal", VT.Double)
         await server.start()
         self._server = server
 
@@ -177,4 +187,17 @@ class SimulatedPress:
                 value = "" if key == "part_id" else []
             dv = ua.DataValue(ua.Variant(value, kind), SourceTimestamp=now,
                               ServerTimestamp=now)
+            await self._server.write_attribute_value(self._nodes[key].nodeid, dv)
+
+    def write_sensor(self, sensor: str, part_id: str, value: float) -> None:
+        """Write one value of sensor object ``sensor`` (its part id first, as a press)."""
+        self._call(self._write_sensor(sensor, part_id, value))
+
+    async def _write_sensor(self, sensor: str, part_id: str, value: float) -> None:
+        from asyncua import ua
+
+        now = ua.DateTime.now(UTC)
+        for key, v, kind in ((f"{sensor}:part_id", part_id, ua.VariantType.String),
+                             (f"{sensor}:value", value, ua.VariantType.Double)):
+            dv = ua.DataValue(ua.Variant(v, kind), SourceTimestamp=now, ServerTimestamp=now)
             await self._server.write_attribute_value(self._nodes[key].nodeid, dv)
