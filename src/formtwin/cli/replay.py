@@ -122,11 +122,11 @@ def _replay(args: argparse.Namespace) -> int:
     readings = [] if args.no_sensors else read_readings(path)
     if args.rate < 0:
         raise ValueError(f"--rate {args.rate}: expected >= 0")
+    messages = interleave(strokes, readings, args.start)
     if args.press:
-        return _replay_press(strokes, args.press, args.rate)
+        return _replay_press(messages, args.press, args.rate)
     broker = broker_config(args)
     rate = "full speed" if args.rate == 0 else f"{args.rate:g}/s"
-    messages = interleave(strokes, readings, args.start)
     topics = Topics.from_input(args.topic, sensors=args.sensor_topic)
     print(f"publishing {len(strokes)} strokes to {args.topic}"
           + (f" and {len(messages) - len(strokes)} sensor messages to {topics.sensors}"
@@ -143,21 +143,30 @@ def _replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _replay_press(strokes: list[Any], url: str, rate: float) -> int:
-    """Serve ``strokes`` as a simulated OPC UA press at ``url`` (``--press``)."""
+def _replay_press(messages: list[Any], url: str, rate: float) -> int:
+    """Serve ``messages`` (strokes, and sensor values as the sensor objects named after
+    their sensors) as a simulated OPC UA press at ``url`` (``--press``)."""
     import time
 
     from formtwin.service.opcua_press import SimulatedPress
+    from formtwin.service.sensors import Reading
 
-    with SimulatedPress.from_url(url) as press:
-        print(f"simulated press at {press.url}; waiting for a subscription", flush=True)
+    sensors = tuple(sorted({m.sensor for m in messages if isinstance(m, Reading)}))
+    with SimulatedPress.from_url(url, sensors) as press:
+        print(f"simulated press at {press.url}"
+              + (f" with sensor objects {', '.join(sensors)}" if sensors else "")
+              + "; waiting for a subscription", flush=True)
         while press.monitored() == 0:
             time.sleep(0.1)
-        t0 = time.perf_counter()
-        for i, s in enumerate(strokes):
+        t0, i = time.perf_counter(), 0
+        for m in messages:
+            if isinstance(m, Reading):
+                press.write_sensor(m.sensor, m.part_id, m.value)
+                continue
             if rate > 0:
                 time.sleep(max(0.0, t0 + i / rate - time.perf_counter()))
-            press.write(s)
-        print(f"wrote {len(strokes)} strokes", flush=True)
+            press.write(m)
+            i += 1
+        print(f"wrote {i} strokes and {len(messages) - i} sensor values", flush=True)
         time.sleep(1.0)  # the last publishing interval reaches the subscriber
     return 0

@@ -144,12 +144,12 @@ class SimulatedPress:
         self._server = server
 
     @classmethod
-    def from_url(cls, url: str) -> SimulatedPress:
-        """The press at ``opc.tcp://HOST:PORT[/PATH]``."""
+    def from_url(cls, url: str, sensors: tuple[str, ...] = ()) -> SimulatedPress:
+        """The press at ``opc.tcp://HOST:PORT[/PATH]`` (with ``sensors``' objects)."""
         parts = urlsplit(url)
         if parts.scheme != "opc.tcp" or not parts.hostname or not parts.port:
             raise ValueError(f"press URL {url!r}: expected opc.tcp://HOST:PORT[/PATH]")
-        return cls(parts.port, parts.hostname, parts.path)
+        return cls(parts.port, parts.hostname, parts.path, sensors)
 
     def monitored(self) -> int:
         """Number of monitored items clients hold on the server (0: nobody subscribed)."""
