@@ -284,3 +284,40 @@ def test_a_gated_products_values_are_rejected(tmp_path: Path) -> None:
     assert o.kind == "rejected" and o.message["reason"] == "product_gated"
     assert proc.tracker.state_bytes() == state and rows(proc) == []
     proc.close()
+
+
+def test_a_failed_store_or_fusion_leaves_nothing_behind(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fused value and its row are one transaction: a storage error after the fusion
+    restores the tracker (and propagates: the service stops unacknowledged); an unexpected
+    error in the fusion rejects the message and the service goes on."""
+    import sqlite3
+
+    pay, ids, values = stream
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS, checkpoint_every=3)
+    play(proc, [("s", p) for p in pay[:5]])
+    state = proc.tracker.state_bytes()
+    msg = reading(ids[4], "gauge", float(values["gauge"][4]))
+    real = proc.sensors._insert
+
+    def full_disk(*a: Any, **k: Any) -> None:
+        raise sqlite3.OperationalError("database or disk is full")
+
+    monkeypatch.setattr(proc.sensors, "_insert", full_disk)
+    with pytest.raises(sqlite3.OperationalError):
+        proc.handle_sensor(msg)
+    assert proc.tracker.state_bytes() == state and rows(proc) == []
+    monkeypatch.setattr(proc.sensors, "_insert", real)
+
+    def broken(*a: Any, **k: Any) -> float:
+        raise KeyError("a bug")
+
+    monkeypatch.setattr(proc.tracker, "fuse", broken)
+    out = proc.handle_sensor(msg)
+    assert out.kind == "rejected" and out.message["reason"] == "fusion_rejected"
+    assert proc.tracker.state_bytes() == state and rows(proc) == []
+    monkeypatch.undo()
+    assert proc.handle_sensor(msg).kind == "fused"  # the same value, now stored once
+    assert len(rows(proc)) == 1
+    proc.close()

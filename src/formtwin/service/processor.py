@@ -253,9 +253,15 @@ class Processor:
         with self._lock:
             try:
                 kind, msg = self.sensors.handle(payload, topic, now, self._next_seq - 1)
-            except BaseException:
+            except (sqlite3.Error, OSError, RuntimeError):  # storage: fatal for the service
                 replay(self.store, self.tracker)
                 raise
+            except Exception as exc:  # never let a poison message stop the service
+                log.exception("a sensor message failed; tracker restored, message rejected")
+                replay(self.store, self.tracker)
+                return self._emit(self._reject(MessageError(
+                    "fusion_rejected", f"{type(exc).__name__}: {exc}"[:300]), payload, topic,
+                    now))
             return self._emit(Outcome(kind, msg, msg.get("part_id")))
 
     def _handle(self, payload: bytes, topic: str, now: float) -> Outcome:
