@@ -34,7 +34,7 @@ from formtwin.production import draw_production_run
 from formtwin.service.messages import Stroke, stroke_digest
 from formtwin.service.sensors import Reading
 from formtwin.spec import ProcessSpec
-from formtwin.spec.sensors import output_column
+from formtwin.spec.sensors import line_sensors, output_column, sensor_by_name
 
 FloatArray = NDArray[np.float64]
 
@@ -91,7 +91,7 @@ def make_stream(path: str | Path, n: int, seed: int = 0, noise_N: float = 2.0,
     extra: dict[str, Any] = {}
     srng = np.random.default_rng(np.random.SeedSequence([seed, 11]))
     for name in sensors:
-        sensor = spec.sensor(name)
+        sensor = sensor_by_name(line_sensors(spec), name)
         true = X[:, spec.state.index[sensor.measures]] if sensor.kind == "state" else \
             angles[:, output_column(spec, sensor.measures)]
         extra[f"sensor_{name}"] = true + sensor.noise * srng.standard_normal(n)
@@ -198,7 +198,7 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
         from formtwin.spec import load_spec
 
         spec = load_spec()
-    delays = {s.name: s.delay for s in spec.sensors}
+    delays = {s.name: s.delay for s in line_sensors(spec)}
     out: list[tuple[int, Reading]] = []
     with np.load(p, allow_pickle=False) as z:
         n = int(z["curves"].shape[0])
