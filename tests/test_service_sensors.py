@@ -321,3 +321,34 @@ def test_a_failed_store_or_fusion_leaves_nothing_behind(
     assert proc.handle_sensor(msg).kind == "fused"  # the same value, now stored once
     assert len(rows(proc)) == 1
     proc.close()
+
+
+def test_a_streams_sensor_values_and_their_places(tmp_path: Path) -> None:
+    """make_stream draws each sensor as its quantity plus the sensor's noise; replay sends
+    a value after the stroke its delay puts it behind (the last stroke at the latest)."""
+    from formtwin.service.sensors import Reading
+    from formtwin.service.streams import interleave, read_readings
+    from formtwin.spec import load_spec
+
+    spec = load_spec()
+    n = 400
+    path = make_stream(tmp_path / "s.npz", n, seed=0, sensors=("gauge", "camera"))
+    with np.load(path) as z:
+        names = [str(v) for v in z["names"]]
+        thickness = z["truth"][:, names.index("thickness")]
+        err = {"gauge": z["sensor_gauge"] - thickness,
+               "camera": z["sensor_camera"] - z["angles"][:, 1]}
+    for name, e in err.items():  # the noise's mean and std, within 5 standard errors
+        sd = spec.sensor(name).noise
+        assert abs(e.mean()) < 5 * sd / np.sqrt(n)
+        assert abs(e.std() / sd - 1) < 5 / np.sqrt(2 * n)
+    strokes = read_stream(path)
+    messages = interleave(strokes[10:20], read_readings(path), start=10)
+    at = {(m.part_id, m.sensor): i for i, m in enumerate(messages) if isinstance(m, Reading)}
+    pos = {s.part_id: i for i, s in enumerate(messages) if not isinstance(s, Reading)}
+    for s in strokes[10:19]:
+        assert pos[s.part_id] < at[(s.part_id, "gauge")] < pos[strokes[strokes.index(s) + 1]
+                                                                   .part_id]
+        assert at[(s.part_id, "camera")] > pos[strokes[strokes.index(s) + 1].part_id]
+    assert (strokes[9].part_id, "camera") in at  # product 9's camera comes after stroke 10
+    assert (strokes[19].part_id, "camera") not in at  # due after stroke 20: not sent
