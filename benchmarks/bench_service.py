@@ -170,8 +170,10 @@ class PartTimer:
     """CPU time (this thread) of each part of the processor's per-product path, by
     wrapping the functions that do them: parse (and validate), plausibility, tracker step
     (of which the goodness of fit), model health, charts, controller, store (the SQLite
-    commit with the state bytes, the alarm and health rows) and publish (the outcome's
-    listeners: the page feed; serve's MQTT publish is in its process, not here)."""
+    commit with the state bytes, the alarm and health rows), publish (the outcome's
+    listeners: the page feed; serve's MQTT publish is in its process, not here), a sensor
+    message (parse, store, fusion) and the final angle's interval issued with a fused
+    camera."""
 
     def __init__(self, proc: Any) -> None:
         from formtwin.service import processor as pmod
@@ -184,7 +186,9 @@ class PartTimer:
                    (proc.health, "observe", "health"), (proc.monitor, "observe", "charts"),
                    (proc.controller, "observe", "controller"),
                    (proc.store, "commit_product", "store"),
-                   (proc, "on_outcome", "publish: page feed")]
+                   (proc, "on_outcome", "publish: page feed"),
+                   (proc.sensors, "handle", "sensor message"),  # parse, store, fusion
+                   (pmod, "issue", "final interval")]  # the camera's, with each estimate
         for obj, name, label in targets:
             f = getattr(obj, name, None) if obj is not None else None
             if f is not None:
