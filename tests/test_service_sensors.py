@@ -216,6 +216,8 @@ def test_hold_is_bounded_in_count_and_age(
     assert [n["reason"] for n in notices] == ["hold_expired"] * 3  # at the 4th product
     assert "never-0" in notices[0]["detail"]
     assert [r[3] for r in rows(proc)] == ["expired"] * 3
+    again = proc.handle_sensor(reading("never-0", "gauge", 0.3))  # answered as stored
+    assert again.kind == "redelivered" and again.message["status"] == "expired"
     # room again: a value held now is fused when its curve comes
     assert proc.handle_sensor(reading(ids[4], "gauge", float(values["gauge"][4]))).kind \
         == "held"

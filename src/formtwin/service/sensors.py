@@ -329,10 +329,7 @@ class SensorDesk:
                "received_at, message) VALUES (?,?,?,?,?,?,?,?,?)")
         args = (r.part_id, r.sensor, r.value, status, at_seq, index,
                 None if u is None else json.dumps(u), now, dumps(msg).decode())
-        if cur is None:
-            self.store.execute(sql, args)
-        else:
-            cur.execute(sql, args)
+        (self.store.execute if cur is None else cur.execute)(sql, args)
 
     # ----------------------------------------------------------------- a product's commit
     def since_last(self) -> list[dict[str, Any]]:
@@ -370,11 +367,12 @@ class SensorDesk:
                         "message = ? WHERE id = ?",
                         (msg["status"], seq, index, None if u is None else json.dumps(u),
                          dumps(msg).decode(), rid))
-        old = cur.execute("SELECT id, part_id, sensor FROM measurements WHERE status = "
-                          "'held' AND at_seq <= ? ORDER BY id",
+        old = cur.execute("SELECT id, part_id, sensor, message FROM measurements WHERE "
+                          "status = 'held' AND at_seq <= ? ORDER BY id",
                           (seq - HOLD_PRODUCTS,)).fetchall()
-        for rid, pid, sensor in old:
-            cur.execute("UPDATE measurements SET status = 'expired' WHERE id = ?", (rid,))
+        for rid, pid, sensor, text in old:
+            cur.execute("UPDATE measurements SET status = 'expired', message = ? WHERE id = ?",
+                        (dumps(dict(json.loads(text), status="expired")).decode(), rid))
             notices.append(error_message(MessageError(
                 "hold_expired", f"{sensor} of part {pid!r} held for {HOLD_PRODUCTS} "
                 "products without its curve: stored as expired, not fused", str(pid)),
