@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin.filters.lagged import lagged, reweight, shift
+from formtwin.filters.lagged import distinct_rows, lagged, reweight, shift
 from formtwin.spec import ProcessSpec
 from formtwin.spec.sensors import Sensor, line_sensors, output_column
 from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
@@ -314,8 +314,8 @@ class SensorFusion:
 def distinct_angles(ssm: BendingSSM, x: FloatArray, u: FloatArray | None) -> FloatArray:
     """The angles (N, 2) of the model inputs ``x`` (N, n_in) at ``u``, the model evaluated
     once per distinct row (after resampling most rows are copies)."""
-    rows, inverse = np.unique(x, axis=0, return_inverse=True)
-    out: FloatArray = ssm.predict_angles(rows, u)[inverse.reshape(-1)]
+    rows, inverse = distinct_rows(x)
+    out: FloatArray = ssm.predict_angles(rows, u)[inverse]
     return out
 
 
