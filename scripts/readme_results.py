@@ -74,7 +74,10 @@ def _control(f: dict[str, Any]) -> str:
 
 
 def _service(f: dict[str, Any]) -> str:
-    return (f"{f['products_per_s']:.0f} products/s sustained through MQTT "
+    k = int(f.get("sensor_messages_per_product", 0))
+    extra = "" if not k else (f" with {k} {'/'.join(f.get('sensor_messages', []))} message"
+                              f"{'s' if k > 1 else ''} per product besides the stroke")
+    return (f"{f['products_per_s']:.0f} products/s sustained through MQTT{extra} "
             f"({f['capacity_over_step']:.2f} of the tracker step's rate); p99 latency "
             f"{f['latency_p99_ms']:.1f} ms at {f['latency_rate_per_s']:.0f} products/s; "
             f"{f['startup_s']:.1f} s from start to subscribed")
