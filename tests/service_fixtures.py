@@ -228,3 +228,10 @@ def stored_count(store: Path) -> int:
             return int(db.execute("SELECT COUNT(*) FROM products").fetchone()[0])
     except sqlite3.Error:
         return 0
+
+
+def doc_commands(doc: Path, mark: str) -> list[str]:
+    """The non-blank shell lines of the first ```sh block after ``mark`` in ``doc``."""
+    text = doc.read_text(encoding="utf-8")
+    block = text.split(mark, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
+    return [line for line in block.splitlines() if line.strip()]

@@ -14,6 +14,7 @@ from pathlib import Path
 from service_fixtures import (
     REPO,
     Mosquitto,
+    doc_commands,
     log_has,
     mosquitto,  # noqa: F401 - fixture
     wait_for,
@@ -24,15 +25,9 @@ DOC = REPO / "docs" / "howto" / "connect-press.md"
 MARK = "<!-- the block below is run by tests/test_howto_connect_press.py -->"
 
 
-def doc_commands() -> list[str]:
-    """The shell lines of the marked block of the how-to."""
-    text = DOC.read_text(encoding="utf-8")
-    block = text.split(MARK, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
-    return [line for line in block.splitlines() if line.strip()]
-
 
 def test_howto_connect_press_runs_as_written(mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
-    serve, replay, export = doc_commands()
+    serve, replay, export = doc_commands(DOC, MARK)
     assert "--sensors gauge,camera" in serve and "--check 100" in serve
     (tmp_path / "src").symlink_to(REPO / "src")
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")

@@ -19,6 +19,7 @@ import pytest
 from service_fixtures import (
     REPO,
     Mosquitto,
+    doc_commands,
     log_has,
     mosquitto,  # noqa: F401 - fixture
     stored_count,
@@ -158,12 +159,6 @@ def test_study_without_physics_for_the_spec_exits_nonzero_naming_what_is_missing
     assert not (tmp_path / "st" / "runs").exists()  # refused before any filter run
 
 
-def doc_commands() -> list[str]:
-    """The shell lines of the marked block of docs/howto/own-process.md."""
-    text = DOC.read_text(encoding="utf-8")
-    block = text.split(MARK, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
-    return [line for line in block.splitlines() if line.strip()]
-
 
 def argv_of(line: str, broker: str) -> list[str]:
     """The argv of a documented line, run with this interpreter."""
@@ -178,7 +173,7 @@ def test_howto_chain_runs_as_documented(mosquitto: Mosquitto, tmp_path: Path) ->
     """Every command of the how-to, in a scratch folder with the repository's examples
     and sources linked in: spec, DOE export/import, metamodel, track, study series 5/6 on
     the example's own FE dataset, serve + replay through mosquitto, export."""
-    lines = doc_commands()
+    lines = doc_commands(DOC, MARK)
     for name in ("src", "examples"):
         (tmp_path / name).symlink_to(REPO / name)
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1",

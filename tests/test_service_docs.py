@@ -18,6 +18,7 @@ from pathlib import Path
 from service_fixtures import (
     REPO,
     Mosquitto,
+    doc_commands,
     log_has,
     mosquitto,  # noqa: F401 - fixture
     wait_for,
@@ -26,12 +27,6 @@ from service_fixtures import (
 DOC = REPO / "docs" / "tutorials" / "live-line.md"
 MARK = "<!-- the block below is run by tests/test_service_docs.py -->"
 
-
-def doc_commands() -> list[str]:
-    """The shell lines of the marked block of docs/tutorials/live-line.md."""
-    text = DOC.read_text(encoding="utf-8")
-    block = text.split(MARK, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
-    return [line for line in block.splitlines() if line.strip()]
 
 
 def run_line(line: str, broker: str, cwd: Path) -> list[str]:
@@ -43,7 +38,7 @@ def run_line(line: str, broker: str, cwd: Path) -> list[str]:
 
 
 def test_docs_quick_start_check_passes(mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
-    fit, serve, replay = doc_commands()
+    fit, serve, replay = doc_commands(DOC, MARK)
     assert "--check 100" in serve and "--synthetic" in replay
     (tmp_path / "src").symlink_to(REPO / "src")
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
