@@ -12,10 +12,10 @@ from formtwin.defaults import analytic_model, physics_model
 from formtwin.study.control import (
     R2R_LAMS,
     ControlStudySettings,
-    _setup,
     plant_run,
     r2r,
     r2r_gain,
+    study_controllers,
 )
 from formtwin.study.control_ff import ADAPTIVE, track_and_choose
 from formtwin.study.control_sensors import (
@@ -49,7 +49,7 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
 def test_exact_camera_is_the_control_studys_ewma(case: dict) -> None:
     m, base, out = case["model"], case["base"], case["out"]
     run, _, ok, plant = plant_run(m.spec, case["physics"], base, 0, case["folder"])
-    act, _, nominal = _setup(m, base, TARGET)
+    act, _, nominal = study_controllers(m, base, TARGET)
     for row, lam in enumerate(R2R_LAMS):
         u = r2r(plant, ok, run.n, TARGET, case["gain"], lam, act, nominal, 1)
         ref = np.where(ok, [plant(i, u[i]) for i in range(run.n)], np.nan)
@@ -77,7 +77,7 @@ def test_camera_noise_reaches_the_ewma_one_product_late(case: dict) -> None:
 def test_gauge_fused_before_the_choice_sharpens_the_thickness(case: dict) -> None:
     m, base = case["model"], case["base"]
     run, curves, ok, plant = plant_run(m.spec, case["physics"], base, 0, case["folder"])
-    _, ff, nominal = _setup(m, base, TARGET)
+    _, ff, nominal = study_controllers(m, base, TARGET)
     thick = m.spec.state.index["thickness"]
     _, z = sensor_draws(base.seed, 0, run.n)
     gauge = run.x[:, thick] + 0.5e-3 * z  # mm: the spec's 0.5 um
@@ -95,7 +95,7 @@ def test_gauge_fused_before_the_choice_sharpens_the_thickness(case: dict) -> Non
 def test_noise_of_the_wrong_shape_is_refused(case: dict) -> None:
     m, base = case["model"], case["base"]
     run, curves, ok, plant = plant_run(m.spec, case["physics"], base, 0, case["folder"])
-    _, ff, nominal = _setup(m, base, TARGET)
+    _, ff, nominal = study_controllers(m, base, TARGET)
     with pytest.raises(ValueError, match=r"noise: shape \(1, 3\), expected \(2, 40\)"):
         track_and_choose(m, base.tracker, curves, ok, plant, ff,
                          [(0.1, ADAPTIVE, 0.0), (0.1, 1.0, 0.0)], nominal,

@@ -96,16 +96,16 @@ def test_results_are_keyed_by_the_model_not_only_its_version() -> None:
     """A metamodel refitted on the same physics version must not reuse old results."""
     from types import SimpleNamespace
 
-    from formtwin.study.control_run import _key
+    from formtwin.study.control_run import result_key
 
     model = analytic_model()
     settings = ControlStudySettings(products=60, datasets=2)
     shifted = SimpleNamespace(spec=model.spec, predict_angles=model.predict_angles,
                               predict_curves=lambda X: model.predict_curves(X) + 1e-9)
-    key = _key(settings, 90.0, "v1", model)
-    assert key == _key(settings, 90.0, "v1", model)
-    assert key != _key(settings, 90.0, "v1", shifted)  # type: ignore[arg-type]
-    assert key != _key(settings, 90.1, "v1", model)
+    key = result_key(settings, 90.0, "v1", model)
+    assert key == result_key(settings, 90.0, "v1", model)
+    assert key != result_key(settings, 90.0, "v1", shifted)  # type: ignore[arg-type]
+    assert key != result_key(settings, 90.1, "v1", model)
     # the same curves with another K_res (e.g. statistics of another rule): other results
     cov = SimpleNamespace(curve_cov=np.eye(3), angle_cov=np.eye(2))
     with_res = SimpleNamespace(spec=model.spec, predict_angles=model.predict_angles,
@@ -114,8 +114,8 @@ def test_results_are_keyed_by_the_model_not_only_its_version() -> None:
                             predict_curves=model.predict_curves,
                             residuals=SimpleNamespace(curve_cov=2 * np.eye(3),
                                                       angle_cov=np.eye(2)))
-    k_res = _key(settings, 90.0, "v1", with_res)  # type: ignore[arg-type]
-    assert k_res != key and k_res != _key(settings, 90.0, "v1", other)  # type: ignore[arg-type]
+    k_res = result_key(settings, 90.0, "v1", with_res)  # type: ignore[arg-type]
+    assert k_res != key and k_res != result_key(settings, 90.0, "v1", other)  # type: ignore[arg-type]
 
 
 def test_estimate_worth_against_known_relations() -> None:

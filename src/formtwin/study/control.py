@@ -219,8 +219,8 @@ def r2r_gain(metamodel: ProcessModel, rng: np.random.Generator, n: int = 200) ->
     return float(np.mean((a[:, 1] - a[:, 0]) / (c.hi[0] - c.lo[0])))
 
 
-def _setup(metamodel: ProcessModel, settings: ControlStudySettings, target: float
-           ) -> tuple[Actuator, Feedforward, float]:
+def study_controllers(metamodel: ProcessModel, settings: ControlStudySettings,
+                      target: float) -> tuple[Actuator, Feedforward, float]:
     """The actuator, the feedforward and the nominal setting of the study."""
     c = metamodel.spec.controls
     act = Actuator(float(c.lo[0]), float(c.hi[0]),
@@ -299,7 +299,7 @@ def run_dataset(metamodel: ProcessModel, physics: Simulator, settings: ControlSt
     spec = metamodel.spec
     run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
     n = run.n
-    act, ff, nominal = _setup(metamodel, settings, target)
+    act, ff, nominal = study_controllers(metamodel, settings, target)
     grid = controller_grid(settings)
     # one tracker pass (series 6: deviation estimated, mu mid-range) for the open feedforward
     # and every combined one: the tracker does not depend on the settings chosen
@@ -343,7 +343,7 @@ def finish_dataset(metamodel: ProcessModel, physics: Simulator,
     (``u_feedforward_angle``, ``angle_feedforward_angle``, ``pred_angle``, ``angle_sd``)."""
     spec = metamodel.spec
     run, curves, ok, plant = plant_run(spec, physics, settings, k, folder)
-    _, ff, nominal = _setup(metamodel, settings, target)
+    _, ff, nominal = study_controllers(metamodel, settings, target)
     out: dict[str, Any] = {}
     if settings.angle_in_filter:
         config = replace(settings.tracker, seed=settings.seed + k)

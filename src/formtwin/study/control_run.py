@@ -55,8 +55,8 @@ SHOWN = ("fixed", "ewma", "feedforward", "feedforward_angle", "oracle")
 NOT_IN_RESULTS = ("service", "cli", "monitoring", "figures.py")
 
 
-def _key(settings: ControlStudySettings, target: float, version: str,
-         metamodel: ProcessModel) -> str:
+def result_key(settings: ControlStudySettings, target: float, version: str,
+               metamodel: ProcessModel) -> str:
     """Hash of what makes a dataset's result: settings (not the worker count), target,
     physics version, the metamodel (its curve and angles at the box's middle, its residual
     statistics ``K_res`` if it has them), the source of the package outside
@@ -104,7 +104,7 @@ def _datasets(metamodel: ProcessModel, physics: Simulator, settings: ControlStud
     when stored there with ``key``; the others computed, ``settings.workers`` at a time
     (their plants first, one after the other)."""
     paths = [out / f"dataset_{k}.npz" for k in range(settings.datasets)]
-    res: list[dict[str, Any] | None] = [_load(p, key) for p in paths]
+    res: list[dict[str, Any] | None] = [load_result(p, key) for p in paths]
     todo = [k for k, r in enumerate(res) if r is None]
     if not todo:
         return [r for r in res if r is not None]
@@ -119,7 +119,7 @@ def _datasets(metamodel: ProcessModel, physics: Simulator, settings: ControlStud
     else:
         done = [_run_dataset(a) for a in args]
     for k, r in zip(todo, done, strict=True):
-        _save(paths[k], key, r)
+        save_result(paths[k], key, r)
         res[k] = r
     return [r for r in res if r is not None]
 
@@ -162,7 +162,7 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     out.mkdir(parents=True, exist_ok=True)
     target = default_target(metamodel) if settings.target is None else settings.target
     gain = r2r_gain(metamodel, np.random.default_rng(settings.seed))
-    key = _key(settings, target, str(getattr(physics, "version", "")), metamodel)
+    key = result_key(settings, target, str(getattr(physics, "version", "")), metamodel)
     bases = _datasets(metamodel, physics, settings, out, key, target, gain)
     b = settings.burn_in
     grid = bases[0]["grid"]
@@ -176,11 +176,11 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     for k, (base, tuned) in enumerate(zip(bases, chosen, strict=True)):
         r = _tuned_result(base, tuned)
         fin_key = f"{key}-{sorted(tuned.items())}"
-        fin = _load(out / f"final_{k}.npz", fin_key)
+        fin = load_result(out / f"final_{k}.npz", fin_key)
         if fin is None:
             fin = finish_dataset(metamodel, physics, settings, k, out, target, tuned,
                                  r["u_feedforward"])
-            _save(out / f"final_{k}.npz", fin_key, fin)
+            save_result(out / f"final_{k}.npz", fin_key, fin)
         if "interp_idx" in fin:
             fin["interp_error"] = (fin["interp_angle"]
                                    - r["angle_feedforward"][np.asarray(fin["interp_idx"])])
@@ -236,7 +236,7 @@ def run_control_study(metamodel: ProcessModel, physics: Simulator,
     return summary
 
 
-def _load(path: Path, key: str) -> dict[str, Any] | None:
+def load_result(path: Path, key: str) -> dict[str, Any] | None:
     """The arrays stored in ``path`` with ``key`` (None: absent or another key)."""
     if path.exists():
         with np.load(path, allow_pickle=False) as f:
@@ -246,7 +246,7 @@ def _load(path: Path, key: str) -> dict[str, Any] | None:
     return None
 
 
-def _save(path: Path, key: str, res: dict[str, Any]) -> None:
+def save_result(path: Path, key: str, res: dict[str, Any]) -> None:
     """Store the arrays ``res`` in ``path`` with ``key``."""
     np.savez(path, key=np.array(key), **{n: np.asarray(v) for n, v in res.items()})  # type: ignore[arg-type]
 

@@ -43,15 +43,15 @@ from formtwin.spec.sensors import line_sensors, sensor_by_name
 from formtwin.study.control import (
     R2R_LAMS,
     ControlStudySettings,
-    _setup,
     default_target,
     metamodel_final,
     plant_run,
     r2r,
     r2r_gain,
+    study_controllers,
 )
 from formtwin.study.control_ff import ADAPTIVE, track_and_choose
-from formtwin.study.control_run import _key, _load, _save
+from formtwin.study.control_run import load_result, result_key, save_result
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ def sensor_dataset(metamodel: ProcessModel, physics: Simulator,
     spec = metamodel.spec
     run, curves, ok, plant = plant_run(spec, physics, base, k, folder)
     n = run.n
-    act, ff, nominal = _setup(metamodel, base, target)
+    act, ff, nominal = study_controllers(metamodel, base, target)
     z_cam, z_gauge = sensor_draws(base.seed, k, n)
     noises = np.asarray(settings.camera_noises, dtype=np.float64)
 
@@ -182,10 +182,10 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
     base = settings.base
     target = default_target(metamodel) if base.target is None else base.target
     gain = r2r_gain(metamodel, np.random.default_rng(base.seed))
-    key = _key(base, target, str(getattr(physics, "version", "")), metamodel) + repr(
+    key = result_key(base, target, str(getattr(physics, "version", "")), metamodel) + repr(
         (settings.camera_noises, settings.sets, GRID, R2R_LAMS))
     paths = [out / f"sensors_{k}.npz" for k in range(base.datasets)]
-    res = [_load(p, key) for p in paths]
+    res = [load_result(p, key) for p in paths]
     todo = [k for k, r in enumerate(res) if r is None]
     for k in todo:  # the plants first, one after the other (their physics uses the workers)
         plant_run(metamodel.spec, physics, base, k, out)
@@ -198,7 +198,7 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
     else:
         done = [_run(a) for a in args]
     for k, r in zip(todo, done, strict=True):
-        _save(paths[k], key, r)
+        save_result(paths[k], key, r)
         res[k] = r
     results = [r for r in res if r is not None]
     b = base.burn_in
