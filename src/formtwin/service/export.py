@@ -2,8 +2,7 @@
 Parquet or CSV.
 
 >>> import tempfile, os
->>> from formtwin.service.sensors import MEASUREMENTS_DDL
-from formtwin.service.store import Store
+>>> from formtwin.service.store import Store
 >>> d = tempfile.mkdtemp(); Store(os.path.join(d, "s.sqlite")).close()
 >>> export_store(os.path.join(d, "s.sqlite"), os.path.join(d, "e.csv"))[1]
 0

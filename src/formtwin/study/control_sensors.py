@@ -159,8 +159,8 @@ def loo_ratios(ff_std: FloatArray, r2r_std: FloatArray, fixed_std: FloatArray
 
     >>> ff = np.array([[1.0, 2.0], [1.0, 2.0], [3.0, 1.0]])
     >>> ratio, a, b = loo_ratios(ff, np.full((3, 1), 2.0), np.ones(3))
-    >>> ratio.tolist(), a      # dataset 2 alone prefers column 1: scored with column 0
-    ([0.5, 0.5, 1.5], [0, 0, 0])
+    >>> ratio.tolist(), a  # datasets 0, 1 scored with column 1 (best on the others), 2 with 0
+    ([1.0, 1.0, 1.5], [1, 1, 0])
     """
     scale = np.asarray(fixed_std, dtype=np.float64)[:, None]
     K = ff_std.shape[0]
