@@ -134,3 +134,26 @@ def test_states_without_kept_angles_and_bad_shapes_leave_them_unknown() -> None:
     assert f.angles is None and f.state() == {}
     f.set_state({"final_angles": np.ones((5, 2)), "final_angles_u": np.zeros((2, 1))})
     assert f.angles is not None and f.state()["final_angles"].shape == (5, 2)
+
+
+def test_the_fusion_log_density_is_scipys_normal() -> None:
+    """The camera's and gauge's log density in the fusion is ``scipy.stats.norm.logpdf``
+    (its operations written out): within a few ulps, NaN and infinite predictions alike."""
+    from scipy.stats import norm
+
+    tr = _tracker()
+    tr.step(_curves(1)[0])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        pred = 90.0 + rng.standard_normal(200)
+        pred[::50], pred[3] = np.nan, np.inf
+        value, sd = 90.0 + float(rng.standard_normal()), float(np.exp(rng.standard_normal()))
+        logw = tr.filter.logw.copy()
+        inc = tr._reweight(pred, value, sd, "test")
+        expect = norm.logpdf(value, loc=pred, scale=sd)
+        new = np.where(np.isnan(expect) | np.isposinf(expect), -np.inf, expect) + logw
+        top = np.max(new)
+        lse = top + math.log(float(np.sum(np.exp(new - top))))
+        assert inc == pytest.approx(lse, rel=1e-14)
+        np.testing.assert_allclose(tr.filter.logw, new - lse, rtol=1e-13, atol=1e-13)
+        tr.filter.logw = logw
