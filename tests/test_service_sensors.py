@@ -91,7 +91,7 @@ def direct(tmp: Path, pay: list[bytes], items: list[tuple[str, bytes]]) -> list[
         m = json.loads(p)
         if kind == "s":
             est = tracker.step(np.array(m["force_N"]))
-            tracker.posterior(None)
+            tracker.issue_final(None)
             index[m["part_id"]] = tracker.n_steps - 1
             out.append(est.to_dict())
             for sensor, value in held.pop(m["part_id"], []):

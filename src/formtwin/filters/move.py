@@ -95,6 +95,7 @@ class ResampleMoveSIR(SIR):
                 and self.x is not None and idx_box):
             idx = idx_box[0]
             self.x = self._move(self.x, parents[idx], ll[idx], step)
+            self.ancestors = None
         return step
 
     def _move(self, x: FloatArray, parents: FloatArray, ll: FloatArray,

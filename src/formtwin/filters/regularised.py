@@ -60,4 +60,5 @@ class RegularisedSIR(SIR):
                 self.x.shape)
             constrain: Any = getattr(self.model, "constrain", None)
             self.x = np.asarray(constrain(moved), dtype=np.float64) if constrain else moved
+            self.ancestors = None
         return step

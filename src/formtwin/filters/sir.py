@@ -154,6 +154,9 @@ class SIR:
         self.ess_threshold = float(ess_threshold)
         self.t = 0
         self.x: FloatArray | None = None  # None until the first step draws p(x_0)
+        #: after a step, the rows of its predicted particles the current ones copy
+        #: (``x == step.x[ancestors]``); None when they were moved after resampling
+        self.ancestors: NDArray[np.intp] | None = None
         self.logw: FloatArray = np.full(self.n, -math.log(self.n))
 
     def initialise(self) -> None:
@@ -199,9 +202,11 @@ class SIR:
         if resampled:
             idx = self.resample(w, self.rng, self.n)
             self.x = xp[idx]
+            self.ancestors = np.asarray(idx, dtype=np.intp)
             self.logw = np.full(self.n, -math.log(self.n))
         else:
             self.x = xp
+            self.ancestors = np.arange(self.n)
             self.logw = logw_n
         self.t += 1
         return Step(x=xp, w=w, ess=ess, loglik=inc, collapsed=collapsed, resampled=resampled)

@@ -47,17 +47,16 @@ import json
 import logging
 import math
 import sqlite3
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from formtwin.service.messages import MessageError, dumps, error_message
+from formtwin.service.readings import SENSOR_SCHEMA, Reading, parse_reading
 from formtwin.service.store import Store
 
 log = logging.getLogger(__name__)
 
-SENSOR_SCHEMA = "formtwin.sensor/1"
 MEASUREMENT_SCHEMA = "formtwin.measurement/1"
 
 #: at most this many values are held for products not yet seen (a strip gauge upstream of
@@ -68,6 +67,9 @@ HOLD_PRODUCTS = 32
 
 #: the model output a camera measures (the final angle)
 FINAL = "angle_stage2"
+#: accepted products whose step index, setting and final-angle prediction a
+#: :class:`SensorDesk` keeps in memory (older ones are read from the store)
+RECENT = 64
 
 MEASUREMENTS_DDL = """
 CREATE TABLE IF NOT EXISTS measurements (
@@ -86,85 +88,6 @@ CREATE TABLE IF NOT EXISTS measurements (
 CREATE INDEX IF NOT EXISTS measurements_status_seq ON measurements (status, at_seq);
 """
 
-_PART_ID_MAX = 128
-
-
-@dataclass(frozen=True)
-class Reading:
-    """One validated sensor message: ``value`` in internal units."""
-
-    part_id: str
-    sensor: str
-    value: float
-    timestamp: str | None = None
-
-    def to_message(self) -> dict[str, Any]:
-        """The reading as a ``formtwin.sensor/1`` JSON object."""
-        msg: dict[str, Any] = {"schema": SENSOR_SCHEMA, "part_id": self.part_id,
-                               "sensor": self.sensor, "value": self.value}
-        if self.timestamp is not None:
-            msg["timestamp"] = self.timestamp
-        return msg
-
-
-def _reject_constant(name: str) -> float:
-    raise MessageError("non_finite", f"JSON literal {name} is not a finite number")
-
-
-def parse_reading(payload: bytes, sensors: tuple[str, ...], max_bytes: int = 65536
-                  ) -> Reading:
-    """Parse and validate one sensor payload; ``sensors`` are the names the service fuses.
-
-    Raises
-    ------
-    MessageError
-        ``oversized``, ``malformed_json``, ``unknown_schema``, ``missing_field``,
-        ``bad_field``, ``non_finite`` or ``unknown_sensor``, naming the field, the value and
-        what was expected.
-    """
-    if len(payload) > max_bytes:
-        raise MessageError("oversized", f"{len(payload)} bytes > limit {max_bytes}")
-    try:
-        doc = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)
-    except MessageError:
-        raise
-    except (ValueError, RecursionError) as exc:
-        raise MessageError("malformed_json", f"{type(exc).__name__}: {exc}"[:200]) from None
-    if not isinstance(doc, dict):
-        raise MessageError("malformed_json", f"top level is {type(doc).__name__}, not object")
-    if doc.get("schema") != SENSOR_SCHEMA:
-        raise MessageError("unknown_schema", f"schema {doc.get('schema')!r:.60}, expected "
-                           f"{SENSOR_SCHEMA!r}")
-    raw = doc.get("part_id")
-    part_id = raw if isinstance(raw, str) and 0 < len(raw) <= _PART_ID_MAX \
-        and raw.isprintable() else None
-    for key in ("part_id", "sensor", "value"):
-        if key not in doc:
-            raise MessageError("missing_field", f"field {key!r} is required", part_id)
-    if part_id is None:
-        raise MessageError("bad_field", f"part_id must be a printable string of 1.."
-                           f"{_PART_ID_MAX} characters, got {raw!r:.60}")
-    sensor, value = doc["sensor"], doc["value"]
-    if not isinstance(sensor, str):
-        raise MessageError("bad_field", f"sensor must be a string, got {sensor!r:.40}",
-                           part_id)
-    if sensor not in sensors:
-        raise MessageError("unknown_sensor", f"sensor {sensor!r:.60} is not fused by this "
-                           f"service (tracker sensors: {', '.join(sensors) or 'none'})",
-                           part_id)
-    if type(value) not in (int, float):
-        raise MessageError("bad_field", f"value must be a number, got {value!r:.40}", part_id)
-    try:
-        v = float(value)
-    except OverflowError:
-        raise MessageError("non_finite", "value is an integer too large for float64",
-                           part_id) from None
-    if not math.isfinite(v):
-        raise MessageError("non_finite", f"value is {v}", part_id)
-    ts = doc.get("timestamp")
-    return Reading(part_id, sensor, v, None if ts is None else str(ts)[:64])
-
-
 def issue(tracker: Any, u: Any) -> dict[str, Any] | None:
     """The twin's prediction of the current product's measured final angle, issued right
     after its step (and again in the same place by a replay: it records the interval its
@@ -172,10 +95,9 @@ def issue(tracker: Any, u: Any) -> dict[str, Any] | None:
     sensor of the final angle is fused."""
     if not any(s.measures == FINAL for s in fused_sensors(tracker)):
         return None
-    p = tracker.posterior(u)
-    lo, hi = p.final_interval
-    ok = all(math.isfinite(v) for v in (p.final_mean, lo, hi))
-    return {"predicted_deg": float(p.final_mean) if ok else None,
+    final, (lo, hi) = tracker.issue_final(u)
+    ok = all(math.isfinite(v) for v in (final, lo, hi))
+    return {"predicted_deg": float(final) if ok else None,
             "interval90_deg": [float(lo), float(hi)] if ok else None}
 
 
@@ -237,6 +159,11 @@ class SensorDesk:
                           "'accepted'")
         #: seq of the last accepted product (the fusions after it go into the next estimate)
         self.last_accepted = int(row[0][0])
+        #: part id -> (step index, setting, final-angle prediction) of the last
+        #: :data:`RECENT` accepted products committed here: what a sensor message needs of
+        #: its product, without reading and decoding the stored estimate
+        self.recent: dict[str, tuple[int, Any, dict[str, Any] | None]] = {}
+        self._pending: tuple[str, int, Any, dict[str, Any] | None] | None = None
 
     @property
     def active(self) -> bool:
@@ -263,17 +190,16 @@ class SensorDesk:
                 "duplicate_measurement", f"{r.sensor} of part {r.part_id!r} already stored "
                 f"with value {float(old[0][0])!r}, now {r.value!r}", r.part_id),
                 payload, topic, now)
-        prod = self.store.product(r.part_id)
-        if prod is None:
+        known = self._product(r.part_id)
+        if known is None:
             return self._hold(r, payload, topic, now, last_seq)
-        if prod.status != "accepted" or prod.estimate is None:
+        if isinstance(known, str):  # gated
             return "rejected", refuse(self.store, MessageError(
                 "product_gated", f"part {r.part_id!r} was gated as an outlier: not in the "
                 "tracker, its sensor values are not fused", r.part_id), payload, topic, now)
-        index = int(prod.estimate["index"])
-        u = prod.estimate.get("u")
+        index, u, final = known
         newest = int(self.tracker.n_steps) - 1
-        msg = self._answer(r, index, prod.estimate)
+        msg = self._answer(r, index, {"final": final})
         if index < newest - self.lag:
             msg["status"] = "too_late"
             msg["detail"] = (f"product {index} is more than L = {self.lag} products before "
@@ -289,6 +215,21 @@ class SensorDesk:
         except MessageError as err:
             return "rejected", refuse(self.store, err, payload, topic, now)
         return "fused", msg
+
+    def _product(self, part_id: str) -> tuple[int, Any, dict[str, Any] | None] | str | None:
+        """``(step index, setting, final-angle prediction)`` of a stored accepted product
+        (from :attr:`recent` or the store), ``"gated"`` for another stored one, None for a
+        product not yet seen."""
+        got = self.recent.get(part_id)
+        if got is not None:
+            return got
+        prod = self.store.product(part_id)
+        if prod is None:
+            return None
+        if prod.status != "accepted" or prod.estimate is None:
+            return "gated"
+        e = prod.estimate
+        return int(e["index"]), e.get("u"), e.get("final")
 
     def _fuse(self, sensor: str, value: float, index: int, u: Any) -> float:
         """Fuse into the tracker; a refusal becomes ``fusion_rejected`` (tracker untouched)."""
@@ -346,6 +287,7 @@ class SensorDesk:
         expire the held values older than :data:`HOLD_PRODUCTS` products; return the
         notices for the errors topic."""
         notices: list[dict[str, Any]] = []
+        self._pending = (part_id, int(index), u, final)
         held = cur.execute("SELECT id, sensor, value, message FROM measurements WHERE "
                            "status = 'held' AND part_id = ? ORDER BY id", (part_id,)).fetchall()
         est = {"final": final}
@@ -380,8 +322,14 @@ class SensorDesk:
         return notices
 
     def committed(self, seq: int) -> None:
-        """Accepted product ``seq`` is in."""
+        """Accepted product ``seq`` is in (with what :meth:`at_product` saw of it)."""
         self.last_accepted = seq
+        if self._pending is not None:
+            part_id, *known = self._pending
+            self.recent[part_id] = (known[0], known[1], known[2])
+            self._pending = None
+            while len(self.recent) > RECENT:
+                del self.recent[next(iter(self.recent))]
 
 
 def replay_fusions(group: list[tuple[str, float, int, Any]], tracker: Any) -> None:

@@ -94,8 +94,9 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
             out["angles_mean"][i], out["angles_std"][i] = p.angles_mean, p.angles_std
             out["ess"][i] = p.ess
             if "camera" in sensors:  # the tracker's own: with the bias it learned
-                out["angles_mean"][i, 1] = p.final_mean
-                out["final_lo"][i], out["final_hi"][i] = p.final_interval
+                final, (lo, hi) = tracker.issue_final(uk)
+                out["angles_mean"][i, 1] = final
+                out["final_lo"][i], out["final_hi"][i] = lo, hi
             else:
                 sd = math.sqrt(float(p.angles_std[1]) ** 2 + cam_sd**2)
                 out["final_lo"][i], out["final_hi"][i] = aci.interval(

@@ -33,10 +33,12 @@ from formtwin.estimates import Estimate, Estimates
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
+from formtwin.spec.sensors import output_column
 from formtwin.tracker import state as _state
 from formtwin.tracker.config import SCALES, TrackerConfig
+from formtwin.tracker.final_angles import FinalAngles
 from formtwin.tracker.fit import FitRule, assess
-from formtwin.tracker.fusion import FusedLog, SensorFusion
+from formtwin.tracker.fusion import FINAL, FusedLog, SensorFusion, used_sensors
 from formtwin.tracker.intervals import Floors
 from formtwin.tracker.sandwich import STATE_KEYS, Sandwich
 from formtwin.tracker.ssm import BendingSSM
@@ -121,6 +123,9 @@ class Tracker(SensorFusion):
         self.intervals = "uncalibrated" if self.floors is not None \
             and self.floors.calibration.data is None else c.intervals
         self.fused = FusedLog(self.config.sensors)  # sensor values (fuse)
+        #: with a camera: the particles' final angles and their ancestors', from the step
+        self.finals = FinalAngles(self.ssm.lag_depth, len(self.spec.controls)) \
+            if any(s.measures == FINAL for s in used_sensors(self.spec, self.config)) else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
@@ -169,6 +174,7 @@ class Tracker(SensorFusion):
         share, learned = self.ssm.share_logpost, self.ssm.learned_snapshot()
         sw = None if self.sandwich is None else self.sandwich.snapshot()
         fl = None if self.floors is None else self.floors.state()
+        fa = None if self.finals is None else self.finals.snapshot()
         try:
             logw_prev = f.logw
             s = f.step(y)
@@ -178,13 +184,15 @@ class Tracker(SensorFusion):
             self.ssm.update_share(logw_prev if ratio is None else logw_prev + ratio)
             self.ssm.update_residuals(s)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
-            return self._estimate(s, np.exp(saved[1]), c, uu, y)
+            return self._estimate(s, np.exp(saved[1]), c, uu, y, saved[0])
         except BaseException:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
             if self.sandwich is not None and sw is not None:
                 self.sandwich.restore(sw)
             if self.floors is not None and fl is not None:
                 self.floors.set_state(fl)
+            if self.finals is not None and fa is not None:
+                self.finals.restore(fa)
             self.rng.bit_generator.state = saved[3]
             if scale is not None:
                 self.ssm.set_scale_logpost(scale)
@@ -223,18 +231,22 @@ class Tracker(SensorFusion):
         return controller.choose(self.final_angle, self.weights(), u_prev)
 
     def _estimate(self, s: Step, v: FloatArray, scale: float = 1.0,
-                  u: FloatArray | None = None, y: FloatArray | None = None) -> Estimate:
+                  u: FloatArray | None = None, y: FloatArray | None = None,
+                  parents: FloatArray | None = None) -> Estimate:
         """The estimate of step ``s``; ``v`` (N,) the predictive weights of its particles,
         ``scale`` the predictive mean of the likelihood's covariance factor, ``u`` the
         product's press setting (None: nominal) for the predicted angles, ``y`` its curve
-        (for the sandwich intervals)."""
-        m = self.config.angle_particles
+        (for the sandwich intervals), ``parents`` the filter's particles before the step
+        (for :attr:`finals`)."""
+        m, rows = self.config.angle_particles, None
         if m is None or m >= s.x.shape[0]:
-            keep = heaviest(s.w, ANGLE_MASS)
-            xa, wa = s.x[keep], s.w[keep]
+            keep = rows = heaviest(s.w, ANGLE_MASS)
+            xa, wa = (s.x, s.w) if keep.size == s.x.shape[0] else (s.x[keep], s.w[keep])
         else:
             xa, wa = s.x[systematic(s.w, self.rng, m)], np.full(m, 1.0 / m)
         angles = self.ssm.predict_angles(xa, u)
+        if self.finals is not None:  # kept for the final angle's interval and the camera
+            self._keep_finals(s, angles, rows, u, parents)
         ok = np.all(np.isfinite(angles), axis=1)
         w = np.where(ok, wa, 0.0)
         if w.sum() > 0:
@@ -260,6 +272,21 @@ class Tracker(SensorFusion):
                         mu_mean=mu[0] if mu else None, mu_std=mu[1] if mu else None,
                         fit=fit, intervals=self.intervals,
                         output_names=self.ssm.spec.output_names)
+
+    def _keep_finals(self, s: Step, angles: FloatArray, rows: NDArray[np.intp] | None,
+                     u: FloatArray | None, parents: FloatArray | None) -> None:
+        """:attr:`finals` after step ``s``: ``angles`` (m, 2) at ``u`` of its particles
+        ``rows`` (None: of a resampled subset, not kept); ``parents`` the filter's rows
+        before the step."""
+        assert self.finals is not None
+        n = s.x.shape[0]
+        own = np.full(n, np.nan)
+        if rows is not None:
+            own[rows] = angles[:, output_column(self.spec, FINAL)]
+        start, width = self.ssm.lag_start, self.ssm.n_in
+        same = parents is not None and parents.shape[0] == n and self.ssm.lag_depth > 0 \
+            and np.array_equal(s.x[:, start:start + width], parents[:, :width])
+        self.finals.stepped(own, u, bool(same), self.filter.ancestors)
 
     def run(self, curves: Iterable[Any], progress: bool = False,
             u: Any = None) -> Estimates:
@@ -294,7 +321,7 @@ class Tracker(SensorFusion):
             if self.config.learn_scale else {}
         if self.ssm.share_logpost.size > 1:
             model["share_logpost"] = [float(v) for v in self.ssm.share_logpost]
-        for part in (self.sandwich, self.floors, self.ssm.learned, self.fused):
+        for part in (self.sandwich, self.floors, self.ssm.learned, self.fused, self.finals):
             model.update({} if part is None else part.state())
         return _state.TrackerState(particles=x, logw=np.asarray(f.logw, dtype=np.float64),
                                    t=f.t, rng=dict(self.rng.bit_generator.state),
@@ -322,6 +349,8 @@ class Tracker(SensorFusion):
             self.floors.set_state(s.model)
         self.ssm.set_learned_state(s.model)
         self.fused.set_state(s.model)
+        if self.finals is not None:
+            self.finals.set_state(s.model)
         self.filter.x = s.particles if s.t > 0 and s.particles.size else None
         self.filter.logw = s.logw
         self.filter.t = s.t

@@ -30,7 +30,7 @@ likelihood sd of the caller's choice (the control study's what-if), without the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -41,7 +41,8 @@ from formtwin.spec import ProcessSpec
 from formtwin.spec.sensors import Sensor, line_sensors, output_column
 from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
 from formtwin.tracker.config import TrackerConfig
-from formtwin.tracker.conformal import AdaptiveConformal
+from formtwin.tracker.final_angles import FinalAngles
+from formtwin.tracker.fused_log import FusedLog
 from formtwin.tracker.validate import validate_controls
 
 if TYPE_CHECKING:
@@ -50,6 +51,9 @@ if TYPE_CHECKING:
 
 FloatArray = NDArray[np.float64]
 
+
+#: log sqrt(2 pi), as ``scipy.stats.norm`` has it
+_LOG_SQRT_2PI = np.log(np.sqrt(2 * np.pi))
 
 #: the model output whose interval the fused camera values calibrate (the final angle)
 FINAL = "angle_stage2"
@@ -117,70 +121,6 @@ class LagColumns:
         return lagged(x, self.spec.n_inputs, self.lag_start, lag)
 
 
-@dataclass
-class FusedLog:
-    """Which (product, sensor) values were fused, over the last ``L + 1`` products, and the
-    final angle's interval calibration by the fused camera values (:attr:`conformal`).
-
-    ``sensors`` are the config's sensor names (the state stores their positions)."""
-
-    sensors: tuple[str, ...]
-    done: set[tuple[int, str]] = field(default_factory=set)
-    conformal: AdaptiveConformal = field(default_factory=AdaptiveConformal)
-    #: the model's final-angle discrepancy learned from the camera (None: not yet made)
-    discrepancy: AngleDiscrepancy | None = None
-
-    def state(self) -> dict[str, list[float]]:
-        """The log as JSON numbers: ``fused`` ``[product, sensor position, ...]``, the
-        calibration's ``aci_alpha``, ``aci_scores`` and ``aci_pending`` ``[product, mean,
-        scale, q, ...]``, ``final_discrepancy`` ``[noise_var, *AngleDiscrepancy.state()]``
-        (keys only where there is something)."""
-        out: dict[str, list[float]] = {}
-        if self.done:
-            pairs = sorted((p, self.sensors.index(s)) for p, s in self.done)
-            out["fused"] = [float(v) for pair in pairs for v in pair]
-        d = self.discrepancy
-        if d is not None and math.isfinite(d.ref):
-            out["final_discrepancy"] = [d.noise_var, *d.state()]
-        c = self.conformal
-        if c.scores or c.pending:
-            out["aci_alpha"], out["aci_scores"] = [c.alpha], list(c.scores)
-            out["aci_pending"] = [float(v) for p, t in sorted(c.pending.items())
-                                  for v in (p, *t)]
-        return out
-
-    def set_state(self, model: dict[str, list[float]]) -> None:
-        """Inverse of :meth:`state`."""
-        flat = [int(v) for v in model.get("fused", [])]
-        self.done = {(flat[i], self.sensors[flat[i + 1]]) for i in range(0, len(flat), 2)}
-        c, pend = AdaptiveConformal(), model.get("aci_pending", [])
-        c.alpha = float(model.get("aci_alpha", [c.alpha])[0])
-        c.scores = [float(v) for v in model.get("aci_scores", [])]
-        c.pending = {int(pend[i]): (float(pend[i + 1]), float(pend[i + 2]), float(pend[i + 3]))
-                     for i in range(0, len(pend), 4)}
-        self.conformal = c
-        disc = model.get("final_discrepancy")
-        self.discrepancy = None
-        if disc:
-            self.discrepancy = AngleDiscrepancy(float(disc[0]))
-            self.discrepancy.set_state(list(disc[1:]))
-
-    def forget(self, oldest: int) -> None:
-        """Drop the predictions issued for products before ``oldest`` (their camera
-        values can no longer be fused)."""
-        for pending in (self.conformal.pending, {} if self.discrepancy is None
-                        else self.discrepancy.pending):
-            for p in [p for p in pending if p < oldest]:
-                del pending[p]
-
-    def learned(self, noise_var: float) -> AngleDiscrepancy:
-        """The final angle's discrepancy, made with the prior variance ``noise_var``
-        (degrees^2) at first use."""
-        if self.discrepancy is None:
-            self.discrepancy = AngleDiscrepancy(noise_var)
-        return self.discrepancy
-
-
 class SensorFusion:
     """Mixin of :class:`~formtwin.tracker.Tracker`: :meth:`fuse` and :meth:`posterior`."""
 
@@ -189,6 +129,7 @@ class SensorFusion:
     spec: ProcessSpec
     config: TrackerConfig
     fused: FusedLog
+    finals: FinalAngles | None
 
     def fuse(self, product: int, sensor: str, value: float, u: Any = None,
              offset: float = 0.0) -> float:
@@ -234,7 +175,11 @@ class SensorFusion:
             pred, var = x[:, self.spec.state.index[s.measures]], 0.0
         else:
             col = output_column(self.spec, s.measures)
-            pred = distinct_angles(self.ssm, x, uu)[:, col]
+            if s.measures == FINAL and self.finals is not None:  # kept from the step
+                pred = self.finals.column(newest - int(product), uu, x,
+                                          lambda r: self.ssm.predict_angles(r, uu)[:, col])
+            else:
+                pred = distinct_angles(self.ssm, x, uu)[:, col]
             var = float(self.ssm.angle_error()[col])
         sd = math.sqrt(s.noise**2 + max(var, 0.0))
         if not sd > 0:
@@ -260,10 +205,10 @@ class SensorFusion:
     def _reweight(self, pred: FloatArray, value: float, sd: float, what: str) -> float:
         """Multiply the current weights by ``N(value; pred, sd^2)`` (pred (N,)); return the
         log evidence increment; :class:`FusionError` (weights untouched) if no particle
-        gives a finite likelihood."""
-        from scipy.stats import norm  # on use: ~1.3 s CPU to import
-
-        ll = norm.logpdf(value, loc=pred, scale=sd)
+        gives a finite likelihood. The Normal's log density in SciPy's own operations
+        (``norm.logpdf``: the same numbers, without its ~0.1 ms of argument handling)."""
+        z = (value - pred) / sd
+        ll = -z**2 / 2.0 - _LOG_SQRT_2PI - np.log(np.float64(sd))
         try:
             self.filter.logw, inc = reweight(self.filter.logw, ll)
         except ValueError as exc:
@@ -274,41 +219,79 @@ class SensorFusion:
         """The current particles' weighted summary (after :meth:`fuse`, with what was
         fused): mean and std of ``[x, theta, theta_d]`` and of the angles at ``u``; the
         angles' std adds the metamodel's error as :meth:`Tracker.step`'s estimates do
-        (the reported std here is the cloud's: no interval floors). With a fused camera
-        (a sensor of the final angle), the 90 % interval of the current product's
-        measured final angle, calibrated by adaptive conformal inference on the camera
-        values fused so far (:mod:`formtwin.tracker.conformal`; the interval issued last
-        for a product is the one its camera value scores), centred on the measured angle
-        predicted from the model's by the discrepancy learned from the camera
-        (``config.camera_discrepancy``; its predictive std is the interval's scale), else
-        on the model's angle with the camera's noise added to its std. The model's angle
-        issued here for the current product is the one its camera value will teach the
-        discrepancy with."""
+        (the reported std here is the cloud's: no interval floors). With a fused camera,
+        the final angle's prediction and interval :meth:`issue_final` would issue now
+        (nothing is recorded: a report only)."""
         if self.filter.x is None:
             raise RuntimeError("posterior: no particles yet (call step first)")
         na = self.ssm.n_aug
         x = self.filter.x
-        w = np.exp(self.filter.logw - np.max(self.filter.logw))
-        w /= w.sum()
+        w = self._weights()
         mean = w @ x[:, :na]
         std = np.sqrt(np.maximum(w @ (x[:, :na] - mean) ** 2, 0.0))
         a = distinct_angles(self.ssm, x[:, :self.ssm.n_in], validate_controls(u, self.spec))
         am = w @ a
         astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
-        camera = [s for s in used_sensors(self.spec, self.config) if s.measures == FINAL]
-        lo = hi = math.nan
-        if camera:  # the measured angle's interval: the camera's noise added
+        final, lo, hi = math.nan, math.nan, math.nan
+        if self.finals is not None:
             col = output_column(self.spec, FINAL)
-            sd = math.sqrt(float(astd[col]) ** 2 + camera[0].noise ** 2)
-            final = float(am[col])
-            if self.config.camera_discrepancy:
-                noise = camera[0].noise ** 2 + float(self.ssm.angle_error()[col])
-                final, var = self.fused.learned(noise).issue(self.filter.t - 1, final)
-                sd = math.sqrt(var) if var > 0 else sd
-            lo, hi = self.fused.conformal.interval(self.filter.t - 1, final, sd)
-            self.fused.forget(self.filter.t - 1 - self.ssm.lag_depth)
-        return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi),
-                         final if camera else math.nan)
+            final, (lo, hi) = self._final_interval(float(am[col]), float(astd[col]), False)
+        return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi), final)
+
+    def issue_final(self, u: Any = None) -> tuple[float, tuple[float, float]]:
+        """Issue the current product's predicted measured final angle (degrees) and its
+        90 % interval ``(lo, hi)``, calibrated by adaptive conformal inference on the
+        camera values fused so far (:mod:`formtwin.tracker.conformal`; the interval issued
+        last for a product is the one its camera value scores), centred on the measured
+        angle predicted from the model's by the discrepancy learned from the camera
+        (``config.camera_discrepancy``; its predictive std is the interval's scale), else
+        on the model's angle with the camera's noise added to its std. The model's angle
+        issued here is the one the product's camera value will teach the discrepancy with.
+        The particles' final angles at ``u`` are those the step evaluated
+        (:class:`~formtwin.tracker.final_angles.FinalAngles`). NaN without a camera."""
+        if self.filter.x is None:
+            raise RuntimeError("issue_final: no particles yet (call step first)")
+        if self.finals is None:
+            return math.nan, (math.nan, math.nan)
+        uu, col = validate_controls(u, self.spec), output_column(self.spec, FINAL)
+        a = self.finals.column(0, uu, self.filter.x[:, :self.ssm.n_in],
+                               lambda r: self.ssm.predict_angles(r, uu)[:, col])
+        self.finals.fill_own(a)
+        w = self._weights()
+        am = float(w @ a)
+        var = max(float(w @ (a - am) ** 2), 0.0) + float(self.ssm.angle_error()[col])
+        return self._final_interval(am, math.sqrt(var), True)
+
+    def _weights(self) -> FloatArray:
+        w = np.exp(self.filter.logw - np.max(self.filter.logw))
+        out: FloatArray = w / w.sum()
+        return out
+
+    def _final_interval(self, final: float, std: float, record: bool
+                        ) -> tuple[float, tuple[float, float]]:
+        """The measured final angle's prediction and interval from the model's ``final``
+        and its ``std`` (degrees); ``record``: remember them for the product's camera
+        value (:meth:`issue_final`), else a report."""
+        camera = next(s for s in used_sensors(self.spec, self.config) if s.measures == FINAL)
+        col, t = output_column(self.spec, FINAL), self.filter.t - 1
+        sd = math.sqrt(std**2 + camera.noise**2)
+        if self.config.camera_discrepancy:
+            noise = camera.noise**2 + float(self.ssm.angle_error()[col])
+            if record:
+                final, var = self.fused.learned(noise).issue(t, final)
+            elif math.isfinite(final):
+                d = self.fused.discrepancy or AngleDiscrepancy(noise)
+                final, var = d.predict(final)
+            else:
+                final, var = math.nan, math.nan
+            sd = math.sqrt(var) if var > 0 else sd
+        if not record:
+            ok = math.isfinite(final) and math.isfinite(sd) and sd > 0
+            q = self.fused.conformal.multiplier() if ok else math.nan
+            return final, (final - q * sd, final + q * sd)
+        lo, hi = self.fused.conformal.interval(t, final, sd)
+        self.fused.forget(t - self.ssm.lag_depth)
+        return final, (lo, hi)
 
 
 def distinct_angles(ssm: BendingSSM, x: FloatArray, u: FloatArray | None) -> FloatArray:
