@@ -37,6 +37,7 @@ import dataclasses
 import json
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -176,10 +177,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--at", type=int, default=250)
     p.add_argument("--fault-products", type=int, default=750)
-    p.add_argument("--fault-reps", type=int, default=2)
-    p.add_argument("--calib-runs", type=int, default=8)
+    p.add_argument("--fault-reps", type=int, default=1)
+    p.add_argument("--calib-runs", type=int, default=6)
     p.add_argument("--calib-products", type=int, default=1000)
-    p.add_argument("--ic-runs", type=int, default=8)
+    p.add_argument("--ic-runs", type=int, default=4)
     p.add_argument("--ic-products", type=int, default=1500)
     p.add_argument("--skip-study", action="store_true")
     p.add_argument("--skip-monitoring", action="store_true")
@@ -199,10 +200,16 @@ def main() -> None:
                                                      "fault_reps", "calib_runs",
                                                      "calib_products", "ic_runs",
                                                      "ic_products")}}}
-    cals = {name: json.loads(Path(args.calibration if (learn and args.calibration) else
-                                  calibration_path(learn)).read_text("utf-8"))
-            for name, learn in SETTINGS.items()}
+    if not args.skip_monitoring:  # one process per setting (each tracks sequentially)
+        with ProcessPoolExecutor(len(SETTINGS)) as pool:
+            blocks = {name: pool.submit(monitoring_block, learn, args)
+                      for name, learn in SETTINGS.items()}
+            for name, fut in blocks.items():
+                figures[name] = {"persistent_mismatch": fut.result()}
     if not args.skip_study:
+        cals = {name: json.loads(Path(args.calibration if (learn and args.calibration) else
+                                      calibration_path(learn)).read_text("utf-8"))
+                for name, learn in SETTINGS.items()}
         mm, mm_path = default_metamodel(out / "model", "bending")
         physics = physics_model("bending", mm.spec)
         base = StudySettings(n_products=products, window=products // 2,
@@ -223,14 +230,12 @@ def main() -> None:
             runs_s = time.perf_counter() - t1
             ms, used = step_ms(settings, folder, mm_path, args.time_products)
             figures[name] = {
+                **figures.get(name, {}),
                 **study_block(res, folder, cals[name], used, args.repetitions),
                 "step_ms": round(ms, 2),
                 "calibration": {"settings": cals[name].get("settings"),
                                 "used_by_the_tracker": used == cals[name]},
                 "runs_s": round(runs_s, 1)}
-    if not args.skip_monitoring:
-        for name, learn in SETTINGS.items():
-            figures.setdefault(name, {})["persistent_mismatch"] = monitoring_block(learn, args)
     figures["total_s"] = round(time.perf_counter() - t0, 1)
     figures["load_average_1min_end"] = round(os.getloadavg()[0], 2)
     if args.quick:

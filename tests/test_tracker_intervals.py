@@ -270,17 +270,20 @@ def test_learned_floors_give_the_target_coverage_on_their_data() -> None:
     assert b[1] == 0.0 and b[0] > 1.0
 
 
-def test_shipped_calibration_is_complete_and_learned_off_the_study_data() -> None:
-    """The package's floors: 18 + 2 non-negative numbers per tracker configuration, constant
-    and fit-gated, none for theta_d without the deviation model, learned on pseudo-data of
-    another study seed."""
+@pytest.mark.parametrize("learn_residuals", [False, True])
+def test_shipped_calibration_is_complete_and_learned_off_the_study_data(
+        learn_residuals: bool) -> None:
+    """The package's floors (one file per ``learn_residuals`` setting, learned with it):
+    18 + 2 non-negative numbers per tracker configuration, constant and fit-gated, none for
+    theta_d without the deviation model, learned on pseudo-data of another study seed."""
     import json
 
     from formtwin.study.calibrate import SEED
     from formtwin.study.run import StudySettings
-    from formtwin.tracker.intervals import CALIBRATION_PATH
+    from formtwin.tracker.intervals import calibration_path, learned_for
 
-    cal = json.loads(CALIBRATION_PATH.read_text())
+    cal = json.loads(calibration_path(learn_residuals).read_text())
+    assert learned_for(cal) is learn_residuals
     assert cal["settings"]["seed"] == SEED != StudySettings().seed
     assert len(cal["k_res_diag"]) == 101
     assert min(cal["k_res_diag"]) >= 0 and max(cal["k_res_diag"]) > 0
