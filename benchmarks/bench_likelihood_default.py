@@ -220,9 +220,8 @@ def main() -> None:
             folder = out if not learn else out.parent / f"{out.name}_{name}"
             folder.mkdir(parents=True, exist_ok=True)
             if learn:
-                for sub in ("data", "model"):
-                    if not (folder / sub).exists():
-                        (folder / sub).symlink_to((out / sub).resolve())
+                if not (folder / "data").is_symlink():
+                    (folder / "data").symlink_to((out / "data").resolve())
             settings = dataclasses.replace(base, tracker=dataclasses.replace(
                 base.tracker, learn_residuals=learn))
             t1 = time.perf_counter()
