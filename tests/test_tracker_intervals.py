@@ -270,17 +270,20 @@ def test_learned_floors_give_the_target_coverage_on_their_data() -> None:
     assert b[1] == 0.0 and b[0] > 1.0
 
 
-def test_shipped_calibration_is_complete_and_learned_off_the_study_data() -> None:
-    """The package's floors: 18 + 2 non-negative numbers per tracker configuration, constant
-    and fit-gated, none for theta_d without the deviation model, learned on pseudo-data of
-    another study seed."""
+@pytest.mark.parametrize("learn_residuals", [False, True])
+def test_shipped_calibration_is_complete_and_learned_off_the_study_data(
+        learn_residuals: bool) -> None:
+    """The package's floors (one file per ``learn_residuals`` setting, learned with it):
+    18 + 2 non-negative numbers per tracker configuration, constant and fit-gated, none for
+    theta_d without the deviation model, learned on pseudo-data of another study seed."""
     import json
 
     from formtwin.study.calibrate import SEED
     from formtwin.study.run import StudySettings
-    from formtwin.tracker.intervals import CALIBRATION_PATH
+    from formtwin.tracker.intervals import calibration_path, learned_for
 
-    cal = json.loads(CALIBRATION_PATH.read_text())
+    cal = json.loads(calibration_path(learn_residuals).read_text())
+    assert learned_for(cal) is learn_residuals
     assert cal["settings"]["seed"] == SEED != StudySettings().seed
     assert len(cal["k_res_diag"]) == 101
     assert min(cal["k_res_diag"]) >= 0 and max(cal["k_res_diag"]) > 0
@@ -424,3 +427,41 @@ def test_gated_floors_follow_fit_ewma_and_gate_scale_through_gaps() -> None:
         np.testing.assert_allclose(astd, np.sqrt(0.04 + s * 0.0625), rtol=1e-15)
     assert fl.ewma == pytest.approx(end, rel=1e-15)
     assert s_ref[0] == 0.0 and s_ref[-2] == fl.s_max  # shut at first, capped far out
+
+
+def test_calibrations_are_found_only_for_their_learn_residuals_setting(
+        tmp_path: object, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One calibration per ``learn_residuals`` setting, keyed by the setting it was learned
+    for (``settings.tracker.learn_residuals``; none said: off): each setting gets its own
+    file's floors, never the other's, also when the other's file is the only one."""
+    import json
+    from pathlib import Path
+
+    from formtwin.tracker import intervals
+
+    model = _ModelWithError()
+    base = json.loads(Path(str(_calibration_file(tmp_path, model, np.full(18, 0.1))))
+                      .read_text())
+    off, on = Path(str(tmp_path)) / "off.json", Path(str(tmp_path)) / "on.json"
+    off.write_text(json.dumps(base))  # no settings: learned without learn_residuals
+    on.write_text(json.dumps(base | {"settings": {"tracker": {"learn_residuals": True}},
+                                     "no_deviation": base["no_deviation"]
+                                     | {"floors": list(np.full(18, 0.3))}}))
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH", off)
+    monkeypatch.setattr(intervals, "LEARN_RESIDUALS_CALIBRATION_PATH", on)
+    assert intervals.calibration_path(False) == off and intervals.calibration_path(True) == on
+    b_off, _ = intervals.calibration_floors(model, False)
+    b_on, _ = intervals.calibration_floors(model, False, learn_residuals=True)
+    np.testing.assert_array_equal(b_off, 0.1)
+    np.testing.assert_array_equal(b_on, 0.3)
+    assert intervals.Floors(model, False, False, learn_residuals=True).b[0] == 0.3
+    found = intervals.find_calibration(model, learn_residuals=True)
+    assert found.source == "on.json" and intervals.learned_for(found.data or {})
+    # each file holding the other setting's calibration: neither setting finds one
+    monkeypatch.setattr(intervals, "CALIBRATION_PATH", on)
+    monkeypatch.setattr(intervals, "LEARN_RESIDUALS_CALIBRATION_PATH", off)
+    for learn in (False, True):
+        cal = intervals.find_calibration(model, learn_residuals=learn)
+        assert cal.data is None and "no interval calibration for fit" in cal.reason
+        np.testing.assert_array_equal(intervals.Floors(model, False, False, learn).b, 0.0)
+    assert "with learn_residuals" in intervals.find_calibration(model, True).reason

@@ -49,6 +49,7 @@ from formtwin.study.series import SERIES
 from formtwin.tracker import TrackerConfig
 from formtwin.tracker.intervals import (
     CALIBRATION_PATH,
+    calibration_path,
     fit_ewma,
     gate_scale,
     residual_rule,
@@ -204,7 +205,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--products", type=int, default=1000,
                         help="products per dataset (the last half are scored)")
     parser.add_argument("--seed", type=int, default=SEED)
-    parser.add_argument("--write", default=str(CALIBRATION_PATH))
+    parser.add_argument("--write", help=f"the calibration file (default: the package's, "
+                        f"{CALIBRATION_PATH.name} or, with --learn-residuals, "
+                        f"{calibration_path(True).name})")
     parser.add_argument("--learn-residuals", action="store_true",
                         help="calibrate trackers with learn_residuals "
                         "(docs/notes/likelihood-learn-residuals.md)")
@@ -216,7 +219,8 @@ def main(argv: list[str] | None = None) -> None:
                                 args.learn_residuals)
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
-    Path(args.write).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+    write = Path(args.write) if args.write else calibration_path(args.learn_residuals)
+    write.write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
     print(json.dumps({k: out[k] for k in ("fit_gate", *SERIES_OF)}, indent=1))
 
 

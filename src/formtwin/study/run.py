@@ -36,7 +36,7 @@ from formtwin.study.series import (
     run_task,
 )
 from formtwin.tracker import TrackerConfig
-from formtwin.tracker.intervals import CALIBRATION_PATH
+from formtwin.tracker.intervals import calibration_path
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -195,6 +195,9 @@ def _tasks(settings: StudySettings, folder: Path, metamodel_path: Path,
                      settings.paper_repetitions, "_paper", settings.paper_series))
     tasks, runs_dir = [], folder / "runs"
     for tracker, reps, tag, series in runs:
+        # the interval calibration a run's tracker reads (one per learn_residuals setting)
+        cal = calibration_path(tracker.learn_residuals)
+        calibrated = (cal,) if cal.exists() else ()
         for s in (s for s in settings.series if s in series):
             known = SERIES[s - 1].mu_known
             for k in range(settings.n_realisations):
@@ -209,7 +212,7 @@ def _tasks(settings: StudySettings, folder: Path, metamodel_path: Path,
                                measurement_path=str(measurement),
                                out_path=str(runs_dir / f"series{s}_real{k}_rep{r}{tag}.npz"),
                                tracker=tracker, seed=settings.seed,
-                               key=cache_key(*made_of, s, r, files=(*files, CALIBRATION_PATH)))
+                               key=cache_key(*made_of, s, r, files=(*files, *calibrated)))
                           for r in range(reps)]
     return tasks
 

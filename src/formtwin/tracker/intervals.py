@@ -12,6 +12,13 @@ metamodel's own file, else the package's calibration of the bundled default fit
 the metamodel's ``K_res`` agrees with the calibration's within
 :data:`~formtwin.metamodel.identity.SIGNATURE_RTOL`. Without one the tracker reports the
 cloud's std and every estimate says ``intervals = "uncalibrated"``.
+
+A calibration is learned for one likelihood setting, ``learn_residuals`` off or on (its
+``settings.tracker.learn_residuals``; a calibration without settings counts as off): the
+package keeps one per setting (:data:`CALIBRATION_PATH`,
+:data:`LEARN_RESIDUALS_CALIBRATION_PATH`, :func:`calibration_path`), and a tracker is given
+only the one of its own setting (the floors of the other would be wrong: the learned
+residual moment widens the likelihood the fit gate is taken under).
 """
 
 from __future__ import annotations
@@ -37,6 +44,21 @@ log = logging.getLogger(__name__)
 #: the interval calibration of the bundled metamodel (``intervals="calibrated"``), made by
 #: ``python -m formtwin.study.calibrate`` on physics runs of its own (not the study's data)
 CALIBRATION_PATH = Path(__file__).parents[1] / "data" / "interval_calibration.json"
+#: the calibration of the bundled metamodel for trackers with ``learn_residuals``
+#: (``python -m formtwin.study.calibrate --learn-residuals``)
+LEARN_RESIDUALS_CALIBRATION_PATH = CALIBRATION_PATH.with_name(
+    "interval_calibration_learn_residuals.json")
+
+
+def calibration_path(learn_residuals: bool = False) -> Path:
+    """The package's calibration file for trackers with ``learn_residuals`` off or on."""
+    return LEARN_RESIDUALS_CALIBRATION_PATH if learn_residuals else CALIBRATION_PATH
+
+
+def learned_for(cal: dict[str, Any]) -> bool:
+    """The ``learn_residuals`` setting the calibration ``cal`` was learned for (its
+    ``settings.tracker``; off when it does not say)."""
+    return bool(cal.get("settings", {}).get("tracker", {}).get("learn_residuals", False))
 
 
 def residual_signature(model: Any) -> FloatArray | None:
@@ -90,18 +112,22 @@ class Calibration:
         return f"calibrated for fit {self.fit_id} ({self.source})"
 
 
-def find_calibration(model: Any) -> Calibration:
-    """The interval calibration of ``model``: its file's own, else the package's for the
-    bundled fit, if the fit ids agree and ``diag(K_res)`` agrees within
-    :data:`~formtwin.metamodel.identity.SIGNATURE_RTOL` of its largest entry."""
+def find_calibration(model: Any, learn_residuals: bool = False) -> Calibration:
+    """The interval calibration of ``model`` for trackers with ``learn_residuals`` off or
+    on: its file's own, else the package's for the bundled fit
+    (:func:`calibration_path`), if the fit ids and the setting (:func:`learned_for`) agree
+    and ``diag(K_res)`` agrees within :data:`~formtwin.metamodel.identity.SIGNATURE_RTOL`
+    of its largest entry."""
+    path = calibration_path(learn_residuals)
     fid = str(getattr(model, "fit_id", ""))
     signature = residual_signature(model)
     if signature is None:
         return Calibration(None, "", fid, "the model has no held-out residual statistics "
                            "(K_res): fit it with cross-validation folds")
     candidates = [(c, s) for c, s in ((getattr(model, "calibration", None), "metamodel file"),
-                                      (_calibration(CALIBRATION_PATH), CALIBRATION_PATH.name))
-                  if c is not None and fid and c.get("fit_id") == fid]
+                                      (_calibration(path), path.name))
+                  if c is not None and fid and c.get("fit_id") == fid
+                  and learned_for(c) == learn_residuals]
     for cal, source in candidates:
         if cal.get("residuals", residual_rule(model)) != residual_rule(model):
             return Calibration(None, source, fid, f"the calibration of fit {fid} ({source}) "
@@ -118,8 +144,9 @@ def find_calibration(model: Any) -> Calibration:
                            f"model's (tolerance {SIGNATURE_RTOL:g}): the fit was made by other "
                            "code; run `formtwin metamodel calibrate`")
     which = fid or "(none: a file of an older formtwin; refit it)"
-    return Calibration(None, "", fid, f"no interval calibration for fit {which}: run "
-                       "`formtwin metamodel calibrate`")
+    setting = " with learn_residuals" if learn_residuals else ""
+    return Calibration(None, "", fid, f"no interval calibration for fit {which}{setting}: "
+                       "run `formtwin metamodel calibrate`")
 
 
 @functools.lru_cache(maxsize=8)
@@ -128,11 +155,13 @@ def _warn(text: str) -> None:
     log.warning("%s", text)
 
 
-def _entry(model: Any, deviation: bool) -> tuple[dict[str, Any] | None, Calibration]:
+def _entry(model: Any, deviation: bool, learn_residuals: bool = False
+           ) -> tuple[dict[str, Any] | None, Calibration]:
     """The calibration's entry for a tracker on ``model`` with (``deviation``) or without
-    theta_d (``None``, logged once, where there is none or it has floors for another
-    layout of the estimated variables), and the calibration found."""
-    cal = find_calibration(model)
+    theta_d and ``learn_residuals`` off or on (``None``, logged once, where there is none
+    or it has floors for another layout of the estimated variables), and the calibration
+    found."""
+    cal = find_calibration(model, learn_residuals)
     if cal.data is None:
         if residual_signature(model) is not None:
             _warn(f"intervals='calibrated': {cal.describe()}; reporting the cloud's std")
@@ -159,14 +188,15 @@ def _floor_arrays(entry: dict[str, Any], prefix: str, n: int, n_out: int = 2
     return floors, angles
 
 
-def calibration_floors(model: Any, deviation: bool) -> tuple[FloatArray, FloatArray]:
+def calibration_floors(model: Any, deviation: bool, learn_residuals: bool = False
+                       ) -> tuple[FloatArray, FloatArray]:
     """The floors ``b`` (18,) internal units and (2,) degrees that the calibrated intervals
     add in quadrature to the cloud's std (``sqrt(std^2 + b^2)``) for a tracker on ``model``
     estimating theta_d (``deviation``) or not; zeros for a model without an error model
     (no ``K_res``, as the analytic stand-in) and, logged once, when the bundled calibration
-    was learned for another metamodel."""
+    was learned for another metamodel (``learn_residuals``: the tracker's setting)."""
     n = len(model.spec.augmented)
-    entry, _ = _entry(model, deviation)
+    entry, _ = _entry(model, deviation, learn_residuals)
     return ((np.zeros(n), np.zeros(model.spec.n_outputs)) if entry is None
             else _floor_arrays(entry, "", n, model.spec.n_outputs))
 
@@ -214,11 +244,13 @@ class Floors:
     (:func:`formtwin.study.calibrate.learn_floors` with ``scale``).
     """
 
-    def __init__(self, model: Any, deviation: bool, gated: bool) -> None:
+    def __init__(self, model: Any, deviation: bool, gated: bool,
+                 learn_residuals: bool = False) -> None:
         """Floors of the bundled calibration for a tracker on ``model`` with
-        (``deviation``) or without theta_d; ``gated``: the fit gate."""
+        (``deviation``) or without theta_d; ``gated``: the fit gate; ``learn_residuals``:
+        the tracker's setting (the calibration learned for it)."""
         n, n_out = len(model.spec.augmented), model.spec.n_outputs
-        entry, self.calibration = _entry(model, deviation)
+        entry, self.calibration = _entry(model, deviation, learn_residuals)
         self.gated = gated
         self.ewma: tuple[float, float] = (0.0, 0.0)
         self.d0, self.a, self.s_max = 0.0, 1.0, 0.0
