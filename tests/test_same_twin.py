@@ -20,7 +20,12 @@ from formtwin.defaults import analytic_dataset, bundled_doe, bundled_metamodel, 
 from formtwin.metamodel import POD, RBF, Metamodel, calibrate
 from formtwin.metamodel.identity import SIGNATURE_RTOL
 from formtwin.tracker import Estimates, TrackerConfig, build_tracker
-from formtwin.tracker.intervals import CALIBRATION_PATH, find_calibration, residual_signature
+from formtwin.tracker.intervals import (
+    CALIBRATION_PATH,
+    LEARN_RESIDUALS_CALIBRATION_PATH,
+    find_calibration,
+    residual_signature,
+)
 
 #: an OpenBLAS kernel other than the one this CPU would pick, that runs on any CPU of the
 #: architecture (OPENBLAS_CORETYPE of the wheels' DYNAMIC_ARCH OpenBLAS)
@@ -46,6 +51,12 @@ def test_bundled_metamodel_is_the_default_fit_of_the_bundled_doe(tmp_path: Path)
     tracker = build_tracker(mm, TrackerConfig(n_particles=50, n_mc=200))
     assert tracker.intervals == "calibrated_fit"
     assert tracker.floors is not None and tracker.floors.b[:7].max() > 0
+    # a tracker learning its residuals finds the calibration learned with that setting
+    learning = build_tracker(mm, TrackerConfig(n_particles=50, n_mc=200, learn_residuals=True))
+    assert learning.floors is not None and tracker.floors is not None
+    assert learning.floors.calibration.source == LEARN_RESIDUALS_CALIBRATION_PATH.name
+    assert learning.floors.calibration.fit_id == mm.fit_id
+    assert not np.array_equal(learning.floors.b, tracker.floors.b)
 
 
 def test_fit_id_names_the_data_and_settings_and_survives_the_file() -> None:

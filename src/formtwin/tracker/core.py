@@ -116,9 +116,9 @@ class Tracker(SensorFusion):
         assumed = c.intervals != "cloud" and not (c.mu_known or c.learn_mu)
         self.sandwich = Sandwich(self.ssm, c.intervals == "gated", metamodel, assumed) \
             if metamodel or assumed else None
-        self.floors = Floors(model, self.config.estimate_deviation, self.config.intervals
-                             == "calibrated_fit") \
-            if self.config.intervals in ("calibrated", "calibrated_fit") else None
+        self.floors = Floors(model, c.estimate_deviation, c.intervals == "calibrated_fit",
+                             learn_residuals=c.learn_residuals) \
+            if c.intervals in ("calibrated", "calibrated_fit") else None
         #: what the estimates' std are (:attr:`Estimate.intervals`)
         self.intervals = "uncalibrated" if self.floors is not None \
             and self.floors.calibration.data is None else c.intervals
