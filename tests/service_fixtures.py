@@ -5,16 +5,18 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import sqlite3
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -138,6 +140,50 @@ def start_serve(cmd: list[str], log_path: Path) -> subprocess.Popen[bytes]:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     fh = open(log_path, "ab")  # noqa: SIM115 - closed by the OS when the child ends
     return subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, cwd=REPO)
+
+
+def replay_with_kills(cmd: list[str], log: Path, stream: Path, broker: str,
+                      thresholds: list[int], rng: np.random.Generator,
+                      done: Callable[[], bool], progress: Callable[[], int],
+                      timeout: float) -> tuple[subprocess.Popen[bytes], int, str]:
+    """Replay ``stream`` at full rate into a running ``serve cmd`` and SIGKILL the service
+    each time ``progress()`` (products stored) passes the next of ``thresholds``,
+    restarting it; at the second kill once more at a random moment of the restart itself.
+    Runs until ``done()`` or ``timeout`` s; returns the service running now, the kill count
+    and the replay's output (the replay must have succeeded)."""
+    proc = start_serve(cmd, log)
+    kills, deadline = 0, time.monotonic() + timeout
+
+    def kill_and_restart() -> None:
+        nonlocal proc, kills
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        kills += 1
+        proc = start_serve(cmd, log)
+
+    replay: subprocess.Popen[bytes] | None = None
+    try:
+        wait_serving(proc, log)
+        replay = subprocess.Popen([*FORMTWIN, "replay", str(stream), "--broker", broker,
+                                   "--rate", "0"], cwd=REPO, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT)
+        while not done() and time.monotonic() < deadline:
+            if thresholds and progress() >= thresholds[0]:
+                thresholds.pop(0)
+                kill_and_restart()
+                if kills == 2:  # and once more at a random moment of the restart itself
+                    time.sleep(float(rng.uniform(0.3, 2.0)))
+                    kill_and_restart()
+            time.sleep(0.01)
+        out = replay.communicate(timeout=60)[0].decode()
+    except BaseException:
+        proc.kill()
+        raise
+    finally:
+        if replay is not None and replay.poll() is None:
+            replay.kill()
+    assert replay.returncode == 0, out
+    return proc, kills, out
 
 
 class Collector:

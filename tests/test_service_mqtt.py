@@ -19,6 +19,7 @@ from service_fixtures import (
     Collector,
     Mosquitto,
     mosquitto,  # noqa: F401 - fixture
+    replay_with_kills,
     require_binary,
     serve_cmd,
     start_serve,
@@ -116,30 +117,12 @@ def test_sigkill_restarts_lose_nothing_and_double_nothing(
     col = Collector(mosquitto.url, [RESULTS, ERRORS])
     rng = np.random.default_rng(11)
     thresholds = sorted(int(t) for t in rng.choice(np.arange(100, n - 100), 4, replace=False))
-    proc = start_serve(cmd, log)
-    kills, deadline = 0, time.monotonic() + 200
+    proc = None
     try:
-        wait_serving(proc, log)
-        replay = subprocess.Popen(
-            [*FORMTWIN, "replay", str(stream), "--broker",
-             mosquitto.url, "--rate", "0"], cwd=REPO, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT)
-        while stored_count(store) < n and time.monotonic() < deadline:
-            if thresholds and stored_count(store) >= thresholds[0]:
-                thresholds.pop(0)
-                proc.send_signal(signal.SIGKILL)
-                proc.wait(10)
-                kills += 1
-                proc = start_serve(cmd, log)
-                if kills == 2:  # and once more at a random moment of the restart itself
-                    time.sleep(float(rng.uniform(0.3, 2.0)))
-                    proc.send_signal(signal.SIGKILL)
-                    proc.wait(10)
-                    kills += 1
-                    proc = start_serve(cmd, log)
-            time.sleep(0.01)
-        out = replay.communicate(timeout=60)[0].decode()
-        assert replay.returncode == 0, out
+        proc, kills, _ = replay_with_kills(
+            cmd, log, stream, mosquitto.url, thresholds, rng,
+            done=lambda: stored_count(store) >= n, progress=lambda: stored_count(store),
+            timeout=200)
         assert stored_count(store) == n, f"{stored_count(store)} of {n} stored after {kills} kills"
         got_ids = lambda: {r["part_id"] for r in col.get(RESULTS)}  # noqa: E731
         ids = {s.part_id for s in read_stream(stream)}
@@ -147,7 +130,7 @@ def test_sigkill_restarts_lose_nothing_and_double_nothing(
                  lambda: f"an estimate for every product; missing {sorted(ids - got_ids())[:9]}")
         assert stop(proc) == 0
     finally:
-        if proc.poll() is None:
+        if proc is not None and proc.poll() is None:
             proc.kill()
         col.stop()
     assert kills >= 5

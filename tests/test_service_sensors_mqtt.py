@@ -7,22 +7,17 @@ from __future__ import annotations
 import json
 import signal
 import sqlite3
-import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
 from service_fixtures import (
-    FORMTWIN,
-    REPO,
     Collector,
     Mosquitto,
     mosquitto,  # noqa: F401 - fixture
+    replay_with_kills,
     serve_cmd,
-    start_serve,
     stored_count,
     wait_for,
-    wait_serving,
 )
 
 from formtwin.service.messages import dumps
@@ -55,30 +50,12 @@ def test_sigkill_with_sensor_messages_loses_nothing_and_doubles_nothing(
     col = Collector(mosquitto.url, [RESULTS, ERRORS])
     rng = np.random.default_rng(12)
     thresholds = sorted(int(t) for t in rng.choice(np.arange(50, n - 50), 4, replace=False))
-    proc = start_serve(cmd, log)
-    kills, deadline = 0, time.monotonic() + 240
+    proc = None
     try:
-        wait_serving(proc, log)
-        replay = subprocess.Popen(
-            [*FORMTWIN, "replay", str(stream), "--broker", mosquitto.url, "--rate", "0"],
-            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-        while (stored_count(store) < n or measured(store) < 2 * n) \
-                and time.monotonic() < deadline:
-            if thresholds and stored_count(store) >= thresholds[0]:
-                thresholds.pop(0)
-                proc.send_signal(signal.SIGKILL)
-                proc.wait(10)
-                kills += 1
-                proc = start_serve(cmd, log)
-                if kills == 2:  # and once more during the restart itself
-                    time.sleep(float(rng.uniform(0.3, 2.0)))
-                    proc.send_signal(signal.SIGKILL)
-                    proc.wait(10)
-                    kills += 1
-                    proc = start_serve(cmd, log)
-            time.sleep(0.01)
-        out = replay.communicate(timeout=60)[0].decode()
-        assert replay.returncode == 0, out
+        proc, kills, out = replay_with_kills(
+            cmd, log, stream, mosquitto.url, thresholds, rng,
+            done=lambda: stored_count(store) >= n and measured(store) >= 2 * n,
+            progress=lambda: stored_count(store), timeout=240)
         assert f"and {2 * n} sensor messages" in out
         assert stored_count(store) == n and measured(store) == 2 * n, \
             f"{stored_count(store)} products, {measured(store)} sensor values after {kills} kills"
@@ -87,7 +64,7 @@ def test_sigkill_with_sensor_messages_loses_nothing_and_doubles_nothing(
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
     finally:
-        if proc.poll() is None:
+        if proc is not None and proc.poll() is None:
             proc.kill()
         col.stop()
     assert kills >= 5
