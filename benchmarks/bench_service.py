@@ -173,9 +173,13 @@ class PartTimer:
     commit with the state bytes, the alarm and health rows), publish (the outcome's
     listeners: the page feed; serve's MQTT publish is in its process, not here), a sensor
     message (parse, store, fusion) and the final angle's interval issued with a fused
-    camera."""
+    camera; and the rest by name: the store lookup of a redelivery, the estimate message
+    (the tracker's estimate, its fields and the measurements that went in), its JSON
+    encoding (stored and published as is) and the tracker's checkpoint state. ``other``
+    is what none of these covers (the processor's own lines, the lock)."""
 
     def __init__(self, proc: Any) -> None:
+        from formtwin.estimates import Estimate
         from formtwin.service import processor as pmod
         from formtwin.tracker import core
 
@@ -188,7 +192,17 @@ class PartTimer:
                    (proc.store, "commit_product", "store"),
                    (proc, "on_outcome", "publish: page feed"),
                    (proc.sensors, "handle", "sensor message"),  # parse, store, fusion
-                   (pmod, "issue", "final interval")]  # the camera's, with each estimate
+                   (pmod, "issue", "final interval"),  # the camera's, with each estimate
+                   # the rest of the path, named:
+                   (proc.store, "product", "redelivery lookup"),  # the part id in the store
+                   (Estimate, "to_dict", "estimate message"),  # the tracker's estimate ...
+                   (pmod, "estimate_message", "estimate message"),  # ... as the message
+                   (proc.sensors, "since_last", "estimate message"),  # its measurements
+                   (pmod, "dumps", "encode estimate (JSON)"),  # stored and published as is
+                   (proc.tracker, "state_bytes", "checkpoint state"),  # every k-th product
+                   (proc.monitor, "committed", "charts"),  # their undo dropped
+                   (proc.health, "committed", "health"),
+                   (proc.sensors, "committed", "sensor message")]
         for obj, name, label in targets:
             f = getattr(obj, name, None) if obj is not None else None
             if f is not None:
@@ -197,7 +211,7 @@ class PartTimer:
                 setattr(obj, name, self._wrap(f, label))
 
     def _wrap(self, f: Any, label: str) -> Any:
-        self.total[label] = 0.0
+        self.total.setdefault(label, 0.0)
 
         def timed(*a: Any, **k: Any) -> Any:
             c0 = time.thread_time()

@@ -85,3 +85,14 @@ def test_a_right_model_is_kept_and_a_wrong_one_corrected() -> None:
     assert again == wrong and again.predict(88.2) == wrong.predict(88.2)
     with pytest.raises(ValueError, match="noise_var"):
         AngleDiscrepancy(0.0)
+
+
+def test_the_mapping_is_the_coefficients_and_the_variance() -> None:
+    """:meth:`AngleDiscrepancy.mapping` (one evaluation of the weights) gives exactly
+    :meth:`coefficients` and :meth:`variance`."""
+    d = AngleDiscrepancy(noise_var=0.04)
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        a = 88.0 + 0.1 * rng.standard_normal()
+        d.update(a, 0.4 + 0.8 * a + 0.2 * rng.standard_normal() - 0.8 * 88.0 + 88.0)
+        assert d.mapping() == (*d.coefficients(), d.variance())

@@ -68,3 +68,24 @@ def test_bad_settings_and_unknown_products() -> None:
     assert aci.update(7, 1.0) is None  # no interval issued: nothing learned
     assert aci.alpha == 0.1
     assert all(math.isnan(v) for v in aci.interval(0, 1.0, 0.0))
+
+
+@pytest.mark.parametrize("window", [25, 500])
+def test_the_kept_ascending_scores_give_the_partitions_quantile(window: int) -> None:
+    """The half-width from the scores kept in ascending order equals the one of
+    ``np.partition`` on the scores as stored, on a stream that fills the window, with ties
+    and an infinite score, and after the scores are replaced (a state restored)."""
+    rng = np.random.default_rng(window)
+    aci = AdaptiveConformal(window=window)
+    for i in range(3 * window):
+        aci.interval(i, 0.0, 1.0)
+        n, a = len(aci.scores), aci.alpha
+        if n >= aci.warmup and 0.0 < a < 1.0:
+            k = min(math.ceil((n + 1) * (1.0 - a)), n)
+            want = float(np.partition(np.asarray(aci.scores), k - 1)[k - 1])
+            assert aci.multiplier() == want
+        y = 0.5 if i % 5 == 0 else math.inf if i == window // 2 else rng.standard_t(3)
+        aci.update(i, float(y))
+    assert len(aci.scores) == window
+    aci.scores = list(reversed(aci.scores))  # a restored state: another list
+    assert aci._ascending() == sorted(aci.scores)

@@ -157,3 +157,19 @@ def test_the_fusion_log_density_is_scipys_normal() -> None:
         assert inc == pytest.approx(lse, rel=1e-14)
         np.testing.assert_allclose(tr.filter.logw, new - lse, rtol=1e-13, atol=1e-13)
         tr.filter.logw = logw
+
+
+def test_the_settings_test_is_numpys_array_equal_with_nan() -> None:
+    """A column's setting matches ``u`` as ``np.array_equal(..., equal_nan=True)`` says:
+    NaN rows (nominal) against None, equal and different values, other shapes."""
+    from formtwin.tracker.final_angles import _same_setting
+
+    nominal = np.full(1, np.nan)
+    cases = [(nominal, None), (nominal, np.array([0.3])), (np.array([0.3]), None),
+             (np.array([0.3]), np.array([0.3])), (np.array([0.3]), np.array([0.30001])),
+             (np.array([0.3]), np.array([0.3, 0.3])), (np.array([0.3, np.nan]), None),
+             (np.array([0.3, np.nan]), np.array([0.3, np.nan])),
+             (np.array([0.3]), np.array(0.3))]
+    for kept, u in cases:
+        code = np.full(kept.shape, np.nan) if u is None else np.asarray(u, np.float64)
+        assert _same_setting(kept, u) == np.array_equal(kept, code, equal_nan=True), (kept, u)

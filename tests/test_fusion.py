@@ -393,3 +393,21 @@ def test_lag_columns_with_every_particle_layout(kw: dict[str, object]) -> None:
     tr.fuse(1, "gauge", 0.3)
     tr.step(curves[2])
     assert np.isfinite(tr.filter.logw).all()
+
+
+def test_the_sensors_used_are_found_once_per_spec_and_config() -> None:
+    """:func:`used_sensors` answers the same (frozen) spec and config from memory, and
+    another config (or an unknown sensor) as it would the first time."""
+    from dataclasses import replace
+
+    from formtwin.tracker.fusion import used_sensors
+
+    spec = analytic_model().spec
+    cfg = TrackerConfig(sensors=("camera", "gauge"))
+    first = used_sensors(spec, cfg)
+    assert [s.name for s in first] == ["camera", "gauge"]
+    assert used_sensors(spec, cfg) is first
+    other = replace(cfg, sensors=("gauge",))
+    assert [s.name for s in used_sensors(spec, other)] == ["gauge"]
+    with pytest.raises(ValueError, match="not a sensor"):
+        used_sensors(spec, replace(cfg, sensors=("sonar",)))

@@ -354,3 +354,25 @@ def test_a_streams_sensor_values_and_their_places(tmp_path: Path) -> None:
         assert at[(s.part_id, "camera")] > pos[strokes[strokes.index(s) + 1].part_id]
     assert (strokes[9].part_id, "camera") in at  # product 9's camera comes after stroke 10
     assert (strokes[19].part_id, "camera") not in at  # due after stroke 20: not sent
+
+
+def test_the_measurements_kept_in_memory_are_the_stored_ones(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any]) -> None:
+    """The values fused since the last estimate, kept as they are committed (held ones
+    fused with their stroke included), equal the store's after every message, and a
+    processor opened on the store reads the same ones."""
+    pay, ids, values = stream
+    items = scenario(pay, ids, values)
+    store = tmp_path / "a.sqlite"
+    proc = open_processor(store, SETTINGS)
+    seen = 0
+    for k, p in items:
+        play(proc, [(k, p)])
+        kept = proc.sensors.since_last()
+        assert kept == proc.sensors._fused_since(proc.sensors.last_accepted)
+        seen = max(seen, len(kept))
+    proc.close()
+    assert seen >= 2  # the scenario lists more than one value in an estimate
+    again = open_processor(store, SETTINGS)
+    assert again.sensors.since_last() == kept
+    again.close()

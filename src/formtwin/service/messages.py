@@ -157,6 +157,10 @@ def _reject_constant(name: str) -> float:
     raise MessageError("non_finite", f"JSON literal {name} is not a finite number")
 
 
+#: ``json.loads(text, parse_constant=...)`` makes a decoder per call; this one is made once
+_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
+
+
 #: the types of a JSON number (``bool``, a subclass of ``int``, is not one)
 _NUMBER_TYPES = frozenset((int, float))
 
@@ -223,7 +227,7 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
     if len(payload) > limits.max_bytes:
         raise MessageError("oversized", f"{len(payload)} bytes > limit {limits.max_bytes}")
     try:
-        doc = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)
+        doc = _DECODER.decode(payload.decode("utf-8"))
     except MessageError:
         raise
     except (ValueError, RecursionError) as exc:  # bad UTF-8, bad JSON, 5000-digit integers

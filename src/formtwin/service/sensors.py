@@ -164,6 +164,12 @@ class SensorDesk:
         #: its product, without reading and decoding the stored estimate
         self.recent: dict[str, tuple[int, Any, dict[str, Any] | None]] = {}
         self._pending: tuple[str, int, Any, dict[str, Any] | None] | None = None
+        #: the values fused since the last accepted product (``at_seq >= last_accepted``,
+        #: in ``at_seq, id`` order): the next estimate's ``measurements``, kept here as
+        #: they are committed (read from the store once, at the start)
+        self._since: list[dict[str, Any]] = self._fused_since(self.last_accepted)
+        #: the held values :meth:`at_product` fused for the product being committed
+        self._pending_since: list[dict[str, Any]] = []
 
     @property
     def active(self) -> bool:
@@ -214,6 +220,7 @@ class SensorDesk:
                 self._insert(r, "fused", last_seq, index, u, now, msg, cur)
         except MessageError as err:
             return "rejected", refuse(self.store, err, payload, topic, now)
+        self._since.append({"part_id": r.part_id, "sensor": r.sensor, "value": r.value})
         return "fused", msg
 
     def _product(self, part_id: str) -> tuple[int, Any, dict[str, Any] | None] | str | None:
@@ -275,9 +282,13 @@ class SensorDesk:
     # ----------------------------------------------------------------- a product's commit
     def since_last(self) -> list[dict[str, Any]]:
         """The values fused after the last accepted estimate (they went into the next)."""
+        return [dict(m) for m in self._since]
+
+    def _fused_since(self, seq: int) -> list[dict[str, Any]]:
+        """The stored values fused at or after product ``seq``, in their order."""
         rows = self.store.query("SELECT part_id, sensor, value FROM measurements WHERE "
                                 "status = 'fused' AND at_seq >= ? ORDER BY at_seq, id",
-                                (self.last_accepted,))
+                                (seq,))
         return [{"part_id": str(p), "sensor": str(s), "value": float(v)} for p, s, v in rows]
 
     def at_product(self, cur: sqlite3.Cursor, seq: int, part_id: str, index: int, u: Any,
@@ -288,6 +299,7 @@ class SensorDesk:
         notices for the errors topic."""
         notices: list[dict[str, Any]] = []
         self._pending = (part_id, int(index), u, final)
+        self._pending_since = []
         held = cur.execute("SELECT id, sensor, value, message FROM measurements WHERE "
                            "status = 'held' AND part_id = ? ORDER BY id", (part_id,)).fetchall()
         est = {"final": final}
@@ -300,6 +312,8 @@ class SensorDesk:
             try:
                 msg["log_evidence"] = self._fuse(str(sensor), float(value), index, u)
                 msg["status"] = "fused"
+                self._pending_since.append({"part_id": part_id, "sensor": str(sensor),
+                                            "value": float(value)})
             except MessageError as err:
                 msg["status"], msg["detail"] = "rejected", err.detail
                 notices.append(error_message(MessageError(
@@ -324,6 +338,7 @@ class SensorDesk:
     def committed(self, seq: int) -> None:
         """Accepted product ``seq`` is in (with what :meth:`at_product` saw of it)."""
         self.last_accepted = seq
+        self._since, self._pending_since = self._pending_since, []
         if self._pending is not None:
             part_id, *known = self._pending
             self.recent[part_id] = (known[0], known[1], known[2])

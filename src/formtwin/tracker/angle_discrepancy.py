@@ -51,6 +51,8 @@ HYPOTHESES: tuple[tuple[bool, bool, float], ...] = (
     (True, False, 1.0), (True, False, 0.999), (True, False, 0.99),
     (True, True, 1.0), (True, True, 0.999), (True, True, 0.99),
 )
+#: the hypotheses' discount factors (H,)
+_DELTA = np.array([d for _, _, d in HYPOTHESES])
 #: prior std of the bias b0 (degrees) and of the slope b1 about 1
 PRIOR_SD = (1.0, 1.0)
 #: prior degrees of freedom of the variance V (its prior guess: the caller's noise_var)
@@ -97,7 +99,7 @@ class AngleDiscrepancy:
 
     @property
     def _delta(self) -> FloatArray:
-        return np.array([d for _, _, d in HYPOTHESES])
+        return _DELTA
 
     def _forecast(self, model_angle: float) -> tuple[FloatArray, FloatArray, FloatArray,
                                                       FloatArray]:
@@ -136,6 +138,13 @@ class AngleDiscrepancy:
     def variance(self) -> float:
         """The mixture's estimate of ``V`` (degrees^2)."""
         return float(self.weights() @ self.S)
+
+    def mapping(self) -> tuple[float, float, float, float]:
+        """``(ref, b0, b1, V)``: :meth:`coefficients` and :meth:`variance` (the same
+        numbers) from one evaluation of the weights."""
+        w = self.weights()
+        b = w @ self.a
+        return (self.ref, float(b[0]), float(b[1]), float(w @ self.S))
 
     def issue(self, product: int, model_angle: float) -> tuple[float, float]:
         """:meth:`predict` for ``product``, remembering ``model_angle`` until its measured

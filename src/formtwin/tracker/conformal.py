@@ -33,6 +33,7 @@ True
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -59,6 +60,12 @@ class AdaptiveConformal:
     scores: list[float] = field(default_factory=list)
     #: product -> (mean, scale, issued half-width multiplier q)
     pending: dict[int, tuple[float, float, float]] = field(default_factory=dict)
+    #: :attr:`scores` in ascending order (``np.sort``'s), kept beside them by
+    #: :meth:`update`, and the list it was made for (another list: made again)
+    _sorted: list[float] = field(default_factory=list, init=False, repr=False,
+                                 compare=False)
+    _sorted_for: list[float] | None = field(default=None, init=False, repr=False,
+                                            compare=False)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_target < 1.0:
@@ -83,7 +90,14 @@ class AdaptiveConformal:
 
             return float(norm.ppf(1.0 - a / 2.0))
         k = min(math.ceil((n + 1) * (1.0 - a)), n)  # beyond the scores: the largest
-        return float(np.partition(np.asarray(self.scores), k - 1)[k - 1])
+        return float(self._ascending()[k - 1])
+
+    def _ascending(self) -> list[float]:
+        """:attr:`scores` in ascending order: its ``k``-th is ``np.partition``'s."""
+        if self._sorted_for is not self.scores or len(self._sorted) != len(self.scores):
+            self._sorted = np.sort(np.asarray(self.scores, dtype=np.float64)).tolist()
+            self._sorted_for = self.scores
+        return self._sorted
 
     def interval(self, product: int, mean: float, scale: float) -> tuple[float, float]:
         """The interval ``(lo, hi)`` issued for ``product``'s value, predicted ``mean`` with
@@ -104,8 +118,17 @@ class AdaptiveConformal:
         score = abs(value - mean) / scale
         miss = bool(score > q)
         self.alpha += self.gamma * (self.alpha_target - float(miss))
+        srt = self._sorted if self._sorted_for is self.scores \
+            and len(self._sorted) == len(self.scores) else None
         self.scores.append(score)
+        dropped = self.scores[:-self.window]
         del self.scores[:-self.window]
+        if srt is None or math.isnan(score) or (srt and math.isnan(srt[-1])):
+            self._sorted_for = None  # NaN does not sort: made again when asked
+            return miss
+        bisect.insort(srt, score)
+        for old in dropped:
+            del srt[bisect.bisect_left(srt, old)]
         return miss
 
 

@@ -64,15 +64,30 @@ class FusionError(ValueError):
     sensor, the product and the reason."""
 
 
+#: the last :func:`used_sensors` answers by ``(id(spec), id(config))``, with the two
+#: (frozen) objects themselves, so that an id reused by another object is not a hit
+_USED: dict[tuple[int, int], tuple[ProcessSpec, TrackerConfig, tuple[Sensor, ...]]] = {}
+
+
 def used_sensors(spec: ProcessSpec, config: TrackerConfig) -> tuple[Sensor, ...]:
     """The sensors ``config.sensors`` of the spec's line (:func:`line_sensors`), in the
-    config's order; ``ValueError`` naming an unknown one and the known ones."""
+    config's order; ``ValueError`` naming an unknown one and the known ones. Remembered for
+    the same (frozen) spec and config objects: the fusion asks on every sensor value and
+    every issued interval, and finding them costs ~0.1 ms."""
+    key = (id(spec), id(config))
+    hit = _USED.get(key)
+    if hit is not None and hit[0] is spec and hit[1] is config:
+        return hit[2]
     known = {s.name: s for s in line_sensors(spec)}
     for name in config.sensors:
         if name not in known:
             raise ValueError(f"sensors: {name!r} is not a sensor of spec {spec.name!r}; "
                              f"known: {', '.join(known) or 'none'}")
-    return tuple(known[n] for n in config.sensors)
+    out = tuple(known[n] for n in config.sensors)
+    if len(_USED) >= 64:
+        _USED.clear()
+    _USED[key] = (spec, config, out)
+    return out
 
 
 def lag_depth(spec: ProcessSpec, config: TrackerConfig) -> int:
@@ -189,9 +204,9 @@ class SensorFusion:
         if learn:  # the model's angle as the camera sees it: the learned discrepancy
             d = self.fused.learned(sd**2)
             if math.isfinite(d.ref):
-                ref, b0, b1 = d.coefficients()
+                ref, b0, b1, v = d.mapping()
                 pred = ref + b0 + b1 * (pred - ref)
-                sd = max(sd, math.sqrt(d.variance()))
+                sd = max(sd, math.sqrt(v))
         inc = self._reweight(pred + float(offset), float(value), sd,
                              f"{sensor} of product {product}")
         self.fused.done = {d for d in self.fused.done if d[0] >= newest - depth}
@@ -259,24 +274,28 @@ class SensorFusion:
         self.finals.fill_own(a)
         w = self._weights()
         am = float(w @ a)
-        var = max(float(w @ (a - am) ** 2), 0.0) + float(self.ssm.angle_error()[col])
-        return self._final_interval(am, math.sqrt(var), True)
+        model_var = float(self.ssm.angle_error()[col])
+        var = max(float(w @ (a - am) ** 2), 0.0) + model_var
+        return self._final_interval(am, math.sqrt(var), True, model_var)
 
     def _weights(self) -> FloatArray:
         w = np.exp(self.filter.logw - np.max(self.filter.logw))
         out: FloatArray = w / w.sum()
         return out
 
-    def _final_interval(self, final: float, std: float, record: bool
-                        ) -> tuple[float, tuple[float, float]]:
+    def _final_interval(self, final: float, std: float, record: bool,
+                        model_var: float | None = None) -> tuple[float, tuple[float, float]]:
         """The measured final angle's prediction and interval from the model's ``final``
         and its ``std`` (degrees); ``record``: remember them for the product's camera
-        value (:meth:`issue_final`), else a report."""
+        value (:meth:`issue_final`), else a report. ``model_var``: the metamodel's final
+        angle error variance (degrees^2) when the caller has it."""
         camera = next(s for s in used_sensors(self.spec, self.config) if s.measures == FINAL)
-        col, t = output_column(self.spec, FINAL), self.filter.t - 1
+        t = self.filter.t - 1
         sd = math.sqrt(std**2 + camera.noise**2)
         if self.config.camera_discrepancy:
-            noise = camera.noise**2 + float(self.ssm.angle_error()[col])
+            if model_var is None:
+                model_var = float(self.ssm.angle_error()[output_column(self.spec, FINAL)])
+            noise = camera.noise**2 + model_var
             if record:
                 final, var = self.fused.learned(noise).issue(t, final)
             elif math.isfinite(final):
