@@ -376,3 +376,37 @@ def test_the_measurements_kept_in_memory_are_the_stored_ones(
     again = open_processor(store, SETTINGS)
     assert again.sensors.since_last() == kept
     again.close()
+
+
+def test_a_held_value_fused_with_its_stroke_reaches_the_live_page(
+        tmp_path: Path, stream: tuple[list[bytes], list[str], Any]) -> None:
+    """The page feed carries a held value's answer when its stroke fuses it (status fused,
+    with the prediction issued for a camera's product), right after the product's point,
+    as a reload would show it from the store."""
+    from formtwin.service.web import LiveFeed
+
+    pay, ids, values = stream
+    proc = open_processor(tmp_path / "a.sqlite", SETTINGS)
+    feed = LiveFeed(proc.tracker_names(), sensors=("gauge", "camera"))
+    proc.on_outcome = feed.on_outcome
+    cam = float(values["camera"][2])
+    items = [("s", pay[0]), ("s", pay[1]), ("m", reading(ids[2], "camera", cam)),
+             ("m", reading(ids[2], "gauge", float(values["gauge"][2]))), ("s", pay[2])]
+    outs = play(proc, items)
+    assert [o.kind for o in outs] == ["accepted", "accepted", "held", "held", "accepted"]
+    events = [e for _, e in feed.since(0)[1]]
+    point = next(i for i, e in enumerate(events) if e["type"] == "point"
+                 and e["part_id"] == ids[2])
+    after = events[point + 1:point + 3]
+    assert [(e["type"], e["sensor"], e["status"]) for e in after] == \
+        [("sensor", "camera", "fused"), ("sensor", "gauge", "fused")]
+    final = outs[-1].message["final"]
+    assert after[0]["value"] == cam and after[0]["index"] == 2
+    assert after[0]["predicted_deg"] == final["predicted_deg"]
+    assert after[0]["interval90_deg"] == final["interval90_deg"]
+    # what a reloaded page reads from the store: the same answers
+    fresh = LiveFeed(proc.tracker_names(), sensors=("gauge", "camera"))
+    fresh.seed(proc.store)
+    assert fresh.last_values["camera"] == feed.last_values["camera"]
+    assert list(fresh._finals) == list(feed._finals)
+    proc.close()

@@ -118,6 +118,7 @@ class Outcome:
     alarms: tuple[dict[str, Any], ...] = ()  # alarm episodes' reported changes
     notices: tuple[dict[str, Any], ...] = ()  # model health, for the errors topic
     payload: bytes | None = None  # ``message`` as JSON, when already encoded (stored so)
+    sensor_answers: tuple[dict[str, Any], ...] = ()  # of values held for it, fused with it
 
     @property
     def is_error(self) -> bool:
@@ -395,4 +396,4 @@ class Processor:
             if m is not None:
                 m.committed()
         return Outcome("accepted", msg, stroke.part_id, seq, tuple(alarms), tuple(notices),
-                       payload)
+                       payload, tuple(self.sensors.held_answers))

@@ -170,6 +170,9 @@ class SensorDesk:
         self._since: list[dict[str, Any]] = self._fused_since(self.last_accepted)
         #: the held values :meth:`at_product` fused for the product being committed
         self._pending_since: list[dict[str, Any]] = []
+        #: the answers (``formtwin.measurement/1``) of the held values :meth:`at_product`
+        #: decided for the product being committed (fused or rejected): the live page's
+        self.held_answers: list[dict[str, Any]] = []
 
     @property
     def active(self) -> bool:
@@ -299,7 +302,7 @@ class SensorDesk:
         notices for the errors topic."""
         notices: list[dict[str, Any]] = []
         self._pending = (part_id, int(index), u, final)
-        self._pending_since = []
+        self._pending_since, self.held_answers = [], []
         held = cur.execute("SELECT id, sensor, value, message FROM measurements WHERE "
                            "status = 'held' AND part_id = ? ORDER BY id", (part_id,)).fetchall()
         est = {"final": final}
@@ -323,6 +326,7 @@ class SensorDesk:
                         "message = ? WHERE id = ?",
                         (msg["status"], seq, index, None if u is None else json.dumps(u),
                          dumps(msg).decode(), rid))
+            self.held_answers.append(msg)
         old = cur.execute("SELECT id, part_id, sensor, message FROM measurements WHERE "
                           "status = 'held' AND at_seq <= ? ORDER BY id",
                           (seq - HOLD_PRODUCTS,)).fetchall()

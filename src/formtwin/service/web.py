@@ -127,6 +127,8 @@ class LiveFeed:
                 self.reasons[reason] = self.reasons.get(reason, 0) + 1
         if out.kind == "accepted":
             self._push(_point(out.message))
+            for answer in out.sensor_answers:  # values held for it, fused with it
+                self._push({"type": "sensor", **self._sensor(answer)})
             if out.alarms:
                 self._push({"type": "alarms", "alarms": list(out.alarms)})
             if out.notices:  # the model-health state changed: the banner follows
