@@ -187,7 +187,14 @@ def replay_with_kills(cmd: list[str], log: Path, stream: Path, broker: str,
 
 
 class Collector:
-    """Subscribes (QoS 1) to topics and keeps every JSON message received, by topic."""
+    """Subscribes (QoS 1) to topics and keeps every JSON message received, by topic.
+
+    On a persistent session of its own id, subscribing again at every (re)connection: a
+    collector that loses its connection (a busy machine: the broker's keepalive, a
+    restarted socket) gets the messages published meanwhile from the broker's queue when
+    paho reconnects, instead of silently receiving nothing more on a clean session whose
+    subscription died with the connection. :attr:`disconnects` and :attr:`errors` (a
+    message it could not read) say what happened when a test waits in vain."""
 
     def __init__(self, url: str, topics: list[str]) -> None:
         import json
@@ -198,19 +205,33 @@ class Collector:
 
         self._lock = threading.Lock()
         self.messages: dict[str, list[dict[str, object]]] = {t: [] for t in topics}
+        self.disconnects: list[str] = []
+        self.errors: list[str] = []
         port = int(url.rsplit(":", 1)[1])
         self.client = mqtt.Client(CallbackAPIVersion.VERSION2,
-                                  client_id=f"collector-{time.time_ns()}")
+                                  client_id=f"collector-{time.time_ns()}",
+                                  clean_session=False)
         ready = threading.Event()
 
         def on_message(c: object, u: object, msg: mqtt.MQTTMessage) -> None:
+            try:
+                doc = json.loads(msg.payload)
+            except ValueError as exc:  # kept, never raised into paho's thread
+                self.errors.append(f"{msg.topic}: {exc}")
+                return
             with self._lock:
-                self.messages.setdefault(msg.topic, []).append(json.loads(msg.payload))
+                self.messages.setdefault(msg.topic, []).append(doc)
+
+        def on_connect(c: mqtt.Client, u: object, flags: object, rc: object,
+                       props: object = None) -> None:
+            c.subscribe([(t, 1) for t in topics])
 
         self.client.on_message = on_message
+        self.client.on_connect = on_connect
         self.client.on_subscribe = lambda *a: ready.set()
+        self.client.on_disconnect = lambda c, u, f, rc, p=None: self.disconnects.append(
+            str(rc))
         self.client.connect("127.0.0.1", port)
-        self.client.subscribe([(t, 1) for t in topics])
         self.client.loop_start()
         if not ready.wait(10):
             raise TimeoutError("collector could not subscribe")

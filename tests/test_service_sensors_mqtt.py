@@ -60,7 +60,8 @@ def test_sigkill_with_sensor_messages_loses_nothing_and_doubles_nothing(
         assert stored_count(store) == n and measured(store) == 2 * n, \
             f"{stored_count(store)} products, {measured(store)} sensor values after {kills} kills"
         wait_for(lambda: len({(r["part_id"], r.get("sensor")) for r in col.get(RESULTS)})
-                 == 3 * n, 30, "an answer for every stroke and sensor message")
+                 == 3 * n, 30, lambda: "an answer for every stroke and sensor message "
+                 f"(collector disconnects {col.disconnects}, errors {col.errors})")
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
     finally:

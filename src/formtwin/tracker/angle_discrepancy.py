@@ -51,8 +51,9 @@ HYPOTHESES: tuple[tuple[bool, bool, float], ...] = (
     (True, False, 1.0), (True, False, 0.999), (True, False, 0.99),
     (True, True, 1.0), (True, True, 0.999), (True, True, 0.99),
 )
-#: the hypotheses' discount factors (H,)
+#: the hypotheses' discount factors (H,), and shaped to divide the covariances (H, 1, 1)
 _DELTA = np.array([d for _, _, d in HYPOTHESES])
+_DELTA3 = _DELTA[:, None, None]
 #: prior std of the bias b0 (degrees) and of the slope b1 about 1
 PRIOR_SD = (1.0, 1.0)
 #: prior degrees of freedom of the variance V (its prior guess: the caller's noise_var)
@@ -107,7 +108,7 @@ class AngleDiscrepancy:
         predicted value f (H,) and its scale Q (H,)."""
         ref = model_angle if math.isnan(self.ref) else self.ref
         F = np.array([1.0, model_angle - ref])
-        R = self.C / self._delta[:, None, None]
+        R = self.C / _DELTA3
         f = ref + self.a @ F
         Q = np.einsum("i,hij,j->h", F, R, F) + self.S
         return F, R, f, Q
@@ -175,9 +176,9 @@ class AngleDiscrepancy:
               - (n + 1) / 2 * np.log1p(e * e / (n * Q)))
         n1 = n + 1.0
         S1 = self.S + self.S / n1 * (e * e / Q - 1.0)
-        A = np.einsum("hij,j->hi", R, F) / Q[:, None]
+        A = (R @ F) / Q[:, None]  # einsum("hij,j->hi"): the same two-term sums
         self.a = self.a + A * e[:, None]
-        self.C = (S1 / self.S)[:, None, None] * (R - np.einsum("hi,hj->hij", A, A)
+        self.C = (S1 / self.S)[:, None, None] * (R - A[:, :, None] * A[:, None, :]
                                                  * Q[:, None, None])
         self.S, self.n = S1, n1
         total = self.logw + ll
