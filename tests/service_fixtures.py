@@ -68,26 +68,36 @@ class Mosquitto:
     def __init__(self, workdir: Path, extra_conf: str = "", anonymous: bool = True,
                  port: int | None = None) -> None:
         self.binary = require_binary("mosquitto", ("/usr/sbin/mosquitto",))
-        self.port = free_port() if port is None else port
         self.workdir = workdir
         self.conf = workdir / "mosquitto.conf"
-        self.conf.write_text(
-            f"listener {self.port} 127.0.0.1\n"
-            f"allow_anonymous {'true' if anonymous else 'false'}\n"
-            "persistence false\n"
-            "max_queued_messages 100000\n"
-            "max_inflight_messages 50\n"
-            "log_dest stderr\n"
-            "log_type error\n"
-            "log_type warning\n" + extra_conf, encoding="utf-8")
-        self.log = open(workdir / "mosquitto.log", "wb")  # noqa: SIM115
-        self.proc = subprocess.Popen([self.binary, "-c", str(self.conf)], stdout=self.log,
-                                     stderr=subprocess.STDOUT)
-        try:
-            wait_port(self.port)
-        except TimeoutError:
+        for attempt in range(3):  # a free port may be taken before the broker binds it
+            self.port = free_port() if port is None else port
+            self.conf.write_text(
+                f"listener {self.port} 127.0.0.1\n"
+                f"allow_anonymous {'true' if anonymous else 'false'}\n"
+                "persistence false\n"
+                "max_queued_messages 100000\n"
+                "max_inflight_messages 50\n"
+                "log_dest stderr\n"
+                "log_type error\n"
+                "log_type warning\n" + extra_conf, encoding="utf-8")
+            self.log = open(workdir / "mosquitto.log", "wb")  # noqa: SIM115
+            self.proc = subprocess.Popen([self.binary, "-c", str(self.conf)],
+                                         stdout=self.log, stderr=subprocess.STDOUT)
+            try:
+                wait_port(self.port)
+                time.sleep(0.1)
+            except TimeoutError:
+                self.stop()
+                raise
+            if self.proc.poll() is None:
+                return
+            # it exited: the port was taken meanwhile (tests in parallel), and what
+            # answered on it is another test's broker, never to be shared
             self.stop()
-            raise
+            if port is not None or attempt == 2:
+                raise RuntimeError(f"mosquitto exited ({self.proc.returncode}) on port "
+                                   f"{self.port}: {(workdir / 'mosquitto.log').read_text()}")
 
     @property
     def url(self) -> str:
