@@ -179,9 +179,9 @@ def _number_list(doc: dict[str, Any], key: str, part_id: str) -> FloatArray:
     except OverflowError:
         raise MessageError("non_finite", f"{key} holds an integer too large for float64",
                            part_id) from None
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        raise MessageError("non_finite", f"{key}[{bad[0]}] is {arr[bad[0]]}", part_id)
+    if not np.isfinite(arr).all():
+        bad = int(np.flatnonzero(~np.isfinite(arr))[0])
+        raise MessageError("non_finite", f"{key}[{bad}] is {arr[bad]}", part_id)
     return arr
 
 
@@ -258,7 +258,7 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
     if force.size != limits.n_t:
         raise MessageError("wrong_length", f"force_N has {force.size} samples, expected "
                            f"{limits.n_t}", part_id)
-    lo, hi = int(np.argmin(force)), int(np.argmax(force))
+    lo, hi = int(force.argmin()), int(force.argmax())
     if force[lo] < limits.min_force_N:
         raise MessageError("negative_force", f"force_N[{lo}] = {force[lo]:.6g} N < "
                            f"{limits.min_force_N:g} N", part_id)
