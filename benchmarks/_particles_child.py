@@ -33,6 +33,7 @@ def main() -> None:
     from particles import state_space_models as ssms
     from threadpoolctl import threadpool_limits
 
+    from formtwin._threads import single_blas_thread
     from formtwin.measurement import MeasurementModel
     from formtwin.tracker import BendingSSM, TrackerConfig
 
@@ -100,7 +101,10 @@ def main() -> None:
     tracker = Tracker(model, mm, TrackerConfig(n_particles=args.particles, mu=tuple(mu),
                                                seed=3))
     times, cpu, own, means = [], [], [], []
-    with threadpool_limits(limits=1, user_api="blas"):
+    # formtwin's own one-thread limit around the loop, as bench_filter.py has around the
+    # tracker's run: the model's evaluations inside it then skip setting the limit per
+    # call (~0.1 ms per entry and exit), for both filters alike
+    with threadpool_limits(limits=1, user_api="blas"), single_blas_thread():
         for c in curves:
             t0, c0 = time.perf_counter(), time.thread_time()
             next(alg)

@@ -9,10 +9,17 @@ single-threaded. Figures (``benchmarks/results/bench_filter.json``):
   estimates and predicted angles), deviation estimated (the heaviest series, 3 and 6),
   over a 1000-product run; ``step_ms_n500_nodev`` the same without ``theta_d``;
 * ``run_1000_s``: wall time of that 1000-product run;
-* ``breakdown_n500_*_ms``: the parts of a step, timed separately;
+* ``breakdown_n500_*_ms``: the parts of a step as the tracker's configuration does them,
+  timed separately at all 500 particles: the transition, the metamodel's curves and
+  angles, the deviation model in the direction the likelihood compares (``g`` with the
+  default ``compare="measurement"``, ``g^-1`` with the paper's ``compare="model"``:
+  ``deviation_apply`` or ``deviation_invert``, only the one the step calls), the
+  likelihood given the residuals (with the adaptive likelihood the whitening and the
+  density on the share's grid) and the resampling;
 * ``model_ms_n500``: the model's own evaluation for the 500 particles (metamodel curves
-  and angles plus the deviation model ``g``, the step's breakdown) and
-  ``step_over_model``: ``step_cpu_ms_n500`` over it (what the filter adds to the model);
+  and angles plus the deviation model, the breakdown's ``predict_curves``,
+  ``predict_angles`` and ``deviation_*``) and ``step_over_model``: ``step_cpu_ms_n500``
+  over it (what the filter and the tracker's own terms add to the model);
 * ``state_bytes_ms`` / ``state_bytes_ms_learn_residuals``: encode plus decode of the
   tracker's state bytes (median of 50) at N = 500, default settings and with
   ``learn_residuals`` (the learned (n_t, n_t) moment folded in); ``state_kb*`` their size;
@@ -115,21 +122,33 @@ def breakdown(tracker: Tracker, curve: np.ndarray) -> dict[str, float]:
     ssm, f, rng = tracker.ssm, tracker.filter, np.random.default_rng(0)
     x = f.x if f.x is not None else ssm.sample_initial(f.n, rng)
     n_in = tracker.spec.n_inputs
-    curves = tracker.model.predict_curves(x[:, :n_in])
-    obs = ssm.deviation.invert(curve, x[:, n_in:])
+    td = x[:, n_in:ssm.n_aug]
+    clean = tracker.model.predict_curves(x[:, :n_in])
     w = np.full(f.n, 1.0 / f.n)
     # two inputs in turn, so that a model caching its last batch is timed honestly
     xs = [x[:, :n_in], x[:, :n_in] * (1.0 + 1e-9)]
     turn = iter(range(10**9))
-    parts = {
+    parts: dict[str, Any] = {
         "transition": lambda: ssm.sample_transition(x, rng),
         "predict_curves": lambda: tracker.model.predict_curves(xs[next(turn) % 2]),
         "predict_angles": lambda: tracker.model.predict_angles(xs[next(turn) % 2]),
-        "deviation_invert": lambda: ssm.deviation.invert(curve, x[:, n_in:]),
-        "deviation_apply": lambda: ssm.deviation.apply(curves, x[:, n_in:]),
-        "loglik": lambda: tracker.measurement.loglik(curves, obs),
-        "resample": lambda: f.resample(w, rng, f.n),
     }
+    if not tracker.config.estimate_deviation:  # no g: the model's curves are compared
+        model_side, obs = clean, curve
+    elif tracker.config.compare == "model":  # paper eq. 12: g^-1 of the measured curve
+        parts["deviation_invert"] = lambda: ssm.deviation.invert(curve, td)
+        model_side, obs = clean, ssm.deviation.invert(curve, td)
+    else:  # default: the deviated model curves against the measured curve
+        parts["deviation_apply"] = lambda: ssm.deviation.apply(clean, td)
+        model_side, obs = ssm.deviation.apply(clean, td), curve
+    r = np.atleast_2d(obs - model_side)
+    disc = ssm.discrepancy
+    if disc is not None:  # adaptive / discrepancy likelihood: whiten, density per share
+        stats = x[:, ssm._disc:] if disc.shared else None
+        parts["likelihood"] = lambda: ssm.mix_share(disc.loglik(r, stats, disc.whiten(r)))
+    else:
+        parts["likelihood"] = lambda: tracker.measurement.loglik(model_side, obs)
+    parts["resample"] = lambda: f.resample(w, rng, f.n)
     return {f"breakdown_n{f.n}_{k}_ms": round(median_ms(v), 4) for k, v in parts.items()}
 
 
@@ -272,8 +291,8 @@ def main() -> None:
         figures["step_ms_n500_p90"] = round(float(np.percentile(ts, 90) * 1e3), 3)
         figures["step_cpu_ms_n500"] = round(float(np.median(cpu) * 1e3), 3)
         figures.update(breakdown(tr, curves[-1]))
-        model_ms = sum(figures[f"breakdown_n500_{k}_ms"] for k in (
-            "predict_curves", "predict_angles", "deviation_apply"))
+        model_ms = sum(figures.get(f"breakdown_n500_{k}_ms", 0.0) for k in (
+            "predict_curves", "predict_angles", "deviation_apply", "deviation_invert"))
         figures["model_ms_n500"] = round(model_ms, 3)
         figures["step_over_model"] = round(figures["step_cpu_ms_n500"] / model_ms, 2)
         figures["state_bytes_ms"], figures["state_kb"] = state_bytes_ms(tr, model, mm)

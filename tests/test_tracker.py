@@ -325,3 +325,47 @@ def test_angles_skip_only_negligible_weight(
     w = np.array([0.6, 1e-12, 3e-10, 0.4 - 3.01e-10])
     assert core.heaviest(w, 1e-9).tolist() == [0, 3]
     assert core.heaviest(w, 0.0).tolist() == [0, 1, 2, 3]
+
+
+def _heaviest_by_full_sort(w: np.ndarray, mass: float) -> list[int]:
+    """The reference: stable sort of all weights, drop the lightest prefix summing to <= mass."""
+    order = np.argsort(w, kind="stable")
+    n_drop = int(np.searchsorted(np.cumsum(w[order]), mass, side="right"))
+    return sorted(order[n_drop:].tolist())
+
+
+def test_heaviest_sorts_only_the_light_weights_with_the_same_result() -> None:
+    """``heaviest`` sorts only the weights <= mass; the kept set is the full sort's, ties
+    (equal weights, a weight equal to mass) and all-dropped/none-dropped cases included."""
+    from formtwin.tracker import core
+
+    rng = np.random.default_rng(5)
+    cases = [np.array([1e-10, 1e-10, 5e-10, 1.0 - 7e-10]), np.array([1e-9, 1.0 - 1e-9]),
+             np.array([0.25, 0.25, 0.25, 0.25]), np.array([0.0, 0.0, 1.0])]
+    for _ in range(200):
+        w = np.exp(rng.normal(0.0, rng.uniform(1.0, 15.0), rng.integers(1, 60)))
+        w[rng.random(w.size) < 0.2] = w[0]  # ties
+        cases.append(w / w.sum())
+    for w in cases:
+        for mass in (0.0, 1e-9, 1e-3, 0.3, 1.0):
+            assert core.heaviest(w, mass).tolist() == _heaviest_by_full_sort(w, mass)
+
+
+def test_estimate_std_is_the_steps_std(model: AnalyticModel, mm: MeasurementModel,
+                                       series1: dict[str, np.ndarray]) -> None:
+    """The estimate's std comes from the step's mean computed once: bit for bit
+    ``Step.std`` (``intervals="cloud"``: nothing added)."""
+    tr = Tracker(model, mm, TrackerConfig(n_particles=200, mu=tuple(series1["mu"]),
+                                          intervals="cloud", seed=4))
+    steps = []
+    step = tr.filter.step
+
+    def keep(y):  # type: ignore[no-untyped-def]
+        steps.append(step(y))
+        return steps[-1]
+
+    tr.filter.step = keep  # type: ignore[method-assign]
+    for c in series1["curves"][:5]:
+        e = tr.step(c)
+        np.testing.assert_array_equal(e.std, steps[-1].std()[:len(e.std)])
+        np.testing.assert_array_equal(e.mean, steps[-1].mean()[:len(e.mean)])

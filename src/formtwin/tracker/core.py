@@ -63,11 +63,16 @@ def heaviest(w: FloatArray, mass: float) -> NDArray[np.intp]:
     >>> heaviest(np.array([0.5, 1e-12, 0.3, 0.2 - 1e-12]), 1e-9).tolist()
     [0, 2, 3]
     """
-    order = np.argsort(w, kind="stable")
+    # only weights <= mass can be dropped, and they come first in the stable ascending
+    # order of all weights: sorting them alone gives the same prefix and the same sums
+    light = np.flatnonzero(w <= mass)
+    order = light[np.argsort(w[light], kind="stable")]
     n_drop = int(np.searchsorted(np.cumsum(w[order]), mass, side="right"))
     if n_drop == 0:
         return np.arange(w.size)
-    return np.sort(order[n_drop:])
+    keep = np.ones(w.size, dtype=bool)
+    keep[order[:n_drop]] = False
+    return np.flatnonzero(keep)
 
 
 class Tracker(SensorFusion):
@@ -256,9 +261,11 @@ class Tracker(SensorFusion):
             astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
         else:
             am = astd = np.full(2, np.nan)
-        mean, std, na = s.mean(), s.std(), len(self.names)
+        mean, na = s.mean(), len(self.names)
+        dev = s.x - mean  # Step.std's numbers, from the mean computed once
+        std = np.sqrt(np.maximum(s.w @ (dev * dev), 0.0))
         if self.sandwich is not None and y is not None:  # the intervals only
-            var, avar = self.sandwich.update(s.x, s.w, y, self.filter.t - 1, u)
+            var, avar = self.sandwich.update(s.x, s.w, y, self.filter.t - 1, u, mean)
             std = np.sqrt(std[:na] ** 2 + var)
             astd = np.sqrt(astd**2 + avar)
         mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None

@@ -168,7 +168,8 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     r_bar = v @ r
     stride = max(1, -(-r.shape[0] // MAX_SPREAD))
     rs, vs = r[::stride], v[::stride]
-    rc = (rs - r_bar) * np.sqrt(vs / vs.sum())[:, None]
+    rc = rs - r_bar
+    rc *= np.sqrt(vs / vs.sum())[:, None]
     cov = _syrk(1.0, rc, trans=1, lower=1)  # rc^T rc, its lower triangle (all potrf reads)
     if covariance is None:
         cov += scale * measurement.covariance()

@@ -173,13 +173,15 @@ class Sandwich:
         return float(np.exp(self.ssm.share_logpost) @ (d.shares > 0))
 
     def update(self, x: FloatArray, w: FloatArray, y: FloatArray, t: int,
-               u: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+               u: FloatArray | None, mean: FloatArray | None = None
+               ) -> tuple[FloatArray, FloatArray]:
         """After product ``t`` (0-based) with particles ``x`` (N, d), weights ``w`` (N,)
         and curve ``y`` (n_t,): the variances (n_aug,) and (2,) to add to the cloud's
-        for the state and the angles at setting ``u``."""
+        for the state and the angles at setting ``u``; ``mean`` (d,) ``w @ x`` when the
+        caller has it (None: computed here)."""
         ssm, m = self.ssm, self.m
         n_in, na = ssm.n_in, ssm.n_aug
-        mean = w @ x
+        mean = w @ x if mean is None else mean
         dev = x[:, :m] - mean[:m]
         P = (dev * w[:, None]).T @ dev
         if self.J is None or t % EVERY == 0:
