@@ -256,8 +256,14 @@ class Metamodel:
     def _angles(self, U: FloatArray) -> FloatArray:
         if not self.angle_models:
             return np.empty((U.shape[0], 0))
+        # the spec builds its outputs on every access: their input widths are kept with
+        # the angle models they belong to
+        dims = self.__dict__.get("_angle_dims")
+        if dims is None or dims[0] is not self.angle_models:
+            dims = self.__dict__["_angle_dims"] = (self.angle_models,
+                                                   self._output_dims(self.spec))
         return np.hstack([m.predict(U[:, :n]) for m, n in
-                          zip(self.angle_models, self._output_dims(self.spec), strict=True)])
+                          zip(self.angle_models, dims[1], strict=True)])
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
         """Force curves (N, n_t), N, at inputs ``X`` (N, 10) ``[x, theta]`` or (N, 11)
