@@ -101,11 +101,27 @@ def logsumexp(a: FloatArray, axis: int | None = None) -> Any:
     >>> logsumexp(np.array([[0.0, -np.inf], [-np.inf, -np.inf]]), axis=1).tolist()
     [0.0, -inf]
     """
+    if axis == 0 and np.ndim(a) == 2 and np.shape(a)[0] > 0:
+        return _logsumexp_columns(np.asarray(a))
     top = np.max(a, axis=axis, keepdims=True)
     top = np.where(np.isfinite(top), top, 0.0)
     with np.errstate(divide="ignore"):
         out = np.log(np.sum(np.exp(a - top), axis=axis, keepdims=True)) + top
     return float(out.reshape(())) if axis is None else np.squeeze(out, axis=axis)
+
+
+def _logsumexp_columns(a: FloatArray) -> FloatArray:
+    """:func:`logsumexp` over the rows of ``a`` (N, k), the same numbers: NumPy sums over
+    the outer axis of a C array row after row, as ``cumsum`` along the rows of its
+    transpose does (and max and exp do not depend on the layout); the transpose's long
+    contiguous rows take half the time for a narrow ``a`` (the share's grid, k = 5)."""
+    t = np.ascontiguousarray(a.T)
+    top = np.max(t, axis=1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    total = np.cumsum(np.exp(t - top), axis=1)[:, -1:]
+    with np.errstate(divide="ignore"):
+        out: FloatArray = (np.log(total) + top)[:, 0]
+    return out
 
 
 def log_normalise(logw: FloatArray) -> tuple[FloatArray, float]:
