@@ -5,13 +5,21 @@
 1. ``ff_vs_ewma_within_curve`` (target <= 0.80) and ``ff_vs_ewma_within_gauge`` (<= 0.65):
    the closed-loop study with the line's real sensors
    (:mod:`formtwin.study.control_sensors`: the physics model as the plant under series-6
-   conditions, 4 datasets x 1000 products, N = 500, the first 4 plants of
-   ``bench_control.py``; ``--datasets`` changes the 4):
+   conditions, 5 datasets x 1000 products, N = 500, the first 5 plants of
+   ``bench_control.py``; ``--datasets`` changes the 5):
    the feedforward's final-angle std over the run-to-run EWMA's, within each dataset, median
-   over the datasets, both reading the camera's angle with 0.2 deg noise one product late;
-   ``curve``: the feedforward on the posterior of the curve alone, ``gauge``: of the curve
-   and the 0.5 um strip gauge fused. ``sensor_control`` holds every camera noise (0, 0.1,
-   0.2 deg), per dataset, the stds and the weights chosen.
+   over the datasets, both reading the camera's angle with 0.2 deg noise one product late.
+   The feedforward is :class:`~formtwin.control.Predictive` on the fused posterior: the
+   camera's values fused into the particles and correcting the posterior's predicted angle
+   through the discrepancy learned from them (nothing tuned on the datasets);
+   ``curve``: the curve and the camera, ``gauge``: with the 0.5 um strip gauge fused too.
+   ``ff_vs_ewma_reference_limit``: the least ratio a feedforward linear in the posterior's
+   predicted angle could reach on the same lines (the best coefficients known, without
+   learning them); ``ff_vs_ewma_bound``: the linear-Gaussian bound (theta and mu known, an
+   exact model); ``ff_vs_ewma_combined``: the earlier controller
+   (:class:`~formtwin.control.Combined`, weights chosen on the other datasets).
+   ``sensor_control`` holds every camera noise (0, 0.1, 0.2 deg), per dataset, the stds and
+   the weights chosen.
 2. ``state_coverage90_min`` (target >= 0.80): the default study (``formtwin study``'s
    settings: calibrated intervals, repetition 0) of series 1, 3, 4 and 5 on the sensor
    benchmark's datasets: how often each state's reported 90 % interval holds the truth
@@ -41,7 +49,7 @@ from formtwin.study.run import StudySettings, run_study
 COVERAGE_SERIES = (1, 3, 4, 5)
 
 
-def control_figures(smoke: bool = False, out: Path = CACHE / "control", datasets: int = 4
+def control_figures(smoke: bool = False, out: Path = CACHE / "control", datasets: int = 5
                     ) -> dict[str, Any]:
     """Figure 1 of the module doc with ``datasets`` datasets (``smoke``: 2 datasets x 150
     products in a folder of their own)."""
@@ -53,9 +61,14 @@ def control_figures(smoke: bool = False, out: Path = CACHE / "control", datasets
     base = ControlStudySettings(products=150 if smoke else 1000, datasets=2 if smoke else datasets,
                                 burn_in=30 if smoke else 100, workers=2)
     s = run_sensor_control(metamodel, physics, SensorControlSettings(base=base), out)
-    return {"ff_vs_ewma_within_curve": s["curve"]["0.2"]["ff_vs_ewma"]["median"],
-            "ff_vs_ewma_within_gauge": s["gauge"]["0.2"]["ff_vs_ewma"]["median"],
+    return {"ff_vs_ewma_within_curve": s["curve"]["fused"]["ff_vs_ewma"]["median"],
+            "ff_vs_ewma_within_gauge": s["gauge"]["fused"]["ff_vs_ewma"]["median"],
             "ff_vs_ewma_bound": control_bound(s),
+            "ff_vs_ewma_reference_limit": {
+                n: s[n]["fused"]["reference_limit"]["ff_vs_ewma_median"] for n in s
+                if isinstance(s[n], dict) and "fused" in s[n]},
+            "ff_vs_ewma_combined": {n: s[n]["0.2"]["ff_vs_ewma"]["median"] for n in s
+                                    if isinstance(s[n], dict) and "0.2" in s[n]},
             "sensor_control": {**s, "wall_s": round(time.perf_counter() - t0, 1)}}
 
 
@@ -117,7 +130,7 @@ def main() -> None:
                    help="the sensor benchmark's folder (its study's cached runs reused)")
     p.add_argument("--quick", action="store_true", help="smoke test")
     p.add_argument("--only", choices=("control", "coverage"), help="one of the two figures")
-    p.add_argument("--datasets", type=int, default=4, help="datasets of the control study")
+    p.add_argument("--datasets", type=int, default=5, help="datasets of the control study")
     args = p.parse_args()
     out = Path(args.out)
     figures: dict[str, Any] = {}
