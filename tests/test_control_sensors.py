@@ -23,6 +23,7 @@ from formtwin.study.control_sensors import (
     SensorControlSettings,
     loo_ratios,
     reference_limit,
+    run_sensor_control,
     sensor_dataset,
     sensor_draws,
 )
@@ -157,3 +158,20 @@ def test_leave_one_out_choice_scores_each_dataset_with_the_others_weights() -> N
 def test_unknown_set_is_named() -> None:
     with pytest.raises(ValueError, match="sets = \\['camera'\\]: unknown"):
         SensorControlSettings(sets=("camera",))
+
+
+def test_the_summary_scores_every_feedforward_against_the_ewma(case: dict) -> None:
+    base = case["base"]
+    settings = SensorControlSettings(base=base, camera_noises=(0.0, 0.2), sets=("curve",))
+    s = run_sensor_control(case["model"], case["physics"], settings, case["folder"] / "sum")
+    cell = s["curve"]["0.2"]
+    for part in (cell, cell["predictive"], s["curve"]["fused"]):
+        assert len(part["ff_vs_ewma"]["per_dataset"]) == base.datasets
+        assert part["ff_vs_ewma"]["median"] == pytest.approx(
+            np.median(part["ff_vs_ewma"]["per_dataset"]), abs=2e-3)
+    assert s["curve"]["fused"]["camera_deg"] == 0.2
+    limit = s["curve"]["fused"]["reference_limit"]
+    assert len(limit["corr"]) == base.datasets and all(-1 <= r <= 1 for r in limit["corr"])
+    # a second call reuses the stored datasets: the same numbers
+    assert run_sensor_control(case["model"], case["physics"], settings,
+                              case["folder"] / "sum") == s

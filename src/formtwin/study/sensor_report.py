@@ -92,13 +92,14 @@ def sensor_blocks(figures: dict[str, Any] | None, folder: Path, source: str) -> 
               "line's other sensors fused as they arrive (the strip gauge's thickness of each "
               "product before it is formed, 0.5 um; the camera's final angle one product "
               "late, 0.2 deg). nRMSE over the last products as above; the state coverage is "
-              "that of the particles' own 90 % intervals (no calibrated floors), the "
-              "final-angle coverage that of the interval calibrated online on the camera's "
-              "values (adaptive conformal inference)."),
+              "that of the tracker's default 90 % intervals (the fused particles' std with "
+              "the calibrated floors, as the tables above), the final-angle coverage that "
+              "of the interval calibrated online on the camera's values (adaptive "
+              "conformal inference)."),
         ("img", "fig_sensors.png", "final-angle nRMSE, state nRMSE and final-angle interval "
                                    "coverage per sensor set"),
         ("table", ["series", "sensors", "final angle nRMSE", "state nRMSE",
-                   "state coverage (cloud)", "final-angle coverage"], rows),
+                   "state coverage", "final-angle coverage"], rows),
     ]
     extra = [f"{label} {figures[k]}" for k, label in (
         ("state_coverage90_min", "state coverage of the default intervals, least over "
