@@ -95,11 +95,14 @@ class SensorControlSettings:
     base : the control study's settings (products, datasets, burn-in, tracker, seed...).
     camera_noises : the camera's noise sds, degrees.
     sets : names of :data:`SETS` run.
+    grid : the earlier feedforward's ``(lam, rho)`` tried (:data:`GRID`; each costs a
+        feedforward choice per product and camera noise).
     """
 
     base: ControlStudySettings = field(default_factory=ControlStudySettings)
     camera_noises: tuple[float, ...] = CAMERA_NOISES
     sets: tuple[str, ...] = tuple(SETS)
+    grid: tuple[tuple[float, float], ...] = GRID
 
     def __post_init__(self) -> None:
         bad = [s for s in self.sets if s not in SETS]
@@ -150,8 +153,9 @@ def sensor_dataset(metamodel: ProcessModel, physics: Simulator,
         out[f"angle_r2r_{c}"] = np.array([angles(r2r(camera, ok, n, target, gain, lam, act,
                                                      nominal, base.r2r_delay))
                                           for lam in R2R_LAMS])
-    controllers = [(lam, ADAPTIVE, rho) for _ in noises for lam, rho in GRID]
-    noise = np.vstack([np.repeat(noises[:, None] * z_cam[None, :], len(GRID), axis=0),
+    grid = settings.grid
+    controllers = [(lam, ADAPTIVE, rho) for _ in noises for lam, rho in grid]
+    noise = np.vstack([np.repeat(noises[:, None] * z_cam[None, :], len(grid), axis=0),
                        noises[:, None] * z_cam[None, :]])
     sensors = line_sensors(spec)
     gauge, cam = sensor_by_name(sensors, "gauge"), sensor_by_name(sensors, CAMERA)
@@ -171,7 +175,7 @@ def sensor_dataset(metamodel: ProcessModel, physics: Simulator,
                              predictive=[predictive(float(sd)) for sd in noises])
         out[f"reference_{name}"] = p.nominal_mean
         for c in range(noises.size):
-            rows = p.u[c * len(GRID):(c + 1) * len(GRID)]
+            rows = p.u[c * len(grid):(c + 1) * len(grid)]
             out[f"angle_{name}_{c}"] = np.array([angles(v) for v in rows])
             out[f"angle_{name}_predictive_{c}"] = angles(p.u[len(controllers) + c])
         # the camera fused into the particles too: one pass at the spec's camera noise
@@ -243,7 +247,7 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
     target = default_target(metamodel) if base.target is None else base.target
     gain = r2r_gain(metamodel, np.random.default_rng(base.seed))
     key = result_key(base, target, str(getattr(physics, "version", "")), metamodel) + repr(
-        (settings.camera_noises, settings.sets, GRID, R2R_LAMS, "predictive", CAMERA))
+        (settings.camera_noises, settings.sets, settings.grid, R2R_LAMS, "predictive", CAMERA))
     paths = [out / f"sensors_{k}.npz" for k in range(base.datasets)]
     res = [load_result(p, key) for p in paths]
     todo = [k for k, r in enumerate(res) if r is None]
@@ -294,7 +298,7 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
                 if np.all(oracle > 1e-9 * fixed) else None,  # an oracle on target: no ratio
                 "ff_std_deg": round(float(np.mean([ff[k, a[k]] for k in range(len(a))])), 4),
                 "ewma_std_deg": round(float(np.mean([ew[k, e[k]] for k in range(len(e))])), 4),
-                "ff_lam": GRID[best][0], "ff_rho": GRID[best][1],
+                "ff_lam": settings.grid[best][0], "ff_rho": settings.grid[best][1],
                 "ewma_lam": R2R_LAMS[int(np.argmin(np.mean(ew / fixed[:, None], axis=0)))]}
         cf = next((c for c, sd in enumerate(settings.camera_noises) if sd == cam_sd), None)
         if cf is not None:  # the camera fused into the particles too, at the spec's noise
@@ -307,7 +311,7 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
     summary["target_deg"] = target
     summary["settings"] = {
         "camera_noises_deg": list(settings.camera_noises), "sets": list(settings.sets),
-        "grid_lam_rho": [list(g) for g in GRID], "r2r_lams": list(R2R_LAMS),
+        "grid_lam_rho": [list(g) for g in settings.grid], "r2r_lams": list(R2R_LAMS),
         **{k: v for k, v in dataclasses.asdict(base).items() if k != "tracker"},
         "tracker": base.tracker.to_dict()}
     return summary
