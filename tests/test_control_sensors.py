@@ -22,6 +22,8 @@ from formtwin.study.control_sensors import (
     GRID,
     SensorControlSettings,
     loo_ratios,
+    reference_limit,
+    run_sensor_control,
     sensor_dataset,
     sensor_draws,
 )
@@ -92,6 +94,46 @@ def test_gauge_fused_before_the_choice_sharpens_the_thickness(case: dict) -> Non
     assert errors[1] < 0.6e-3 < errors[0]
 
 
+def test_the_predictive_feedforward_runs_beside_and_on_the_camera_fused_posterior(
+        case: dict) -> None:
+    out, n = case["out"], case["base"].products
+    for key in ("angle_curve_predictive_0", "angle_curve_predictive_1", "angle_curve_fused",
+                "reference_curve", "reference_curve_fused"):
+        assert out[key].shape == (n,) and np.isfinite(out[key][out["ok"]]).all()
+    # the same camera values (0.2 deg), the same controller: fusing them into the particles
+    # changes the posterior and so the settings
+    assert not np.allclose(out["angle_curve_fused"], out["angle_curve_predictive_1"])
+    # before the first camera value both passes choose on the same posterior
+    assert out["reference_curve_fused"][0] == out["reference_curve"][0]
+    a = out["angle_curve_predictive_0"][case["base"].burn_in:]
+    assert np.nanstd(a) < np.nanstd(out["angle_fixed"][case["base"].burn_in:])
+
+
+def test_the_camera_in_the_filter_serves_one_controller(case: dict) -> None:
+    m, base = case["model"], case["base"]
+    run, curves, ok, plant = plant_run(m.spec, case["physics"], base, 0, case["folder"])
+    _, ff, nominal = study_controllers(m, base, TARGET)
+    with pytest.raises(ValueError, match="camera in the filter: one controller \\(got 2\\)"):
+        track_and_choose(m, base.tracker, curves, ok, plant, ff,
+                         [(0.1, ADAPTIVE, 0.0), (0.1, 1.0, 0.0)], nominal, camera="camera")
+
+
+def test_reference_limit_is_the_residual_of_the_best_line() -> None:
+    rng = np.random.default_rng(5)
+    results, r = [], 0.6
+    for _ in range(3):
+        y = rng.standard_normal(2000)
+        c = r * y + np.sqrt(1 - r**2) * rng.standard_normal(2000)
+        results.append({"reference_s": np.r_[np.nan, c], "angle_fixed": np.r_[0.0, y]})
+    fixed, ewma = np.ones(3), np.full((3, 2), 2.0)
+    got = reference_limit(results, "s", 0, 1, fixed, ewma)
+    corr = [np.corrcoef(q["reference_s"][1:], q["angle_fixed"][1:])[0, 1] for q in results]
+    np.testing.assert_allclose(got["corr"], np.round(corr, 3))
+    assert got["ff_vs_ewma_median"] == pytest.approx(
+        np.median(np.sqrt(1 - np.square(corr))) / 2.0, abs=1e-4)
+    assert got["ff_vs_ewma_median"] == pytest.approx(0.4, abs=0.02)  # sqrt(1 - 0.36) / 2
+
+
 def test_noise_of_the_wrong_shape_is_refused(case: dict) -> None:
     m, base = case["model"], case["base"]
     run, curves, ok, plant = plant_run(m.spec, case["physics"], base, 0, case["folder"])
@@ -116,3 +158,20 @@ def test_leave_one_out_choice_scores_each_dataset_with_the_others_weights() -> N
 def test_unknown_set_is_named() -> None:
     with pytest.raises(ValueError, match="sets = \\['camera'\\]: unknown"):
         SensorControlSettings(sets=("camera",))
+
+
+def test_the_summary_scores_every_feedforward_against_the_ewma(case: dict) -> None:
+    base = case["base"]
+    settings = SensorControlSettings(base=base, camera_noises=(0.0, 0.2), sets=("curve",))
+    s = run_sensor_control(case["model"], case["physics"], settings, case["folder"] / "sum")
+    cell = s["curve"]["0.2"]
+    for part in (cell, cell["predictive"], s["curve"]["fused"]):
+        assert len(part["ff_vs_ewma"]["per_dataset"]) == base.datasets
+        assert part["ff_vs_ewma"]["median"] == pytest.approx(
+            np.median(part["ff_vs_ewma"]["per_dataset"]), abs=2e-3)
+    assert s["curve"]["fused"]["camera_deg"] == 0.2
+    limit = s["curve"]["fused"]["reference_limit"]
+    assert len(limit["corr"]) == base.datasets and all(-1 <= r <= 1 for r in limit["corr"])
+    # a second call reuses the stored datasets: the same numbers
+    assert run_sensor_control(case["model"], case["physics"], settings,
+                              case["folder"] / "sum") == s

@@ -42,3 +42,12 @@ def test_without_figures_the_section_says_how_to_make_them(tmp_path: Path) -> No
     blocks = sensor_blocks(None, tmp_path, "")
     assert "bench_sensors.py" in blocks[-1][1]
     assert not (tmp_path / "fig_sensors.png").exists()
+
+
+def test_the_state_coverage_column_says_which_intervals_it_scores(tmp_path: Path) -> None:
+    old = sensor_blocks(_figures(), tmp_path, "old.json")
+    new = sensor_blocks({**_figures(), "state_coverage90_cloud": {}}, tmp_path, "new.json")
+    heads = [next(b for b in blocks if b[0] == "table")[1][4] for blocks in (old, new)]
+    assert heads == ["state coverage (cloud)", "state coverage"]
+    text = [" ".join(b[1] for b in blocks if b[0] == "p") for blocks in (old, new)]
+    assert "no calibrated floors" in text[0] and "default 90 % intervals" in text[1]

@@ -11,13 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from formtwin.defaults import bundled_metamodel
 from formtwin.doe import latin_hypercube, run_design
 from formtwin.metamodel import Metamodel
 from formtwin.physics.analytic import AnalyticBending
 from formtwin.spec import load_spec
 from formtwin.study.run import StudySettings, _tasks, run_study
-from formtwin.study.sensor_study import ewma_prediction, sensor_run
-from formtwin.tracker import TrackerConfig
+from formtwin.study.sensor_study import cloud_std, ewma_prediction, reported_std, sensor_run
+from formtwin.tracker import TrackerConfig, build_tracker
 
 SPEC = load_spec()
 
@@ -63,3 +64,33 @@ def test_ewma_prediction() -> None:
     y = np.array([1.0, np.nan, 3.0, 5.0])
     np.testing.assert_allclose(ewma_prediction(y, 0.5), [np.nan, 1.0, 1.0, 2.0])
     np.testing.assert_allclose(ewma_prediction(y, 1.0)[1:], [1.0, 1.0, 3.0])
+
+
+def test_reported_std_adds_the_steps_floors_to_the_fused_cloud() -> None:
+    """On the bundled metamodel with its calibration (constant floors, mu known: no other
+    term), what the step added to the cloud's std is the floors; nothing fused, the
+    reported std is the step's; after the gauge is fused the thickness' cloud narrows and
+    the reported std is that cloud with the same floors."""
+    mm = Metamodel.load(bundled_metamodel("bending"))
+    config = TrackerConfig(n_particles=200, n_mc=300, seed=1, intervals="calibrated",
+                           mu_known=True, sensors=("gauge",))
+    tracker = build_tracker(mm, config)
+    assert tracker.floors is not None and tracker.floors.b.max() > 0
+    na, col = len(mm.spec.augmented), mm.spec.state.index["thickness"]
+    x = np.r_[mm.spec.state.mu_mid, 0.5 * (mm.spec.params.lo + mm.spec.params.hi)]
+    for curve in mm.predict_curves(np.tile(x, (3, 1))):
+        est = tracker.step(curve)
+        cloud = cloud_std(tracker, na)
+        added = np.maximum(est.std**2 - cloud**2, 0.0)
+        # nothing fused: the reported std is the step's estimate's
+        np.testing.assert_allclose(reported_std(tracker.posterior().std, added), est.std,
+                                   rtol=1e-9)
+        # the floors, up to the resampling's noise (the step's cloud is the weighted one
+        # before resampling, the tracker keeps the resampled one)
+        b = tracker.floors.b
+        assert np.all(np.abs(np.sqrt(added) - b) <= 0.02 * b)
+    tracker.fuse(2, "gauge", float(x[col]))
+    fused = tracker.posterior().std
+    assert fused[col] < cloud[col]
+    np.testing.assert_allclose(reported_std(fused, added),
+                               np.sqrt(fused**2 + tracker.floors.b**2), rtol=0.02)

@@ -46,7 +46,8 @@ def register(sub: Any) -> None:
     p.add_argument("--sensor-study", action="store_true",
                    help="the study with the line's real sensors instead: the EWMA and the "
                    "trim read the camera's angle with noise (--camera-noise), the feedforward "
-                   "chooses on the curve's and on the curve-and-gauge posterior "
+                   "chooses on the curve's and on the curve-and-gauge posterior, its "
+                   "prediction corrected by the camera's values "
                    "(sensors_study.json in --out)")
     p.add_argument("--camera-noise", default="0,0.1,0.2",
                    help="camera noise sds with --sensor-study, deg, comma-separated "
@@ -117,8 +118,13 @@ def _run_sensors(args: argparse.Namespace, metamodel: Any, physics: Any, setting
         for sd in noises:
             v = s[name][f"{sd:g}"]
             print(f"  {name:5s} camera {sd:g} deg: feedforward / EWMA std within a line "
-                  f"(median) {v['ff_vs_ewma']['median']}, stds {v['ff_std_deg']} / "
-                  f"{v['ewma_std_deg']} deg")
+                  f"(median) predictive {v['predictive']['ff_vs_ewma']['median']}, "
+                  f"combined {v['ff_vs_ewma']['median']}; EWMA std {v['ewma_std_deg']} deg")
+        if "fused" in s[name]:
+            f = s[name]["fused"]
+            print(f"  {name:5s} camera {f['camera_deg']:g} deg fused into the posterior: "
+                  f"{f['ff_vs_ewma']['median']} (linear limit "
+                  f"{f['reference_limit']['ff_vs_ewma_median']})")
     (out / "sensors_study.json").write_text(json.dumps(s, indent=2) + "\n")
     print(f"  -> {out / 'sensors_study.json'}")
     return 0

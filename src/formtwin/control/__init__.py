@@ -6,7 +6,10 @@
 * :mod:`~formtwin.control.runtorun`: :class:`EwmaRunToRun`, today's practice: an EWMA
   run-to-run controller on the measured final angles of earlier products;
 * :mod:`~formtwin.control.combined`: :class:`Combined`, feedforward plus feedback: the
-  feedforward aimed at the target minus an EWMA of its own prediction error.
+  feedforward aimed at the target minus an EWMA of its own prediction error;
+* :mod:`~formtwin.control.predictive`: :class:`Predictive`, the feedforward on the
+  posterior predictive of the measured final angle, the camera's late noisy values entering
+  through a learned discrepancy (a :class:`Corrector`).
 
 Generic numerics: the process enters only as a function ``final_angle(u) -> (N, n_u)``
 (the final angle of every particle at each candidate setting), so this package sits beside
@@ -22,8 +25,9 @@ from formtwin.control.combined import (
     Combined,
 )
 from formtwin.control.feedforward import Actuator, Feedforward, Suggestion, weighted_quantile
+from formtwin.control.predictive import Corrector, Predictive
 from formtwin.control.runtorun import EwmaRunToRun
 
 __all__ = ["TUNED_FIXED_LAM", "TUNED_FIXED_RHO", "TUNED_FIXED_WEIGHT", "TUNED_LAM", "TUNED_RHO",
-           "Actuator", "Combined", "EwmaRunToRun", "Feedforward", "Suggestion",
-           "weighted_quantile"]
+           "Actuator", "Combined", "Corrector", "EwmaRunToRun", "Feedforward", "Predictive",
+           "Suggestion", "weighted_quantile"]

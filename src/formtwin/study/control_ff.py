@@ -15,6 +15,7 @@ that controller alone.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -22,12 +23,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
-from formtwin.control import Combined, Feedforward
+from formtwin.control import Combined, Feedforward, Predictive
 from formtwin.measurement import ProcessModel
-from formtwin.tracker import TrackerConfig, build_tracker
+from formtwin.tracker import FusionError, TrackerConfig, build_tracker
 from formtwin.tracker.fusion import angle_sd, update_angle
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 #: the ``weight`` of a controller tuple that stands for a weight learned on the line
 #: (:class:`~formtwin.control.Combined` with ``adaptive``, starting at 0)
@@ -63,7 +65,9 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                      ff: Feedforward, controllers: Sequence[tuple[float, float, float]],
                      nominal: float, delay: int = 1, angle_in_filter: bool = False,
                      sd: float | None = None, noise: FloatArray | None = None,
-                     readings: Mapping[str, FloatArray] | None = None) -> Pass:
+                     readings: Mapping[str, FloatArray] | None = None,
+                     predictive: Sequence[Predictive] = (), camera: str | None = None
+                     ) -> Pass:
     """Run a tracker (``config``) over the measured ``curves`` (n, n_t) of the products with
     ``ok``; after each curve every controller ``Combined(ff, lam, weight, rho=rho)`` (one
     per ``(lam, weight, rho)`` of ``controllers``, ``weight`` :data:`ADAPTIVE`: learned;
@@ -80,19 +84,33 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
     ``config.sensors`` that read a product before it is formed (delay 0, internal units),
     fused by :meth:`~formtwin.tracker.Tracker.fuse` right after the product's curve, so
     that its setting is chosen on the fused posterior (NaN: no value).
+
+    ``predictive`` are further controllers (:class:`~formtwin.control.Predictive`: the
+    feedforward on the posterior predictive through a discrepancy learned from the measured
+    angles), after the ``controllers`` in the rows of the result and of ``noise``. With
+    ``camera`` (a sensor of ``config.sensors`` reading the final angle; one controller in
+    all) the measured angle of product ``j`` is also fused into the particles
+    (:meth:`~formtwin.tracker.Tracker.fuse` at its setting, before the next curve; the
+    tracker's own interval issued at each chosen setting, so that its discrepancy learns):
+    the settings are then chosen on the camera-fused posterior.
     """
     if angle_in_filter and (len(controllers) != 1 or delay != 1):
         raise ValueError("angles in the filter: one controller and delay 1 (got "
                          f"{len(controllers)} controllers, delay {delay})")
+    if camera is not None and len(controllers) + len(predictive) != 1:
+        raise ValueError("camera in the filter: one controller (got "
+                         f"{len(controllers) + len(predictive)})")
     tracker = build_tracker(metamodel, config)
     ctl = [Combined(ff, lam, max(weight, 0.0), nominal, rho=rho, adaptive=weight == ADAPTIVE)
            for lam, weight, rho in controllers]
-    m, n = len(ctl), curves.shape[0]
+    m0, n = len(ctl), curves.shape[0]
+    m = m0 + len(predictive)
     err = np.zeros((m, n)) if noise is None else np.asarray(noise, dtype=np.float64)
     if err.shape != (m, n):
         raise ValueError(f"noise: shape {err.shape}, expected ({m}, {n}) (controllers, "
                          "products)")
     stepped = -1  # the tracker's index of the newest product stepped
+    index = np.full(n, -1)  # each product's index in the tracker
     u = np.full((m, n), nominal)
     pred = np.full((m, n, 3), np.nan)
     model_pred = np.full((m, n), np.nan)  # m_j(u_j): the prediction without the trim
@@ -111,9 +129,18 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                 for c, ctrl in enumerate(ctl):
                     ctrl.measured(plant(j, u[c, j]) + err[c, j], model_pred[c, j],
                                   nominal_mean[j])
+                for q, pc in enumerate(predictive, start=m0):
+                    pc.measured(j, plant(j, u[q, j]) + err[q, j])
+                if camera is not None and index[j] >= 0:
+                    try:
+                        tracker.fuse(int(index[j]), camera, plant(j, u[0, j]) + err[0, j],
+                                     u=float(u[0, j]))
+                    except FusionError as exc:  # refused: the particles as they were
+                        log.warning("product %d: %s", j, exc)
             if ok[i]:
                 input_mean[i] = tracker.step(curves[i]).mean[:n_in]
                 stepped += 1
+                index[i] = stepped
                 for name, values in (readings or {}).items():
                     if np.isfinite(values[i]):
                         tracker.fuse(stepped, name, float(values[i]))
@@ -121,13 +148,20 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                 x = tracker.filter.x
                 if w is not None and x is not None:  # the fused posterior's means
                     input_mean[i] = w @ x[:, :n_in] / w.sum()
-                nominal_mean[i] = ctl[0].reference(tracker.final_angle, w)
+                nominal_mean[i] = (ctl[0] if ctl else predictive[0]).reference(
+                    tracker.final_angle, w)
                 for c, ctrl in enumerate(ctl):
                     shift = ctrl.offset(nominal_mean[i])
                     s = ctrl.choose(tracker.final_angle, w, prev[c], nominal_mean[i])
                     prev[c] = s.u
                     pred[c, i] = (s.angle_mean, *s.interval)
                     model_pred[c, i] = s.angle_mean - shift
+                for q, pc in enumerate(predictive, start=m0):
+                    s = pc.choose(i, tracker.final_angle, w, prev[q], nominal_mean[i])
+                    prev[q] = s.u
+                    pred[q, i] = (s.angle_mean, *s.interval)
+                if camera is not None:  # the interval its camera value will score
+                    tracker.issue_final(np.array([prev[0]]))
             u[:, i] = prev
     return Pass(u, pred, nominal_mean, s_angle if angle_in_filter else float("nan"),
                 input_mean)

@@ -14,13 +14,27 @@ series-6 conditions, the physics model as the plant) with two changes:
   (the spec's noise, 0.5 um), fused by :meth:`~formtwin.tracker.Tracker.fuse` before the
   setting is chosen.
 
-Per dataset, camera noise and set, the feedforward (:class:`~formtwin.control.Combined`,
-the weight learned on the line) runs with each ``(lam, rho)`` of :data:`GRID`, and the
-run-to-run EWMA with each weight of :data:`~formtwin.study.control.R2R_LAMS`. As in the
-control study, dataset ``k`` is scored with the weights best on the other datasets (least
-mean ratio of the final angle's std to fixed ``u``'s), and the figure is the median over
-the datasets of the feedforward's std over the EWMA's (within each dataset, after
-``burn_in``).
+Per dataset, camera noise and set, three feedforwards:
+
+* ``predictive`` (:class:`~formtwin.control.Predictive`): the feedforward on the posterior
+  predictive of the measured final angle, the camera's values (moved to the nominal setting
+  by the posterior's own gain) teaching a discrepancy of the posterior's predicted angle
+  (:class:`~formtwin.tracker.angle_discrepancy.AngleDiscrepancy`: bias and slope by
+  Kalman updates whose gain follows the camera's noise, hypotheses weighted by their
+  evidence); nothing tuned on the datasets;
+* ``fused`` (at the spec's camera noise only): the same with the camera's values also fused
+  into the particles (:meth:`~formtwin.tracker.Tracker.fuse`, one tracker pass of its own:
+  the posterior then depends on the settings chosen): the feedforward on the fused
+  posterior of issue item 6;
+* the earlier controller (:class:`~formtwin.control.Combined`, the weight learned on the
+  line) with each ``(lam, rho)`` of :data:`GRID`, an EWMA trim of the raw camera values.
+
+The run-to-run EWMA runs with each weight of :data:`~formtwin.study.control.R2R_LAMS`. As in
+the control study, dataset ``k`` is scored with the weights best on the other datasets
+(least mean ratio of the final angle's std to fixed ``u``'s), and the figure is the median
+over the datasets of the feedforward's std over the EWMA's (within each dataset, after
+``burn_in``). :func:`reference_limit` is what a feedforward linear in the posterior's
+predicted angle could reach on the same lines with the best coefficients known.
 """
 
 from __future__ import annotations
@@ -37,6 +51,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.control import Predictive
 from formtwin.measurement import ProcessModel
 from formtwin.simulator import Simulator
 from formtwin.spec.sensors import line_sensors, sensor_by_name
@@ -52,6 +67,8 @@ from formtwin.study.control import (
 )
 from formtwin.study.control_ff import ADAPTIVE, track_and_choose
 from formtwin.study.control_run import load_result, result_key, save_result
+from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
+from formtwin.tracker.discrepancy import angle_residual_variance
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +81,9 @@ SETS: dict[str, tuple[str, ...]] = {"curve": (), "gauge": ("gauge",)}
 #: the feedforward's ``(lam, rho)`` tried (the weight learned on the line): the trim's EWMA
 #: weight, the persistence of the last product's deviation (a noisy camera wants small ones)
 GRID = tuple((lam, rho) for rho in (0.0, 0.7) for lam in (0.02, 0.05, 0.1))
+#: the sensor the closed loop reads the final angle with (its noise the spec's for the
+#: pass with the camera fused into the particles)
+CAMERA = "camera"
 
 
 @dataclass(frozen=True)
@@ -75,11 +95,14 @@ class SensorControlSettings:
     base : the control study's settings (products, datasets, burn-in, tracker, seed...).
     camera_noises : the camera's noise sds, degrees.
     sets : names of :data:`SETS` run.
+    grid : the earlier feedforward's ``(lam, rho)`` tried (:data:`GRID`; each costs a
+        feedforward choice per product and camera noise).
     """
 
     base: ControlStudySettings = field(default_factory=ControlStudySettings)
     camera_noises: tuple[float, ...] = CAMERA_NOISES
     sets: tuple[str, ...] = tuple(SETS)
+    grid: tuple[tuple[float, float], ...] = GRID
 
     def __post_init__(self) -> None:
         bad = [s for s in self.sets if s not in SETS]
@@ -130,18 +153,39 @@ def sensor_dataset(metamodel: ProcessModel, physics: Simulator,
         out[f"angle_r2r_{c}"] = np.array([angles(r2r(camera, ok, n, target, gain, lam, act,
                                                      nominal, base.r2r_delay))
                                           for lam in R2R_LAMS])
-    controllers = [(lam, ADAPTIVE, rho) for _ in noises for lam, rho in GRID]
-    noise = np.repeat(noises[:, None] * z_cam[None, :], len(GRID), axis=0)
-    gauge = sensor_by_name(line_sensors(spec), "gauge")
+    grid = settings.grid
+    controllers = [(lam, ADAPTIVE, rho) for _ in noises for lam, rho in grid]
+    noise = np.vstack([np.repeat(noises[:, None] * z_cam[None, :], len(grid), axis=0),
+                       noises[:, None] * z_cam[None, :]])
+    sensors = line_sensors(spec)
+    gauge, cam = sensor_by_name(sensors, "gauge"), sensor_by_name(sensors, CAMERA)
     thickness = run.x[:, spec.state.index[gauge.measures]] + gauge.noise * z_gauge
+    var = angle_residual_variance(metamodel)
+    model_var = 0.0 if var is None else float(var[1])
+
+    def predictive(sd: float) -> Predictive:  # the discrepancy's prior: noise and model
+        return Predictive(ff, AngleDiscrepancy(max(sd**2 + model_var, 1e-6)), nominal)
+
+    out["nominal"] = np.full(n, nominal)
     for name in settings.sets:
         config = replace(base.tracker, seed=base.seed + k, sensors=SETS[name])
         readings = {"gauge": thickness} if "gauge" in SETS[name] else None
         p = track_and_choose(metamodel, config, curves, ok, plant, ff, controllers, nominal,
-                             base.r2r_delay, noise=noise, readings=readings)
+                             base.r2r_delay, noise=noise, readings=readings,
+                             predictive=[predictive(float(sd)) for sd in noises])
+        out[f"reference_{name}"] = p.nominal_mean
         for c in range(noises.size):
-            rows = p.u[c * len(GRID):(c + 1) * len(GRID)]
+            rows = p.u[c * len(grid):(c + 1) * len(grid)]
             out[f"angle_{name}_{c}"] = np.array([angles(v) for v in rows])
+            out[f"angle_{name}_predictive_{c}"] = angles(p.u[len(controllers) + c])
+        # the camera fused into the particles too: one pass at the spec's camera noise
+        config = replace(config, sensors=(*SETS[name], CAMERA))
+        q = track_and_choose(metamodel, config, curves, ok, plant, ff, [], nominal,
+                             base.r2r_delay, noise=cam.noise * z_cam[None, :],
+                             readings=readings, predictive=[predictive(cam.noise)],
+                             camera=CAMERA)
+        out[f"angle_{name}_fused"] = angles(q.u[0])
+        out[f"reference_{name}_fused"] = q.nominal_mean
     return out
 
 
@@ -170,6 +214,26 @@ def loo_ratios(ff_std: FloatArray, r2r_std: FloatArray, fixed_std: FloatArray
     return ratio, a, b
 
 
+def reference_limit(results: list[dict[str, Any]], name: str, c: int, burn_in: int,
+                    fixed: FloatArray, r2r_std: FloatArray) -> dict[str, Any]:
+    """What a feedforward linear in the posterior's reference angle ``c_i`` (``reference_
+    <name>``) can reach at best: per dataset ``sqrt(1 - r^2)`` times fixed ``u``'s std, ``r``
+    the correlation of ``c_i`` with the plant's angle at the nominal setting after
+    ``burn_in`` (the best level and slope known, no learning cost, the camera's
+    persistence of the states unused), over the EWMA's std at camera noise ``c`` (its
+    weight chosen on the other datasets); the median and the correlations."""
+    corr = []
+    for r in results:
+        x, y = r[f"reference_{name}"][burn_in:], r["angle_fixed"][burn_in:]
+        ok = np.isfinite(x) & np.isfinite(y)
+        corr.append(float(np.corrcoef(x[ok], y[ok])[0, 1]))
+    r2 = np.square(corr)
+    limit = np.sqrt(1.0 - r2) * fixed
+    ratio = loo_ratios(limit[:, None], r2r_std, fixed)[0]
+    return {"ff_vs_ewma_median": round(float(np.median(ratio)), 4),
+            "per_dataset": np.round(ratio, 3).tolist(), "corr": np.round(corr, 3).tolist()}
+
+
 def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
                        settings: SensorControlSettings, out: str | Path) -> dict[str, Any]:
     """Run (or reuse, ``sensors_<k>.npz`` in ``out``) every dataset and score it; returns
@@ -183,7 +247,7 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
     target = default_target(metamodel) if base.target is None else base.target
     gain = r2r_gain(metamodel, np.random.default_rng(base.seed))
     key = result_key(base, target, str(getattr(physics, "version", "")), metamodel) + repr(
-        (settings.camera_noises, settings.sets, GRID, R2R_LAMS))
+        (settings.camera_noises, settings.sets, settings.grid, R2R_LAMS, "predictive", CAMERA))
     paths = [out / f"sensors_{k}.npz" for k in range(base.datasets)]
     res = [load_result(p, key) for p in paths]
     todo = [k for k, r in enumerate(res) if r is None]
@@ -207,7 +271,16 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
         return np.array([np.nanstd(r[name][..., b:], axis=-1) for r in results])
 
     fixed, oracle = std("angle_fixed"), std("angle_oracle")
+    cam_sd = sensor_by_name(line_sensors(metamodel.spec), CAMERA).noise
     summary: dict[str, Any] = {}
+
+    def vs_ewma(ff: FloatArray, c: int) -> dict[str, Any]:
+        """One controller's stds (K,) over the EWMA's at camera noise ``c``."""
+        ratio = loo_ratios(ff[:, None], std(f"angle_r2r_{c}"), fixed)[0]
+        return {"ff_vs_ewma": {"per_dataset": np.round(ratio, 3).tolist(),
+                               "median": round(float(np.median(ratio)), 4)},
+                "ff_std_deg": round(float(np.mean(ff)), 4)}
+
     for name in settings.sets:
         summary[name] = {}
         for c, sd in enumerate(settings.camera_noises):
@@ -215,6 +288,9 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
             ratio, a, e = loo_ratios(ff, ew, fixed)
             best = int(np.argmin(np.mean(ff / fixed[:, None], axis=0)))
             summary[name][f"{sd:g}"] = {
+                "predictive": vs_ewma(std(f"angle_{name}_predictive_{c}"), c),
+                "reference_limit": reference_limit(results, name, c, b, fixed,
+                                                   std(f"angle_r2r_{c}")),
                 "ff_vs_ewma": {"per_dataset": np.round(ratio, 3).tolist(),
                                "median": round(float(np.median(ratio)), 4)},
                 "ff_vs_oracle_median": round(float(np.median(
@@ -222,18 +298,24 @@ def run_sensor_control(metamodel: ProcessModel, physics: Simulator,
                 if np.all(oracle > 1e-9 * fixed) else None,  # an oracle on target: no ratio
                 "ff_std_deg": round(float(np.mean([ff[k, a[k]] for k in range(len(a))])), 4),
                 "ewma_std_deg": round(float(np.mean([ew[k, e[k]] for k in range(len(e))])), 4),
-                "ff_lam": GRID[best][0], "ff_rho": GRID[best][1],
+                "ff_lam": settings.grid[best][0], "ff_rho": settings.grid[best][1],
                 "ewma_lam": R2R_LAMS[int(np.argmin(np.mean(ew / fixed[:, None], axis=0)))]}
+        cf = next((c for c, sd in enumerate(settings.camera_noises) if sd == cam_sd), None)
+        if cf is not None:  # the camera fused into the particles too, at the spec's noise
+            summary[name]["fused"] = {
+                "camera_deg": cam_sd, **vs_ewma(std(f"angle_{name}_fused"), cf),
+                "reference_limit": reference_limit(results, f"{name}_fused", cf, b, fixed,
+                                                   std(f"angle_r2r_{cf}"))}
     summary["fixed_std_deg"] = round(float(np.mean(fixed)), 4)
     summary["oracle_std_deg"] = round(float(np.mean(oracle)), 4)
     summary["target_deg"] = target
     summary["settings"] = {
         "camera_noises_deg": list(settings.camera_noises), "sets": list(settings.sets),
-        "grid_lam_rho": [list(g) for g in GRID], "r2r_lams": list(R2R_LAMS),
+        "grid_lam_rho": [list(g) for g in settings.grid], "r2r_lams": list(R2R_LAMS),
         **{k: v for k, v in dataclasses.asdict(base).items() if k != "tracker"},
         "tracker": base.tracker.to_dict()}
     return summary
 
 
-__all__ = ["CAMERA_NOISES", "GRID", "SETS", "SensorControlSettings", "loo_ratios",
-           "run_sensor_control", "sensor_dataset", "sensor_draws"]
+__all__ = ["CAMERA", "CAMERA_NOISES", "GRID", "SETS", "SensorControlSettings", "loo_ratios",
+           "reference_limit", "run_sensor_control", "sensor_dataset", "sensor_draws"]

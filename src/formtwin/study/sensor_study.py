@@ -9,7 +9,10 @@ dataset, repetition, measurement model), reads the dataset's sensor pseudo-data
 2. fuses the camera's final angle of the previous product (delay 1) and the gauge's
    thickness of this one (delay 0), for the sensors of the run's set;
 3. takes the posterior (:meth:`~formtwin.tracker.Tracker.posterior`: the particles'
-   weighted mean and std, the predicted angles at the product's setting);
+   weighted mean and std, the predicted angles at the product's setting) and reports its
+   std with the tracker's default intervals (:func:`reported_std`: what the step's
+   estimate added to the cloud's std, the calibrated floors and the assumed mu's term,
+   added in quadrature to the fused cloud's std, as every estimate of the report has it);
 4. issues the 90 % interval of the product's *measured* final angle (predictive std with
    the camera's noise) from adaptive conformal inference on the camera's residuals
    (:class:`~formtwin.tracker.conformal.AdaptiveConformal`), scored when the camera's value
@@ -53,7 +56,8 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
     noise in the data and the likelihood, ACI step ``gamma``.
 
     Returns arrays over the dataset's ``n`` products (NaN where a curve is missing):
-    ``mean, std`` (n, 18), ``angles_mean, angles_std`` (n, 2), ``final_lo, final_hi`` (n,)
+    ``mean, std`` (n, 18) (``std`` with the tracker's default intervals, ``cloud_std`` the
+    particles' own), ``angles_mean, angles_std`` (n, 2), ``final_lo, final_hi`` (n,)
     the calibrated interval of the measured final angle, ``camera`` (n,) its measured value,
     ``ess`` (n,) after fusion, and ``rejected``: values the tracker refused.
     """
@@ -66,7 +70,7 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
     ok = real.ok[series.data]
     idx = np.flatnonzero(ok)
     n, na = real.n, len(spec.augmented)
-    out: dict[str, Any] = {k: np.full((n, na), np.nan) for k in ("mean", "std")}
+    out: dict[str, Any] = {k: np.full((n, na), np.nan) for k in ("mean", "std", "cloud_std")}
     out.update({k: np.full((n, 2), np.nan) for k in ("angles_mean", "angles_std")})
     out.update({k: np.full(n, np.nan) for k in ("final_lo", "final_hi", "ess")})
     out["camera"] = np.where(ok, read["camera"], np.nan)
@@ -75,7 +79,8 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
     with single_blas_thread():
         for k, i in enumerate(idx):
             uk = None if u is None else u[k]
-            tracker.step(curves[k], uk)
+            est = tracker.step(curves[k], uk)
+            added = np.maximum(est.std**2 - cloud_std(tracker, na) ** 2, 0.0)
             values = [(k, "gauge", read["gauge"][i], uk)] if "gauge" in sensors else []
             if k >= 1:
                 j = int(idx[k - 1])
@@ -90,7 +95,8 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
                     rejected += 1
                     log.warning("task %s: %s", task.out_path, exc)
             p = tracker.posterior(uk)
-            out["mean"][i], out["std"][i] = p.mean, p.std
+            out["mean"][i], out["cloud_std"][i] = p.mean, p.std
+            out["std"][i] = reported_std(p.std, added)
             out["angles_mean"][i], out["angles_std"][i] = p.angles_mean, p.angles_std
             out["ess"][i] = p.ess
             if "camera" in sensors:  # the tracker's own: with the bias it learned
@@ -102,6 +108,31 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
                 out["final_lo"][i], out["final_hi"][i] = aci.interval(
                     k, float(p.angles_mean[1]), sd)
     out["rejected"] = rejected
+    return out
+
+
+def cloud_std(tracker: Any, na: int) -> FloatArray:
+    """The weighted std (na,) of the tracker's particles' first ``na`` columns (the
+    cloud's, as :meth:`~formtwin.tracker.Tracker.posterior` has it)."""
+    x = tracker.filter.x[:, :na]
+    w = np.exp(tracker.filter.logw - np.max(tracker.filter.logw))
+    w = w / w.sum()
+    mean = w @ x
+    out: FloatArray = np.sqrt(np.maximum(w @ (x - mean) ** 2, 0.0))
+    return out
+
+
+def reported_std(cloud: FloatArray, added: FloatArray) -> FloatArray:
+    """The std with the tracker's default intervals after fusion: the fused ``cloud``'s std
+    and the variance ``added`` in quadrature, ``added`` the step's estimate's std squared
+    less the tracker's cloud's right after the step (:func:`cloud_std`, the resampled
+    cloud the values are fused into): the calibrated floors and the assumed mu's term (and
+    the resampling's noise), so that with nothing fused the reported std is the step's.
+
+    >>> reported_std(np.array([0.3, 0.0]), np.array([0.16, 0.0])).tolist()
+    [0.5, 0.0]
+    """
+    out: FloatArray = np.sqrt(np.square(cloud) + added)
     return out
 
 
@@ -119,4 +150,4 @@ def ewma_prediction(measured: FloatArray, lam: float) -> FloatArray:
     return out
 
 
-__all__ = ["SENSOR_SETS", "ewma_prediction", "sensor_run"]
+__all__ = ["SENSOR_SETS", "cloud_std", "ewma_prediction", "reported_std", "sensor_run"]
