@@ -10,7 +10,11 @@ TEST_WORKERS ?= 2
 .PHONY: demo test lint kernels docs bench live-demo system-deps fe-deps apt-deps clean
 
 # the venv's pip installs as it comes (an editable install needs pip >= 21.3; Python 3.11
-# ships 23+); --no-compile: modules are byte-compiled when first imported, not all at once
+# ships 23+); --no-compile: modules are byte-compiled when first imported, not all at once.
+# That needs bytecode writing on: with PYTHONDONTWRITEBYTECODE set (some CI images set it)
+# every process the tests start (services, commands, pool workers) would compile numpy,
+# scipy, matplotlib and numba from source again, ~8 s of CPU each; the recipes run without it
+unexport PYTHONDONTWRITEBYTECODE
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --no-compile --disable-pip-version-check -e '.[dev]'
