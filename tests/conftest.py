@@ -85,13 +85,18 @@ LONG_TESTS = {
     "test_learn_mu.py::test_a_study_of_series_4_and_7_runs_and_reports": 20,
     "test_service_mqtt.py::test_password_and_tls": 15,
     "test_doe.py::test_runs_on_a_real_dask_cluster": 15,
+    "test_guided.py::test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess"
+    "[True]": 6,
+    "test_guided.py::test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess"
+    "[False]": 6,
     "test_service_page_health.py::test_serve_check_exits_nonzero_with_the_message": 15,
     "test_defaults.py::test_bundled_doe_is_the_paper_design_over_the_current_physics_model": 15,
     "test_service_page_alarms.py::test_page_shows_charts_and_alarms_and_acknowledges": 15,
 }
 #: tests that must run one after the other on one worker: they share a costly module fixture
 #: (test file -> fixture)
-GROUPS = {"test_study.py": "metamodel", "test_monitoring.py": "line_config"}
+GROUPS = {"test_study.py": "metamodel", "test_monitoring.py": "line_config",
+          "test_guided.py": "bootstrap"}
 
 
 def _unit(item: pytest.Item) -> str:
