@@ -4,13 +4,17 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-# pytest workers (pytest-xdist; one test file per worker at a time): the 2 cores CI has
+# pytest workers (pytest-xdist): the 2 cores CI has
 TEST_WORKERS ?= 2
 
-.PHONY: demo test lint docs bench live-demo system-deps fe-deps apt-deps clean
+.PHONY: demo test lint kernels docs bench live-demo system-deps fe-deps apt-deps clean
 
 # the venv's pip installs as it comes (an editable install needs pip >= 21.3; Python 3.11
-# ships 23+); --no-compile: modules are byte-compiled when first imported, not all at once
+# ships 23+); --no-compile: modules are byte-compiled when first imported, not all at once.
+# That needs bytecode writing on: with PYTHONDONTWRITEBYTECODE set (some CI images set it)
+# every process the tests start (services, commands, pool workers) would compile numpy,
+# scipy, matplotlib and numba from source again, ~8 s of CPU each; the recipes run without it
+unexport PYTHONDONTWRITEBYTECODE
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --no-compile --disable-pip-version-check -e '.[dev]'
@@ -36,18 +40,26 @@ lint: $(STAMP)
 docs: $(STAMP)
 	$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs docs/_build/html
 
-# the venv (pip) and the Debian packages (apt) install at once; then the lint, and the docs
-# site built beside pytest (its log shown if it fails): the workers' idle tail is used
+# the venv (pip) and the Debian packages (apt) install at once; then the lint beside the
+# compile of the Numba kernels into their cache (scripts/compile_kernels.py: the workers
+# load them instead of each compiling them), then pytest with the docs site built beside
+# it (its log shown if it fails). The workers take one test (or group, tests/conftest.py)
+# at a time, the longest first, so that they end together; the 25 slowest are listed.
 test:
 	@$(MAKE) --no-print-directory -j2 $(STAMP) apt-deps
-	@$(MAKE) --no-print-directory lint
+	@$(MAKE) --no-print-directory -j2 --output-sync=target lint kernels
 	@mkdir -p docs/_build
 	@echo "docs site: building beside pytest (docs/_build/sphinx.log)"
 	@$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs \
 	    docs/_build/html > docs/_build/sphinx.log 2>&1 & docs=$$!; \
-	OMP_NUM_THREADS=1 $(BIN)/pytest -n $(TEST_WORKERS) --dist loadfile; rc=$$?; \
+	OMP_NUM_THREADS=1 $(BIN)/pytest -n $(TEST_WORKERS) --dist loadgroup --durations=25; \
+	rc=$$?; \
 	if wait $$docs; then echo "docs site: built"; \
 	else cat docs/_build/sphinx.log; echo "docs site: FAILED"; rc=1; fi; exit $$rc
+
+# the Numba kernels compiled into their on-disk cache (each kernel once, not once per process)
+kernels: $(STAMP)
+	OMP_NUM_THREADS=1 $(BIN)/python scripts/compile_kernels.py
 
 # every missing Debian package of system-deps and fe-deps in one apt-get run
 apt-deps:

@@ -87,11 +87,20 @@ def _tracker(filter: str = "guided", **kw: object) -> tuple[object, object]:
     return analytic_tracker(filter=filter, **kw)
 
 
-@pytest.mark.parametrize("pilot", [True, False])
-def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess(pilot: bool) -> None:
-    """One parent in the box, a curve from a state off the transition's mean: the draws
-    weighted by likelihood x ratio have the posterior mean of the transition's draws
-    weighted by the likelihood (within both Monte-Carlo errors), at a far larger ESS."""
+def _weighted(x: np.ndarray, logw: np.ndarray, nx: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Mean and std of the first ``nx`` columns of draws ``x`` weighted by ``exp(logw)``,
+    and the draws' ESS."""
+    w = np.exp(logw - logw.max())
+    w /= w.sum()
+    m = w @ x[:, :nx]
+    return m, np.sqrt(w @ (x[:, :nx] - m) ** 2), float(1.0 / np.sum(w * w))
+
+
+@pytest.fixture(scope="module")
+def bootstrap() -> dict[str, object]:
+    """One parent in the box (the state's mean), a curve from a state 0.5 sigma off it, the
+    transition's 200 000 draws weighted by the likelihood (mean, std, ESS), and the state of
+    the generator after them (seed 2): the reference both proposals are checked against."""
     model, tr = _tracker()
     ssm = tr.ssm  # type: ignore[attr-defined]
     nx, n_in = ssm.n_x, ssm.n_in
@@ -101,22 +110,31 @@ def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess(pilot:
     truth = parent.copy()
     truth[:nx] += 0.5 * ssm._sigma
     y = model.predict_curves(truth[None, :n_in])[0]  # type: ignore[attr-defined]
-
-    def weighted(x: np.ndarray, logw: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        w = np.exp(logw - logw.max())
-        w /= w.sum()
-        m = w @ x[:, :nx]
-        return m, np.sqrt(w @ (x[:, :nx] - m) ** 2), float(1.0 / np.sum(w * w))
-
     xb = ssm.sample_transition(np.repeat(parent[None, :], 200_000, axis=0), rng)
-    mb, sb, essb = weighted(xb, ssm.loglik_fixed(xb, y))
+    mb, sb, essb = _weighted(xb, ssm.loglik_fixed(xb, y), nx)
+    return {"parent": parent, "y": y, "mb": mb, "sb": sb, "essb": essb,
+            "rng_state": rng.bit_generator.state}
+
+
+@pytest.mark.parametrize("pilot", [True, False])
+def test_bending_proposal_gives_the_bootstrap_posterior_with_a_larger_ess(
+        pilot: bool, bootstrap: dict[str, object]) -> None:
+    """One parent in the box, a curve from a state off the transition's mean: the draws
+    weighted by likelihood x ratio have the posterior mean of the transition's draws
+    weighted by the likelihood (within both Monte-Carlo errors), at a far larger ESS."""
+    b = bootstrap
+    parent, y, mb, sb, essb = b["parent"], b["y"], b["mb"], b["sb"], b["essb"]
+    model, tr = _tracker("guided" if pilot else "guided_lin")
+    ssm = tr.ssm  # type: ignore[attr-defined]
+    nx, n_in = ssm.n_x, ssm.n_in
+    rng = np.random.default_rng()
+    rng.bit_generator.state = b["rng_state"]  # the draws after the bootstrap's, as before
     parents = np.repeat(parent[None, :], 20_000, axis=0)
     if not pilot:  # the parent's curve in the columns of guided_lin
-        ssm = _tracker("guided_lin")[1].ssm  # type: ignore[attr-defined]
         parents = np.c_[parents, np.tile(model.predict_curves(parent[None, :n_in]),  # type: ignore[attr-defined]
                                          (20_000, 1))]
     xg, ratio = ssm.sample_guided(parents, y, rng, pilot=pilot)
-    mg, sg, essg = weighted(xg, ssm.loglik_fixed(xg, y) + ratio)
+    mg, sg, essg = _weighted(xg, ssm.loglik_fixed(xg, y) + ratio, nx)
     assert essg / 20_000 > 1.3 * essb / 200_000  # share of the draws that count
     tol = 5 * np.maximum(sb, sg) * np.sqrt(1 / essb + 1 / essg)
     np.testing.assert_array_less(np.abs(mg - mb), tol)

@@ -281,18 +281,25 @@ def line(spec: ProcessSpec, model: AnalyticModel
     return model, mm, cfg
 
 
+@pytest.fixture(scope="module")
+def line_config(spec: ProcessSpec, line: tuple[AnalyticModel, MeasurementModel, TrackerConfig]
+                ) -> MonitorConfig:
+    """A monitor calibrated on 2 simulated in-control runs of 600 products (seed 5, warm-up
+    30, Phase I 50) of ``line``; made once for the tests that watch a changed run with it."""
+    model, mm, cfg = line
+    return calibrate(simulate_in_control(model, mm, cfg, 600, 2, seed=5),
+                     spec.state.names, spec.state.mu_mid, ChartDesign(warmup=30, phase1=50))
+
+
 def test_step_in_a_state_mean_is_detected(spec: ProcessSpec, line: tuple[
-        AnalyticModel, MeasurementModel, TrackerConfig]) -> None:
+        AnalyticModel, MeasurementModel, TrackerConfig], line_config: MonitorConfig) -> None:
     """Analytic stand-in, N = 200: a monitor calibrated on 2 simulated in-control runs
     (default design) sees a 3-sigma step in the punch end distance (the best observed
     state) within 30 products, and raises no alarm on the same run before the step. (A
     2-sigma step is borderline on this one run: the CUSUM reaches 5.4 of its 5.6 for an
     ARL0 of 2e5; benchmarks/bench_monitoring.py measures 2-sigma steps over many runs.)"""
     model, mm, cfg = line
-    mu = spec.state.mu_mid
-    design = ChartDesign(warmup=30, phase1=50)
-    config = calibrate(simulate_in_control(model, mm, cfg, 600, 2, seed=5),
-                       spec.state.names, mu, design)
+    mu, config = spec.state.mu_mid, line_config
     at = 150
     change = Change("step", ("punch_end_distance",), at=at, size=3.0)
     rng = np.random.default_rng(77)
@@ -335,14 +342,12 @@ def test_fault_changes_the_measured_curves_from_its_product_on() -> None:
 
 
 def test_model_mismatch_raises_the_mismatch_alarm(spec: ProcessSpec, line: tuple[
-        AnalyticModel, MeasurementModel, TrackerConfig]) -> None:
+        AnalyticModel, MeasurementModel, TrackerConfig], line_config: MonitorConfig) -> None:
     """Curves 10 % stronger than any the model makes from product 150 on (a deviation the
     tracker does not estimate): the health charts (log-evidence, ESS, absolute fit) raise a
     mismatch alarm within 10 products, and none before."""
     model, mm, cfg = line
-    mu = spec.state.mu_mid
-    config = calibrate(simulate_in_control(model, mm, cfg, 600, 2, seed=5),
-                       spec.state.names, mu, ChartDesign(warmup=30, phase1=50))
+    mu, config = spec.state.mu_mid, line_config
     assert set(config.health) == {"loglik", "ess", "fit"}
     at = 150
     rng = np.random.default_rng(78)
