@@ -194,26 +194,21 @@ class Sandwich:
             if self.mu_half.size:
                 self.G_mu = _next_G_mu(M, self.F, self.G_mu)
             self.P = P
-        # each term present: its variances (m,) and the angles' (n_out,); a term left out
-        # adds exactly 0 to the other, so it is not computed
-        terms = []
+        # each term present adds its variances (m,) and the angles' (n_out,); a term left
+        # out would add exactly 0, so it is not computed
+        var, avar = np.zeros(na), np.zeros(self.Ja.shape[0])
         if self.k_half.size:
             c = self.weight()
             H = self.G @ self.k_half  # B = H H^T
             Ha = self.Ja @ H[:n_in]
-            terms.append((c * np.sum(H * H, axis=1), c * np.sum(Ha * Ha, axis=1)))
+            var[:m] += c * np.sum(H * H, axis=1)
+            avar += c * np.sum(Ha * Ha, axis=1)
         if self.mu_half.size:
             H_mu = self.G_mu @ self.mu_half
             Ha_mu = self.Ja @ H_mu[:n_in]
-            terms.append((np.sum(H_mu * H_mu, axis=1), np.sum(Ha_mu * Ha_mu, axis=1)))
-        var = np.zeros(na)
-        if not terms:
-            return var, np.zeros(self.Ja.shape[0])
-        if len(terms) == 1:
-            var[:m] = terms[0][0]
-            return var, terms[0][1]
-        var[:m] = terms[0][0] + terms[1][0]
-        return var, terms[0][1] + terms[1][1]
+            var[:m] += np.sum(H_mu * H_mu, axis=1)
+            avar += np.sum(Ha_mu * Ha_mu, axis=1)
+        return var, avar
 
     def _information(self) -> tuple[FloatArray, FloatArray | None]:
         """``J^T S^-1 J`` (m, m) and, for the metamodel's term, ``S^-1 J`` (n_t, m) under
