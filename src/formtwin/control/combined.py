@@ -68,9 +68,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-import numpy as np
-
-from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray, Suggestion
+from formtwin.control.feedforward import (
+    AngleFunction,
+    Feedforward,
+    FloatArray,
+    Suggestion,
+    reference_angle,
+)
 
 #: ``lam`` and ``rho`` of the closed-loop study's feedforward, the weight learned on the line
 #: (``adaptive``, starting at 0), chosen on all its datasets (least mean within-dataset std
@@ -137,10 +141,7 @@ class Combined:
 
     def reference(self, final_angle: AngleFunction, weights: FloatArray | None = None) -> float:
         """``c_i``: the posterior mean of the final angle at ``u_ref``, degrees."""
-        a = np.asarray(final_angle(np.array([self.u_ref])), dtype=np.float64)[:, 0]
-        w = np.ones(a.size) if weights is None else np.asarray(weights, dtype=np.float64)
-        ok = np.isfinite(a)
-        return float(w[ok] @ a[ok] / w[ok].sum()) if ok.any() and w[ok].sum() > 0 else math.nan
+        return reference_angle(final_angle, self.u_ref, weights)
 
     def offset(self, reference: float | None) -> float:
         """The shift of the feedforward's aim, degrees: ``b - (1 - w) (c_i - k)`` plus, for

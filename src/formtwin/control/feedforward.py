@@ -105,6 +105,16 @@ class Suggestion:
                 "expected_sq_error": num(self.expected_sq_error), "limited": self.limited}
 
 
+def reference_angle(final_angle: AngleFunction, u_ref: float,
+                    weights: FloatArray | None = None) -> float:
+    """``c_i``: the posterior mean of the final angle at setting ``u_ref``, degrees, over
+    the particles with a finite angle (``weights`` (N,), None: equal); NaN if none."""
+    a = np.asarray(final_angle(np.array([u_ref])), dtype=np.float64)[:, 0]
+    w = np.ones(a.size) if weights is None else np.asarray(weights, dtype=np.float64)
+    ok = np.isfinite(a)
+    return float(w[ok] @ a[ok] / w[ok].sum()) if ok.any() and w[ok].sum() > 0 else math.nan
+
+
 def weighted_quantile(values: FloatArray, weights: FloatArray, q: FloatArray) -> FloatArray:
     """Quantiles ``q`` of the discrete distribution of ``values`` (N,) with ``weights`` (N,)
     (the inverse of its CDF, mid-point convention).
@@ -214,4 +224,5 @@ def _vertex(u: FloatArray, j: FloatArray) -> float | None:
     return float(u1 - 0.5 * num / d)
 
 
-__all__ = ["Actuator", "AngleFunction", "Feedforward", "Suggestion", "weighted_quantile"]
+__all__ = ["Actuator", "AngleFunction", "Feedforward", "Suggestion", "reference_angle",
+           "weighted_quantile"]

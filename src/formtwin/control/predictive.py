@@ -48,9 +48,13 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
-import numpy as np
-
-from formtwin.control.feedforward import AngleFunction, Feedforward, FloatArray, Suggestion
+from formtwin.control.feedforward import (
+    AngleFunction,
+    Feedforward,
+    FloatArray,
+    Suggestion,
+    reference_angle,
+)
 
 
 class Corrector(Protocol):
@@ -86,10 +90,7 @@ class Predictive:
     def reference(self, final_angle: AngleFunction, weights: FloatArray | None = None) -> float:
         """``c_i``: the posterior mean of the final angle at ``u_ref``, degrees (NaN if no
         particle gives a finite angle)."""
-        a = np.asarray(final_angle(np.array([self.u_ref])), dtype=np.float64)[:, 0]
-        w = np.ones(a.size) if weights is None else np.asarray(weights, dtype=np.float64)
-        ok = np.isfinite(a)
-        return float(w[ok] @ a[ok] / w[ok].sum()) if ok.any() and w[ok].sum() > 0 else math.nan
+        return reference_angle(final_angle, self.u_ref, weights)
 
     def offset(self, reference: float) -> tuple[float, float]:
         """The discrepancy's shift of the posterior's angle, ``E[A | c] - c``, and the
