@@ -123,18 +123,17 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
         for i in range(n):
             j = i - delay  # the newest product whose angle is known now
             if j >= 0 and ok[j]:
+                # each controller's measured angle of product j (its setting, its noise)
+                y = [plant(j, u[c, j]) + err[c, j] for c in range(m)]
                 if angle_in_filter:  # the particles are still product j's posterior
-                    update_angle(tracker, plant(j, u[0, j]) + err[0, j], u[0, j], s_angle,
-                                 ctl[0].bias)
+                    update_angle(tracker, y[0], u[0, j], s_angle, ctl[0].bias)
                 for c, ctrl in enumerate(ctl):
-                    ctrl.measured(plant(j, u[c, j]) + err[c, j], model_pred[c, j],
-                                  nominal_mean[j])
+                    ctrl.measured(y[c], model_pred[c, j], nominal_mean[j])
                 for q, pc in enumerate(predictive, start=m0):
-                    pc.measured(j, plant(j, u[q, j]) + err[q, j])
+                    pc.measured(j, y[q])
                 if camera is not None and index[j] >= 0:
                     try:
-                        tracker.fuse(int(index[j]), camera, plant(j, u[0, j]) + err[0, j],
-                                     u=float(u[0, j]))
+                        tracker.fuse(int(index[j]), camera, y[0], u=float(u[0, j]))
                     except FusionError as exc:  # refused: the particles as they were
                         log.warning("product %d: %s", j, exc)
             if ok[i]:
