@@ -17,7 +17,7 @@ from formtwin.metamodel import Metamodel
 from formtwin.physics.analytic import AnalyticBending
 from formtwin.spec import load_spec
 from formtwin.study.run import StudySettings, _tasks, run_study
-from formtwin.study.sensor_study import cloud_std, ewma_prediction, reported_std, sensor_run
+from formtwin.study.sensor_study import ewma_prediction, reported_std, sensor_run
 from formtwin.tracker import TrackerConfig, build_tracker
 
 SPEC = load_spec()
@@ -76,11 +76,11 @@ def test_reported_std_adds_the_steps_floors_to_the_fused_cloud() -> None:
                            mu_known=True, sensors=("gauge",))
     tracker = build_tracker(mm, config)
     assert tracker.floors is not None and tracker.floors.b.max() > 0
-    na, col = len(mm.spec.augmented), mm.spec.state.index["thickness"]
+    col = mm.spec.state.index["thickness"]
     x = np.r_[mm.spec.state.mu_mid, 0.5 * (mm.spec.params.lo + mm.spec.params.hi)]
     for curve in mm.predict_curves(np.tile(x, (3, 1))):
         est = tracker.step(curve)
-        cloud = cloud_std(tracker, na)
+        cloud = tracker.posterior().std
         added = np.maximum(est.std**2 - cloud**2, 0.0)
         # nothing fused: the reported std is the step's estimate's
         np.testing.assert_allclose(reported_std(tracker.posterior().std, added), est.std,

@@ -80,7 +80,7 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
         for k, i in enumerate(idx):
             uk = None if u is None else u[k]
             est = tracker.step(curves[k], uk)
-            added = np.maximum(est.std**2 - cloud_std(tracker, na) ** 2, 0.0)
+            added = np.maximum(est.std**2 - tracker.posterior(uk).std ** 2, 0.0)
             values = [(k, "gauge", read["gauge"][i], uk)] if "gauge" in sensors else []
             if k >= 1:
                 j = int(idx[k - 1])
@@ -111,22 +111,12 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
     return out
 
 
-def cloud_std(tracker: Any, na: int) -> FloatArray:
-    """The weighted std (na,) of the tracker's particles' first ``na`` columns (the
-    cloud's, as :meth:`~formtwin.tracker.Tracker.posterior` has it)."""
-    x = tracker.filter.x[:, :na]
-    w = np.exp(tracker.filter.logw - np.max(tracker.filter.logw))
-    w = w / w.sum()
-    mean = w @ x
-    out: FloatArray = np.sqrt(np.maximum(w @ (x - mean) ** 2, 0.0))
-    return out
-
-
 def reported_std(cloud: FloatArray, added: FloatArray) -> FloatArray:
     """The std with the tracker's default intervals after fusion: the fused ``cloud``'s std
     and the variance ``added`` in quadrature, ``added`` the step's estimate's std squared
-    less the tracker's cloud's right after the step (:func:`cloud_std`, the resampled
-    cloud the values are fused into): the calibrated floors and the assumed mu's term (and
+    less the tracker's cloud's right after the step (its
+    :meth:`~formtwin.tracker.Tracker.posterior`'s std: the resampled cloud the values are
+    fused into): the calibrated floors and the assumed mu's term (and
     the resampling's noise), so that with nothing fused the reported std is the step's.
 
     >>> reported_std(np.array([0.3, 0.0]), np.array([0.16, 0.0])).tolist()
@@ -150,4 +140,4 @@ def ewma_prediction(measured: FloatArray, lam: float) -> FloatArray:
     return out
 
 
-__all__ = ["SENSOR_SETS", "cloud_std", "ewma_prediction", "reported_std", "sensor_run"]
+__all__ = ["SENSOR_SETS", "ewma_prediction", "reported_std", "sensor_run"]
