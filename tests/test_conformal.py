@@ -74,7 +74,7 @@ def test_bad_settings_and_unknown_products() -> None:
 def test_the_kept_ascending_scores_give_the_partitions_quantile(window: int) -> None:
     """The half-width from the scores kept in ascending order equals the one of
     ``np.partition`` on the scores as stored, on a stream that fills the window, with ties
-    and an infinite score, and after the scores are replaced (a state restored)."""
+    and after a state restored from the scores in another order; NaN scores refused."""
     rng = np.random.default_rng(window)
     aci = AdaptiveConformal(window=window)
     for i in range(3 * window):
@@ -87,5 +87,8 @@ def test_the_kept_ascending_scores_give_the_partitions_quantile(window: int) -> 
         y = 0.5 if i % 5 == 0 else math.inf if i == window // 2 else rng.standard_t(3)
         aci.update(i, float(y))
     assert len(aci.scores) == window
-    aci.scores = list(reversed(aci.scores))  # a restored state: another list
-    assert aci._ascending() == sorted(aci.scores)
+    restored = AdaptiveConformal(window=window, alpha=aci.alpha,
+                                 scores=list(reversed(aci.scores)))
+    assert restored.multiplier() == aci.multiplier()
+    with pytest.raises(ValueError, match="scores: NaN"):
+        AdaptiveConformal(scores=[0.3, math.nan])

@@ -395,19 +395,21 @@ def test_lag_columns_with_every_particle_layout(kw: dict[str, object]) -> None:
     assert np.isfinite(tr.filter.logw).all()
 
 
-def test_the_sensors_used_are_found_once_per_spec_and_config() -> None:
-    """:func:`used_sensors` answers the same (frozen) spec and config from memory, and
-    another config (or an unknown sensor) as it would the first time."""
+def test_the_tracker_holds_the_sensors_of_its_config_in_its_order() -> None:
+    """:func:`used_sensors` gives the config's sensors in the config's order (an unknown
+    one named), and a tracker holds them (found once, at construction)."""
     from dataclasses import replace
 
     from formtwin.tracker.fusion import used_sensors
 
     spec = analytic_model().spec
     cfg = TrackerConfig(sensors=("camera", "gauge"))
-    first = used_sensors(spec, cfg)
-    assert [s.name for s in first] == ["camera", "gauge"]
-    assert used_sensors(spec, cfg) is first
-    other = replace(cfg, sensors=("gauge",))
-    assert [s.name for s in used_sensors(spec, other)] == ["gauge"]
-    with pytest.raises(ValueError, match="not a sensor"):
+    assert [s.name for s in used_sensors(spec, cfg)] == ["camera", "gauge"]
+    assert [s.name for s in used_sensors(spec, replace(cfg, sensors=("gauge", "camera")))] \
+        == ["gauge", "camera"]
+    with pytest.raises(ValueError, match="'sonar' is not a sensor"):
         used_sensors(spec, replace(cfg, sensors=("sonar",)))
+    tr = _tracker(("gauge",))
+    assert tr.sensors == used_sensors(tr.spec, tr.config)
+    assert [s.name for s in tr.sensors] == ["gauge"] and tr.finals is None
+    assert [s.name for s in _tracker(()).sensors] == []

@@ -122,7 +122,8 @@ class Predictive:
         ``u_ref`` (``A_j``), NaN for a non-finite value or a product not chosen here.
         Products before ``product`` still waiting are dropped (values arrive in order)."""
         got = self.pending.pop(int(product), None)
-        self.pending = {k: v for k, v in self.pending.items() if k > product}  # never read
+        for stale in [k for k in self.pending if k < product]:
+            del self.pending[stale]
         if got is None or not math.isfinite(value):
             return math.nan
         c, m = got

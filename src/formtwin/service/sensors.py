@@ -103,12 +103,7 @@ def issue(tracker: Any, u: Any) -> dict[str, Any] | None:
 
 def fused_sensors(tracker: Any) -> tuple[Any, ...]:
     """The spec's sensors the tracker fuses (none for a tracker without sensor fusion)."""
-    config, spec = getattr(tracker, "config", None), getattr(tracker, "spec", None)
-    if config is None or spec is None or not getattr(config, "sensors", ()):
-        return ()
-    from formtwin.tracker.fusion import used_sensors
-
-    return used_sensors(spec, config)
+    return tuple(getattr(tracker, "sensors", ()))
 
 
 def fused_after(store: Store, seq: int) -> dict[int, list[tuple[str, float, int, Any]]]:

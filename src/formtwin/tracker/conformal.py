@@ -37,8 +37,6 @@ import bisect
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
-
 
 @dataclass
 class AdaptiveConformal:
@@ -57,15 +55,13 @@ class AdaptiveConformal:
     window: int = 500
     warmup: int = 20
     alpha: float = math.nan
+    #: the last ``window`` scores, oldest first (given: restored from a state)
     scores: list[float] = field(default_factory=list)
     #: product -> (mean, scale, issued half-width multiplier q)
     pending: dict[int, tuple[float, float, float]] = field(default_factory=dict)
-    #: :attr:`scores` in ascending order (``np.sort``'s), kept beside them by
-    #: :meth:`update`, and the list it was made for (another list: made again)
+    #: :attr:`scores` in ascending order, kept beside them by :meth:`update`
     _sorted: list[float] = field(default_factory=list, init=False, repr=False,
                                  compare=False)
-    _sorted_for: list[float] | None = field(default=None, init=False, repr=False,
-                                            compare=False)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_target < 1.0:
@@ -76,6 +72,9 @@ class AdaptiveConformal:
             raise ValueError(f"window = {self.window}, warmup = {self.warmup}: expected >= 1")
         if math.isnan(self.alpha):
             self.alpha = self.alpha_target
+        if any(math.isnan(v) for v in self.scores):
+            raise ValueError("scores: NaN, expected scores |y - m| / s >= 0")
+        self._sorted = sorted(self.scores)
 
     def multiplier(self) -> float:
         """The current half-width ``q`` in units of the prediction's scale."""
@@ -90,14 +89,7 @@ class AdaptiveConformal:
 
             return float(norm.ppf(1.0 - a / 2.0))
         k = min(math.ceil((n + 1) * (1.0 - a)), n)  # beyond the scores: the largest
-        return float(self._ascending()[k - 1])
-
-    def _ascending(self) -> list[float]:
-        """:attr:`scores` in ascending order: its ``k``-th is ``np.partition``'s."""
-        if self._sorted_for is not self.scores or len(self._sorted) != len(self.scores):
-            self._sorted = np.sort(np.asarray(self.scores, dtype=np.float64)).tolist()
-            self._sorted_for = self.scores
-        return self._sorted
+        return self._sorted[k - 1]
 
     def interval(self, product: int, mean: float, scale: float) -> tuple[float, float]:
         """The interval ``(lo, hi)`` issued for ``product``'s value, predicted ``mean`` with
@@ -118,17 +110,11 @@ class AdaptiveConformal:
         score = abs(value - mean) / scale
         miss = bool(score > q)
         self.alpha += self.gamma * (self.alpha_target - float(miss))
-        srt = self._sorted if self._sorted_for is self.scores \
-            and len(self._sorted) == len(self.scores) else None
-        self.scores.append(score)
-        dropped = self.scores[:-self.window]
+        self.scores.append(score)  # not NaN: value, mean and scale are finite, scale > 0
+        bisect.insort(self._sorted, score)
+        for old in self.scores[:-self.window]:
+            del self._sorted[bisect.bisect_left(self._sorted, old)]
         del self.scores[:-self.window]
-        if srt is None or math.isnan(score) or (srt and math.isnan(srt[-1])):
-            self._sorted_for = None  # NaN does not sort: made again when asked
-            return miss
-        bisect.insort(srt, score)
-        for old in dropped:
-            del srt[bisect.bisect_left(srt, old)]
         return miss
 
 

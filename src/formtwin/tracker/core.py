@@ -128,9 +128,10 @@ class Tracker(SensorFusion):
         self.intervals = "uncalibrated" if self.floors is not None \
             and self.floors.calibration.data is None else c.intervals
         self.fused = FusedLog(self.config.sensors)  # sensor values (fuse)
+        self.sensors = used_sensors(self.spec, self.config)
         #: with a camera: the particles' final angles and their ancestors', from the step
         self.finals = FinalAngles(self.ssm.lag_depth, len(self.spec.controls)) \
-            if any(s.measures == FINAL for s in used_sensors(self.spec, self.config)) else None
+            if any(s.measures == FINAL for s in self.sensors) else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 

@@ -53,9 +53,9 @@ class FusedLog:
         """Inverse of :meth:`state`."""
         flat = [int(v) for v in model.get("fused", [])]
         self.done = {(flat[i], self.sensors[flat[i + 1]]) for i in range(0, len(flat), 2)}
-        c, pend = AdaptiveConformal(), model.get("aci_pending", [])
-        c.alpha = float(model.get("aci_alpha", [c.alpha])[0])
-        c.scores = [float(v) for v in model.get("aci_scores", [])]
+        pend = model.get("aci_pending", [])
+        c = AdaptiveConformal(alpha=float(model.get("aci_alpha", [math.nan])[0]),
+                              scores=[float(v) for v in model.get("aci_scores", [])])
         c.pending = {int(pend[i]): (float(pend[i + 1]), float(pend[i + 2]), float(pend[i + 3]))
                      for i in range(0, len(pend), 4)}
         self.conformal = c

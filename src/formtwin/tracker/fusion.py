@@ -64,30 +64,16 @@ class FusionError(ValueError):
     sensor, the product and the reason."""
 
 
-#: the last :func:`used_sensors` answers by ``(id(spec), id(config))``, with the two
-#: (frozen) objects themselves, so that an id reused by another object is not a hit
-_USED: dict[tuple[int, int], tuple[ProcessSpec, TrackerConfig, tuple[Sensor, ...]]] = {}
-
-
 def used_sensors(spec: ProcessSpec, config: TrackerConfig) -> tuple[Sensor, ...]:
     """The sensors ``config.sensors`` of the spec's line (:func:`line_sensors`), in the
-    config's order; ``ValueError`` naming an unknown one and the known ones. Remembered for
-    the same (frozen) spec and config objects: the fusion asks on every sensor value and
-    every issued interval, and finding them costs ~0.1 ms."""
-    key = (id(spec), id(config))
-    hit = _USED.get(key)
-    if hit is not None and hit[0] is spec and hit[1] is config:
-        return hit[2]
+    config's order; ``ValueError`` naming an unknown one and the known ones. A tracker
+    finds them once (:attr:`SensorFusion.sensors`)."""
     known = {s.name: s for s in line_sensors(spec)}
     for name in config.sensors:
         if name not in known:
             raise ValueError(f"sensors: {name!r} is not a sensor of spec {spec.name!r}; "
                              f"known: {', '.join(known) or 'none'}")
-    out = tuple(known[n] for n in config.sensors)
-    if len(_USED) >= 64:
-        _USED.clear()
-    _USED[key] = (spec, config, out)
-    return out
+    return tuple(known[n] for n in config.sensors)
 
 
 def lag_depth(spec: ProcessSpec, config: TrackerConfig) -> int:
@@ -145,6 +131,8 @@ class SensorFusion:
     config: TrackerConfig
     fused: FusedLog
     finals: FinalAngles | None
+    #: the spec's sensors this tracker fuses (:func:`used_sensors`), in the config's order
+    sensors: tuple[Sensor, ...]
 
     def fuse(self, product: int, sensor: str, value: float, u: Any = None,
              offset: float = 0.0) -> float:
@@ -160,7 +148,7 @@ class SensorFusion:
         a second value of the same (product, sensor), a bad setting, or a value no
         particle explains; the tracker is then untouched.
         """
-        used = {s.name: s for s in used_sensors(self.spec, self.config)}
+        used = {s.name: s for s in self.sensors}
         if sensor not in used:
             raise FusionError(f"fuse: sensor {sensor!r} is not fused by this tracker "
                               f"(config.sensors: {', '.join(used) or 'none'})")
@@ -289,7 +277,7 @@ class SensorFusion:
         and its ``std`` (degrees); ``record``: remember them for the product's camera
         value (:meth:`issue_final`), else a report. ``model_var``: the metamodel's final
         angle error variance (degrees^2) when the caller has it."""
-        camera = next(s for s in used_sensors(self.spec, self.config) if s.measures == FINAL)
+        camera = next(s for s in self.sensors if s.measures == FINAL)
         t = self.filter.t - 1
         sd = math.sqrt(std**2 + camera.noise**2)
         if self.config.camera_discrepancy:
