@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import json
 import os
+import platform
+import shlex
+import subprocess
+import sys
 from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -42,6 +49,48 @@ def service_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
         del os.environ["FORMTWIN_CACHE"]
     else:
         os.environ["FORMTWIN_CACHE"] = old
+
+
+#: an OpenBLAS kernel other than the one this CPU would pick, that runs on any CPU of the
+#: architecture (OPENBLAS_CORETYPE of the wheels' DYNAMIC_ARCH OpenBLAS)
+OTHER_KERNEL = {"x86_64": "Sandybridge", "AMD64": "Sandybridge", "aarch64": "ARMV8"}
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def tutorial_fit(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """docs/tutorials/live-line.md's fit line (``formtwin metamodel fit`` of the bundled
+    DOE with its 5-fold calibration, ~55 s), run as written in a scratch folder whose
+    ``src`` links to the repository's, in a process whose OpenBLAS runs another kernel than
+    this CPU's (where one is known). Shared by the tutorial's test (which goes on with the
+    service) and test_same_twin's refit under another kernel, so the fit is made once:
+    both tests use this fixture, and ``GROUPS`` keeps them on one worker.
+
+    Returns ``folder`` (the scratch folder, ``out/mm.npz`` in it), ``returncode``,
+    ``stderr``, ``kernel`` (the kernel asked for, None: the CPU's) and ``kernels``
+    (the OpenBLAS kernels the fitting process ran, from threadpoolctl)."""
+    from service_fixtures import doc_commands
+
+    doc = REPO / "docs" / "tutorials" / "live-line.md"
+    fit = doc_commands(doc, "<!-- the block below is run by tests/test_service_docs.py -->")[0]
+    argv = shlex.split(fit)
+    assert argv[:3] == ["formtwin", "metamodel", "fit"], fit
+    folder = tmp_path_factory.mktemp("tutorial")
+    (folder / "src").symlink_to(REPO / "src")
+    kernel = OTHER_KERNEL.get(platform.machine())
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    if kernel is not None:
+        env["OPENBLAS_CORETYPE"] = kernel
+    # the command, then the kernels its OpenBLAS ran (on the last line of stdout)
+    code = ("import json, sys; from formtwin.cli import main; rc = main(); "
+            "from threadpoolctl import threadpool_info; "
+            "print(json.dumps([i.get('architecture') for i in threadpool_info() "
+            "if i.get('internal_api') == 'openblas'])); sys.exit(rc)")
+    run = subprocess.run([sys.executable, "-c", code, *argv[1:]], cwd=folder, env=env,
+                         capture_output=True, text=True, timeout=900, check=False)
+    kernels = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else []
+    return {"folder": folder, "returncode": run.returncode, "stderr": run.stderr,
+            "stdout": run.stdout, "kernel": kernel, "kernels": kernels}
 
 
 #: the long tests (seconds of one worker, from ``pytest --durations``; keys are node ids
@@ -97,10 +146,16 @@ LONG_TESTS = {
 #: (test file -> fixture)
 GROUPS = {"test_study.py": "metamodel", "test_monitoring.py": "line_config",
           "test_guided.py": "bootstrap"}
+#: session fixtures that tests of several files share: their tests run on one worker
+SHARED = ("tutorial_fit",)
 
 
 def _unit(item: pytest.Item) -> str:
-    """The scheduling unit of an item: its group if it uses a grouped module fixture."""
+    """The scheduling unit of an item: its group if it uses a shared session fixture or a
+    grouped module fixture."""
+    for shared in SHARED:
+        if shared in getattr(item, "fixturenames", ()):
+            return shared
     fixture = GROUPS.get(item.path.name)
     if fixture is not None and fixture in getattr(item, "fixturenames", ()):
         return f"{item.path.name}:{fixture}"

@@ -11,9 +11,11 @@ import platform
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from conftest import OTHER_KERNEL
 
 from formtwin.dataset import DoeDataset
 from formtwin.defaults import analytic_dataset, bundled_doe, bundled_metamodel, default_metamodel
@@ -26,10 +28,6 @@ from formtwin.tracker.intervals import (
     find_calibration,
     residual_signature,
 )
-
-#: an OpenBLAS kernel other than the one this CPU would pick, that runs on any CPU of the
-#: architecture (OPENBLAS_CORETYPE of the wheels' DYNAMIC_ARCH OpenBLAS)
-OTHER_KERNEL = {"x86_64": "Sandybridge", "AMD64": "Sandybridge", "aarch64": "ARMV8"}
 
 
 def _small(seed: int = 1, n: int = 300) -> tuple[Metamodel, DoeDataset]:
@@ -112,33 +110,36 @@ def test_calibrate_command_stores_a_calibration_the_tracker_uses(tmp_path: Path)
 
 @pytest.mark.skipif(platform.machine() not in OTHER_KERNEL,
                     reason=f"no other OpenBLAS kernel known for {platform.machine()}")
-def test_a_refit_under_another_blas_kernel_is_the_same_twin(tmp_path: Path) -> None:
-    """Fit the default metamodel from the bundled DOE in a subprocess whose OpenBLAS runs
-    another kernel than this CPU's: the fit has the bundled fit's id, its K_res passes the
-    calibration's sanity check (measured off by ~4e-4 of the largest entry between CPUs;
-    tolerance SIGNATURE_RTOL = 1e-2), so the shipped calibration applies; residual
-    statistics of other held-out folds of the same settings (another estimate of the same
-    error: the smallest change there is) fail it. Trackers on the bundled and the refitted
-    metamodel differ by less than two seeds of the particle filter do."""
+def test_a_refit_under_another_blas_kernel_is_the_same_twin(tutorial_fit: dict[str, Any]
+                                                            ) -> None:
+    """The default metamodel fitted from the bundled DOE in a subprocess whose OpenBLAS
+    runs another kernel than this CPU's (conftest's ``tutorial_fit``: the tutorial's
+    ``formtwin metamodel fit`` line, fit and 5-fold calibration): the fit has the bundled
+    fit's id, its K_res passes the calibration's sanity check (measured off by ~4e-4 of the
+    largest entry between CPUs; tolerance SIGNATURE_RTOL = 1e-2), so the shipped
+    calibration applies; residual statistics of other held-out folds of the same settings
+    (another estimate of the same error: the smallest change there is) fail it. Trackers
+    on the bundled and the refitted metamodel differ by less than two seeds of the
+    particle filter do."""
     kernel = OTHER_KERNEL[platform.machine()]
-    out = tmp_path / "refit.npz"
-    child = f"""
-import json, sys
-from pathlib import Path
+    assert tutorial_fit["kernel"] == kernel
+    assert tutorial_fit["returncode"] == 0, tutorial_fit["stderr"][-3000:]
+    kernels = tutorial_fit["kernels"]
+    assert kernels and all(k == kernel for k in kernels), kernels
+    out = tutorial_fit["folder"] / "out" / "mm.npz"
+    child = """
+import json
 from threadpoolctl import threadpool_info
 from formtwin.defaults import bundled_doe
 from formtwin.dataset import DoeDataset
-from formtwin.metamodel import Metamodel, calibrate, cross_validate
+from formtwin.metamodel import Metamodel, cross_validate
 from formtwin.metamodel.validate import residual_model
-from formtwin.tracker.intervals import residual_signature
 data = DoeDataset.load(bundled_doe("bending"))
-mm = calibrate(Metamodel().fit(data), data)
-mm.save({str(out)!r})
-other = residual_model(cross_validate(mm, data, 3, seed=1))
+other = residual_model(cross_validate(Metamodel(), data, 3, seed=1))
 kernels = [i.get("architecture") for i in threadpool_info()
            if i.get("internal_api") == "openblas"]
 diag = list(map(float, other.curve_cov.diagonal()))
-print(json.dumps({{"kernels": kernels, "other_folds": diag}}))
+print(json.dumps({"kernels": kernels, "other_folds": diag}))
 """
     env = {**os.environ, "OPENBLAS_CORETYPE": kernel, "OMP_NUM_THREADS": "1"}
     run = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True,
