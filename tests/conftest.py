@@ -93,6 +93,23 @@ def tutorial_fit(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
             "stdout": run.stdout, "kernel": kernel, "kernels": kernels}
 
 
+@pytest.fixture(scope="session")
+def analytic_mm(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Path]:
+    """The default metamodel fitted to 600 runs of the analytic stand-in (the optimised
+    Latin hypercube of seed 11, ~20 s with the fit) and its file: the study's tests and
+    the sensor study's share it (``SHARED``: on one worker)."""
+    from formtwin.doe import latin_hypercube, run_design
+    from formtwin.metamodel import Metamodel
+    from formtwin.physics.analytic import AnalyticBending
+
+    spec = load_spec()
+    folder = tmp_path_factory.mktemp("analytic_mm")
+    data = run_design(AnalyticBending(spec), latin_hypercube(spec, 600, seed=11),
+                      folder / "doe.h5", executor="serial")
+    mm = Metamodel().fit(data)
+    return mm, mm.save(folder / "mm.npz")
+
+
 #: the long tests (seconds of one worker, from ``pytest --durations``; keys are node ids
 #: without the ``tests/`` folder) with the groups that must share a worker (their tests use
 #: one costly module fixture). ``pytest -n 2 --dist loadgroup`` hands the workers one unit
@@ -144,10 +161,9 @@ LONG_TESTS = {
 }
 #: tests that must run one after the other on one worker: they share a costly module fixture
 #: (test file -> fixture)
-GROUPS = {"test_study.py": "metamodel", "test_monitoring.py": "line_config",
-          "test_guided.py": "bootstrap"}
+GROUPS = {"test_monitoring.py": "line_config", "test_guided.py": "bootstrap"}
 #: session fixtures that tests of several files share: their tests run on one worker
-SHARED = ("tutorial_fit",)
+SHARED = ("tutorial_fit", "analytic_mm")
 
 
 def _unit(item: pytest.Item) -> str:
