@@ -174,8 +174,9 @@ class AnalyticBending:
         # unloading after the bottom dead centre: elastic recovery along k_eff
         f0 = f_bend[:, [int(np.argmin(np.abs(self.spec.time)))]] if self.spec.time[0] <= 0 \
             <= self.spec.time[-1] else f_bend.max(axis=1, keepdims=True)
-        unload = f0 * _softplus((f0 - k_eff * p) / f0 * 6.0) / 6.0
-        f_bend = np.where(t > 0.0, np.minimum(unload, f_bend), f_bend)
+        after = self.spec.time > 0.0  # the unloading branch, computed where it applies
+        unload = f0 * _softplus((f0 - k_eff * p[:, after]) / f0 * 6.0) / 6.0
+        f_bend[:, after] = np.minimum(unload, f_bend[:, after])
         # tool-tool sliding friction follows the sign of the punch speed
         engaged = np.tanh(u / (4.0 * _SOFT))
         f_slide = mu_tt * _F_SLIDE * engaged * np.tanh(-speed / _V_SLIDE)
