@@ -5,11 +5,7 @@ the calibration was learned for."""
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
 import platform
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +15,9 @@ from conftest import OTHER_KERNEL
 
 from formtwin.dataset import DoeDataset
 from formtwin.defaults import analytic_dataset, bundled_doe, bundled_metamodel, default_metamodel
-from formtwin.metamodel import POD, RBF, Metamodel, calibrate
+from formtwin.metamodel import POD, RBF, Metamodel, calibrate, cross_validate
 from formtwin.metamodel.identity import SIGNATURE_RTOL
+from formtwin.metamodel.validate import residual_model
 from formtwin.tracker import Estimates, TrackerConfig, build_tracker
 from formtwin.tracker.intervals import (
     CALIBRATION_PATH,
@@ -127,26 +124,6 @@ def test_a_refit_under_another_blas_kernel_is_the_same_twin(tutorial_fit: dict[s
     kernels = tutorial_fit["kernels"]
     assert kernels and all(k == kernel for k in kernels), kernels
     out = tutorial_fit["folder"] / "out" / "mm.npz"
-    child = """
-import json
-from threadpoolctl import threadpool_info
-from formtwin.defaults import bundled_doe
-from formtwin.dataset import DoeDataset
-from formtwin.metamodel import Metamodel, cross_validate
-from formtwin.metamodel.validate import residual_model
-data = DoeDataset.load(bundled_doe("bending"))
-other = residual_model(cross_validate(Metamodel(), data, 3, seed=1))
-kernels = [i.get("architecture") for i in threadpool_info()
-           if i.get("internal_api") == "openblas"]
-diag = list(map(float, other.curve_cov.diagonal()))
-print(json.dumps({"kernels": kernels, "other_folds": diag}))
-"""
-    env = {**os.environ, "OPENBLAS_CORETYPE": kernel, "OMP_NUM_THREADS": "1"}
-    run = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True,
-                         text=True, timeout=900, check=False)
-    assert run.returncode == 0, run.stderr[-3000:]
-    report = json.loads(run.stdout.strip().splitlines()[-1])
-    assert report["kernels"] and all(k == kernel for k in report["kernels"]), report["kernels"]
 
     bundled, refit = Metamodel.load(bundled_metamodel("bending")), Metamodel.load(out)
     assert refit.fit_id == bundled.fit_id
@@ -156,7 +133,11 @@ print(json.dumps({"kernels": kernels, "other_folds": diag}))
     sig = residual_signature(refit)
     assert sig is not None
     assert np.abs(sig - ref).max() / ref.max() < SIGNATURE_RTOL
-    off = np.abs(np.array(report["other_folds"]) - ref).max() / ref.max()
+    # the same settings' residuals on other held-out folds (3 of them, seed 1; the BLAS
+    # kernel of this process: the check's sensitivity does not depend on it)
+    data = DoeDataset.load(bundled_doe("bending"))
+    other = residual_model(cross_validate(Metamodel(), data, 3, seed=1))
+    off = np.abs(other.curve_cov.diagonal() - ref).max() / ref.max()
     assert off > 2 * SIGNATURE_RTOL, off  # another estimate of the error fails the check
 
     # the same curves, the same seed: once two weights differ in the last bits resampling
