@@ -4,6 +4,8 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# the part of the venv the Numba kernels need (core, physics, data), installed first
+CORE := $(VENV)/.core
 # pytest workers (pytest-xdist): the 2 cores CI has
 TEST_WORKERS ?= 2
 
@@ -15,8 +17,12 @@ TEST_WORKERS ?= 2
 # every process the tests start (services, commands, pool workers) would compile numpy,
 # scipy, matplotlib and numba from source again, ~8 s of CPU each; the recipes run without it
 unexport PYTHONDONTWRITEBYTECODE
-$(STAMP): pyproject.toml
+$(CORE): pyproject.toml
 	$(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet --no-compile --disable-pip-version-check -e '.[physics,data]'
+	touch $(CORE)
+
+$(STAMP): $(CORE)
 	$(BIN)/pip install --quiet --no-compile --disable-pip-version-check -e '.[dev]'
 	touch $(STAMP)
 
@@ -40,26 +46,31 @@ lint: $(STAMP)
 docs: $(STAMP)
 	$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs docs/_build/html
 
-# the venv (pip) and the Debian packages (apt) install at once; then the lint beside the
-# compile of the Numba kernels into their cache (scripts/compile_kernels.py: the workers
-# load them instead of each compiling them), then pytest with the docs site built beside
-# it (its log shown if it fails). The workers take one test (or group, tests/conftest.py)
-# at a time, the longest first, so that they end together; the 25 slowest are listed.
+# the Debian packages (apt), the rest of the venv (pip) and the compile of the Numba kernels
+# into their cache (scripts/compile_kernels.py: the workers load them instead of each
+# compiling them; it needs only the venv's core) at once; then pytest with the lint and the
+# docs site beside it, niced (they take the CPU the workers leave while they wait on the
+# services and commands they start; their logs shown if they fail). The workers take one
+# test (or group, tests/conftest.py) at a time, the longest first, so that they end
+# together; the 25 slowest are listed.
 test:
-	@$(MAKE) --no-print-directory -j2 $(STAMP) apt-deps
-	@$(MAKE) --no-print-directory -j2 --output-sync=target lint kernels
-	@mkdir -p docs/_build
-	@echo "docs site: building beside pytest (docs/_build/sphinx.log)"
-	@$(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs \
+	@$(MAKE) --no-print-directory -j3 $(STAMP) kernels apt-deps
+	@mkdir -p docs/_build build
+	@echo "lint and docs site: beside pytest (build/lint.log, docs/_build/sphinx.log)"
+	@nice $(MAKE) --no-print-directory lint > build/lint.log 2>&1 & lint=$$!; \
+	nice $(BIN)/sphinx-build -b html -W --keep-going -q -d docs/_build/doctrees docs \
 	    docs/_build/html > docs/_build/sphinx.log 2>&1 & docs=$$!; \
 	OMP_NUM_THREADS=1 $(BIN)/pytest -n $(TEST_WORKERS) --dist loadgroup --durations=25; \
 	rc=$$?; \
+	if wait $$lint; then echo "lint: passed"; \
+	else cat build/lint.log; echo "lint: FAILED"; rc=1; fi; \
 	if wait $$docs; then echo "docs site: built"; \
 	else cat docs/_build/sphinx.log; echo "docs site: FAILED"; rc=1; fi; exit $$rc
 
-# the Numba kernels compiled into their on-disk cache (each kernel once, not once per process)
-kernels: $(STAMP)
-	OMP_NUM_THREADS=1 $(BIN)/python scripts/compile_kernels.py
+# the Numba kernels compiled into their on-disk cache (each kernel once, not once per process);
+# from the sources (PYTHONPATH), so that it can run while pip installs the rest of the venv
+kernels: $(CORE)
+	OMP_NUM_THREADS=1 PYTHONPATH=src $(BIN)/python scripts/compile_kernels.py
 
 # every missing Debian package of system-deps and fe-deps in one apt-get run
 apt-deps:

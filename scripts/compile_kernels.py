@@ -16,8 +16,55 @@ Usage: ``python scripts/compile_kernels.py`` (prints what it compiled and the ti
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
+
+
+def kernel_cache_counts() -> tuple[int, int]:
+    """Numba's on-disk cache hits and misses of this process's bending kernels so far."""
+    import importlib
+
+    from numba.core.registry import CPUDispatcher
+
+    hits = misses = 0
+    for name in ("contact", "faces", "kernels", "solver"):
+        module = importlib.import_module(f"formtwin.physics.bending.{name}")
+        for kernel in vars(module).values():
+            if isinstance(kernel, CPUDispatcher):
+                hits += sum(kernel.stats.cache_hits.values())
+                misses += sum(kernel.stats.cache_misses.values())
+    return hits, misses
+
+
+def record_fresh_runs(model: Any) -> None:
+    """When this process compiled the bending kernels afresh into the package's cache
+    (no cache hit, no ``NUMBA_CACHE_DIR``), write the runs that
+    ``tests/test_physics_determinism.py`` compares with a process loading that cache (the
+    centre and 3 Latin-hypercube points of seed 1) to ``__pycache__/fresh_compile_runs.npz``
+    beside the kernels, keyed by their sources and the library versions; the test then
+    runs only the loading process instead of compiling again (~50 s)."""
+    import os
+    import sys
+
+    import numba
+
+    from formtwin.doe import latin_hypercube
+    from formtwin.physics.bending import _cache
+
+    hits, misses = kernel_cache_counts()
+    record = _cache.PACKAGE / "__pycache__" / "fresh_compile_runs.npz"
+    record.unlink(missing_ok=True)
+    if hits or not misses or os.environ.get("NUMBA_CACHE_DIR"):
+        return
+    spec = model.spec
+    X = np.vstack([model.centre(), latin_hypercube(spec, 3, seed=1)])
+    runs = [model.run(x) for x in X]
+    key = f"{_cache.sources_digest()} numba {numba.__version__} numpy {np.__version__} " \
+        f"python {sys.version}"
+    np.savez(record, key=np.array(key), curves=np.array([r.curve for r in runs]),
+             angles=np.array([r.angles for r in runs]), ok=np.array([r.ok for r in runs]))
+    print(f"bending model: compiled afresh ({misses} kernels), runs recorded")
 
 
 def main() -> None:
@@ -29,6 +76,7 @@ def main() -> None:
     run = model.run(model.centre())
     t1 = time.perf_counter()
     print(f"bending model kernels: {t1 - t0:.1f} s (centre run ok: {run.ok})")
+    record_fresh_runs(model)
 
     from formtwin.defaults import bundled_metamodel
     from formtwin.metamodel import Metamodel

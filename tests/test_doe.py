@@ -68,6 +68,24 @@ def test_failures_are_recorded_with_their_reason(tmp_path: Path) -> None:
     assert data.successful().n == int((~failed).sum())
 
 
+def test_angles_alone_are_the_batch_angles() -> None:
+    """The stand-in's ``run_angles`` (what a process model's ``predict_angles`` runs when no
+    curves are wanted) gives the angles of ``run_batch`` to the bit (the same expressions
+    on the same inputs), failed runs NaN in both, with and without the control column."""
+    from formtwin.simulator import SimulatorModel
+
+    X = latin_hypercube(SPEC, 200, seed=3)
+    for sim in (AnalyticBending(SPEC), AnalyticBending(SPEC, failure_clearance=0.005)):
+        _, angles = sim.run_batch(X)
+        np.testing.assert_array_equal(sim.run_angles(X), angles)
+        np.testing.assert_array_equal(sim.run_angles(X[:, :10]), sim.run_batch(X[:, :10])[1])
+        model = SimulatorModel(sim)
+        u = np.linspace(-0.1, 0.1, len(X))
+        np.testing.assert_array_equal(model.predict_angles(X[:, :10], u),
+                                      sim.run_batch(SPEC.run_columns(X[:, :10], u))[1])
+    assert np.isnan(angles).any() and not np.isnan(angles).all()
+
+
 def test_interrupted_run_resumes_to_the_same_dataset(tmp_path: Path) -> None:
     X = latin_hypercube(SPEC, 60, seed=2)
     whole = run_design(Flaky(SPEC), X, tmp_path / "whole.h5", executor="serial", chunk_size=5)

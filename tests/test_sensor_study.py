@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from formtwin.defaults import bundled_metamodel
-from formtwin.doe import latin_hypercube, run_design
 from formtwin.metamodel import Metamodel
 from formtwin.physics.analytic import AnalyticBending
 from formtwin.spec import load_spec
@@ -32,12 +31,10 @@ def _kalman_rmse(rho: float, sigma: float, noise: float) -> float:
     return math.sqrt(p)
 
 
-def test_gauge_pins_the_thickness_and_the_camera_calibrates(tmp_path: Path) -> None:
-    sim = AnalyticBending(SPEC)
-    data = run_design(sim, latin_hypercube(SPEC, 600, seed=11), tmp_path / "doe.h5",
-                      executor="serial")
-    mm = Metamodel().fit(data)
-    mm_path = mm.save(tmp_path / "mm.npz")
+def test_gauge_pins_the_thickness_and_the_camera_calibrates(
+        tmp_path: Path, analytic_mm: tuple[Metamodel, Path]) -> None:
+    sim = AnalyticBending(SPEC)  # the metamodel: the default fit of 600 of its runs
+    mm, mm_path = analytic_mm
     settings = StudySettings(n_products=300, window=200, n_realisations=1, n_repetitions=1,
                              series=(1,), paper_repetitions=0, workers=1, seed=5,
                              tracker=TrackerConfig(n_particles=300))

@@ -37,8 +37,9 @@ def test_live_page_in_chromium(mosquitto: Mosquitto, tmp_path: Path) -> None:  #
     strokes = read_stream(make_stream(tmp_path / "s.npz", 50, seed=4))
     port = free_port()
     log = tmp_path / "serve.log"
+    # the settings of test_service_mqtt's services: the session's chart calibration is theirs
     cmd = serve_cmd(mosquitto, tmp_path / "a.sqlite", "--particles", "64", "--n-mc", "1000",
-                    "--http-port", str(port))
+                    "--seed", "3", "--http-port", str(port))
     proc = start_serve(cmd, log)
     broker = BrokerConfig.from_url(mosquitto.url)
     try:

@@ -30,8 +30,9 @@ def test_page_shows_camera_against_prediction_and_last_values(
     messages = interleave(strokes, readings)
     port = free_port()
     log = tmp_path / "serve.log"
+    # the settings of test_service_sensors_mqtt's services: their chart calibration is shared
     cmd = serve_cmd(mosquitto, tmp_path / "a.sqlite", "--particles", "64", "--n-mc", "1000",
-                    "--http-port", str(port), "--sensors", "gauge,camera")
+                    "--seed", "3", "--http-port", str(port), "--sensors", "gauge,camera")
     proc = start_serve(cmd, log)
     broker = BrokerConfig.from_url(mosquitto.url)
     try:

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from formtwin.dataset import DatasetError
-from formtwin.doe import latin_hypercube, run_design
 from formtwin.metamodel import Metamodel
 from formtwin.physics.analytic import AnalyticBending
 from formtwin.spec import load_spec
@@ -24,13 +23,10 @@ SPEC = load_spec()
 
 
 @pytest.fixture(scope="module")
-def metamodel(tmp_path_factory: pytest.TempPathFactory) -> tuple[Metamodel, Path]:
-    folder = tmp_path_factory.mktemp("mm")
-    sim = AnalyticBending(SPEC)
-    data = run_design(sim, latin_hypercube(SPEC, 600, seed=11), folder / "doe.h5",
-                      executor="serial")
-    mm = Metamodel().fit(data)
-    return mm, mm.save(folder / "mm.npz")
+def metamodel(analytic_mm: tuple[Metamodel, Path]) -> tuple[Metamodel, Path]:
+    """The default metamodel of 600 runs of the stand-in (conftest's, shared with the
+    sensor study's test) and its file."""
+    return analytic_mm
 
 
 def test_metrics_normalise_as_the_paper_says() -> None:

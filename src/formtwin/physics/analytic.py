@@ -78,6 +78,27 @@ def _softplus(z: FloatArray) -> FloatArray:
     return np.logaddexp(0.0, z)
 
 
+def _angles(c: dict[str, FloatArray], k_coin: FloatArray) -> FloatArray:
+    """Bend angles after stage 1 and stage 2 (n, 2), degrees, of the input columns ``c``
+    (each (n, 1)): geometry minus springback (reduced by coining); ``k_coin`` (n, 1) N/mm
+    is the coining contact in series with the press."""
+    sy, q, th = c["yield_stress"], c["rate_exponent"], c["thickness"]
+    eps0 = 10.0 ** c["log_rate"]
+    mu_tt, mu_tf = c["friction_tool_tool"], c["friction_tool_flap"]
+    d_end, h_al = c["punch_end_distance"], c["horizontal_alignment"]
+    v_al = c["vertical_alignment"]
+    coin0 = k_coin * _SOFT_COIN * _softplus(-(d_end + v_al - _THICKEN * th) / _SOFT_COIN)
+    f_pl0 = 1.6 * sy * _WIDTH * th**2 / (4.0 * _LEVER)
+    geo1 = 45.0 + 150.0 * (0.36 - d_end - v_al) - 300.0 * h_al + 40.0 * (th - 0.3)
+    spring = 3.0 * sy * 3.0 * _RADIUS / (_E * th) * (1.0 + 0.5 * mu_tf)
+    relief = 1.0 / (1.0 + coin0 / f_pl0)
+    ang1 = geo1 * (1.0 - spring * relief) + 2.0 * (mu_tt - 0.3)
+    rate2 = 1.0 + (3.0 / eps0) ** q
+    ang2 = 90.0 + 0.25 * (ang1 - 44.0) - 250.0 * h_al \
+        - 4.0 * (sy * rate2 / 300.0 - 1.0) - 1.5 * (q - 0.7) + _GAIN_U * c["stage2_depth"]
+    return np.hstack([ang1, ang2])
+
+
 @dataclass(frozen=True)
 class AnalyticBending:
     """Closed-form stand-in for the flap-bending simulator (a :class:`Simulator`).
@@ -153,8 +174,9 @@ class AnalyticBending:
         # unloading after the bottom dead centre: elastic recovery along k_eff
         f0 = f_bend[:, [int(np.argmin(np.abs(self.spec.time)))]] if self.spec.time[0] <= 0 \
             <= self.spec.time[-1] else f_bend.max(axis=1, keepdims=True)
-        unload = f0 * _softplus((f0 - k_eff * p) / f0 * 6.0) / 6.0
-        f_bend = np.where(t > 0.0, np.minimum(unload, f_bend), f_bend)
+        after = self.spec.time > 0.0  # the unloading branch, computed where it applies
+        unload = f0 * _softplus((f0 - k_eff * p[:, after]) / f0 * 6.0) / 6.0
+        f_bend[:, after] = np.minimum(unload, f_bend[:, after])
         # tool-tool sliding friction follows the sign of the punch speed
         engaged = np.tanh(u / (4.0 * _SOFT))
         f_slide = mu_tt * _F_SLIDE * engaged * np.tanh(-speed / _V_SLIDE)
@@ -164,23 +186,24 @@ class AnalyticBending:
         f_coin = k_coin * _SOFT_COIN * _softplus(-gap / _SOFT_COIN)
         curves = f_bend + f_slide + f_coin
 
-        # angles, degrees: geometry minus springback (reduced by coining)
-        coin0 = k_coin * _SOFT_COIN * _softplus(-(d_end + v_al - _THICKEN * th) / _SOFT_COIN)
-        f_pl0 = 1.6 * sy * _WIDTH * th**2 / (4.0 * _LEVER)
-        geo1 = 45.0 + 150.0 * (0.36 - d_end - v_al) - 300.0 * h_al + 40.0 * (th - 0.3)
-        spring = 3.0 * sy * 3.0 * _RADIUS / (_E * th) * (1.0 + 0.5 * mu_tf)
-        relief = 1.0 / (1.0 + coin0 / f_pl0)
-        ang1 = geo1 * (1.0 - spring * relief) + 2.0 * (mu_tt - 0.3)
-        rate2 = 1.0 + (3.0 / eps0) ** q
-        ang2 = 90.0 + 0.25 * (ang1 - 44.0) - 250.0 * h_al \
-            - 4.0 * (sy * rate2 / 300.0 - 1.0) - 1.5 * (q - 0.7) + _GAIN_U * c["stage2_depth"]
-        angles = np.hstack([ang1, ang2])
+        angles = _angles(c, k_coin)
 
         if self.failure_clearance is not None:
             bad = (d_end + v_al - th)[:, 0] < self.failure_clearance
             curves[bad] = np.nan
             angles[bad] = np.nan
         return curves, angles
+
+    def run_angles(self, X: FloatArray) -> FloatArray:
+        """The angles of :meth:`run_batch` alone (the same numbers, without the curves'
+        cost): ``X`` (n, 11) or (n, 10), internal units; returns (n, 2), degrees, NaN for
+        failed runs."""
+        c = self._columns(self.spec.run_columns(X))
+        angles = _angles(c, 1.0 / (1.0 / _K_COIN + 1.0 / c["press_stiffness"]))
+        if self.failure_clearance is not None:
+            bad = (c["punch_end_distance"] + c["vertical_alignment"] - c["thickness"])[:, 0]
+            angles[bad < self.failure_clearance] = np.nan
+        return angles
 
     def failure_reason(self, x: FloatArray) -> str:
         """Why the run at ``x`` (shape ``(11,)`` or ``(10,)``) fails, or ``""`` if it does not."""
