@@ -263,20 +263,6 @@ def test_a_failing_model_leaves_the_tracker_untouched(
                                   b.step(series1["curves"][1]).mean)
 
 
-def test_into_box_reflects_only_the_rows_that_left() -> None:
-    from formtwin.evolution import reflect
-    from formtwin.tracker.ssm import _into_box
-
-    rng = np.random.default_rng(0)
-    v = rng.uniform(-0.5, 1.5, (200, 3))
-    lo, hi = np.zeros(3), np.ones(3)
-    inside = np.all((v >= lo) & (v <= hi), axis=1)
-    expect = reflect(v.copy(), lo, hi)
-    out = _into_box(v.copy(), lo, hi)
-    np.testing.assert_allclose(out, expect, atol=1e-15)
-    np.testing.assert_array_equal(out[inside], v[inside])  # untouched, bit for bit
-
-
 def test_angles_from_a_subsample_of_particles(
         model: AnalyticModel, mm: MeasurementModel, series1: dict[str, np.ndarray]) -> None:
     curves = series1["curves"][:20]
