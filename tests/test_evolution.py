@@ -70,3 +70,45 @@ def test_same_seed_same_sequence() -> None:
     a = simulate(50, np.zeros(2), np.ones(2), np.full(2, 0.5), np.random.default_rng(7))
     b = simulate(50, np.zeros(2), np.ones(2), np.full(2, 0.5), np.random.default_rng(7))
     np.testing.assert_array_equal(a, b)
+
+
+def test_into_box_reflects_only_the_rows_that_left() -> None:
+    """Rows inside the box are kept bit for bit (``reflect`` would round them through
+    ``lo + (x - lo)``), rows with an entry outside are ``reflect``'s."""
+    from formtwin.evolution import into_box
+
+    rng = np.random.default_rng(3)
+    lo, hi = np.array([0.1, -2.0, 3.0]), np.array([0.7, 5.0, 3.3])
+    v = lo + (hi - lo) * rng.uniform(-0.3, 1.3, (2000, 3))
+    out = into_box(v.copy(), lo, hi)
+    left = np.any((v < lo) | (v > hi), axis=1)
+    assert 0 < left.sum() < v.shape[0]
+    np.testing.assert_array_equal(out[~left], v[~left])
+    np.testing.assert_array_equal(out[left], reflect(v[left], lo, hi))
+    assert np.all((out >= lo) & (out <= hi))
+
+
+def test_tracker_transition_is_eq4_ar1_and_eq10_jitter_in_one_pass() -> None:
+    """The tracker's transition draws ``x`` and ``theta, theta_d`` in one block: from one
+    parent, ``x`` has the AR(1)'s mean ``(1 - rho) mu + rho x`` and std
+    ``sqrt(1 - rho^2) sigma`` and theta the parent's value and ``alpha (hi - lo)`` (the
+    parent in the box's middle: no reflection), each column independent."""
+    from formtwin.defaults import analytic_model
+    from formtwin.measurement import MeasurementModel
+    from formtwin.tracker import TrackerConfig
+    from formtwin.tracker.ssm import BendingSSM
+
+    model = analytic_model()
+    mm = MeasurementModel.from_monte_carlo(model, n=200, rng=np.random.default_rng(1))
+    ssm = BendingSSM(model, mm, TrackerConfig(alpha=0.01))
+    nx, na = ssm.n_x, ssm.n_aug
+    parent = 0.5 * (ssm._lo + ssm._hi)
+    parent[:nx] = ssm._mu + 0.3 * ssm._sigma
+    n = 200_000
+    x = ssm.sample_transition(np.repeat(parent[None, :], n, axis=0), np.random.default_rng(5))
+    mean = np.r_[(1 - ssm._rho) * ssm._mu + ssm._rho * parent[:nx], parent[nx:na]]
+    std = np.r_[np.sqrt(1 - ssm._rho**2) * ssm._sigma, 0.01 * (ssm._hi - ssm._lo)[nx:na]]
+    assert np.all(np.abs(x[:, :na].mean(axis=0) - mean) <= 5 * std / np.sqrt(n))
+    np.testing.assert_allclose(x[:, :na].std(axis=0), std, rtol=5 / np.sqrt(2 * n))
+    corr = np.corrcoef(x[:, :na].T) - np.eye(na)
+    assert np.abs(corr).max() < 5 / np.sqrt(n)

@@ -465,3 +465,30 @@ def test_calibrations_are_found_only_for_their_learn_residuals_setting(
         assert cal.data is None and "no interval calibration for fit" in cal.reason
         np.testing.assert_array_equal(intervals.Floors(model, False, False, learn).b, 0.0)
     assert "with learn_residuals" in intervals.find_calibration(model, True).reason
+
+
+def test_gains_from_one_solve_are_the_two_inverses_of_the_formulas() -> None:
+    """``_gains`` solves ``(I + P_pred J^T S^-1 J)`` once instead of inverting ``P_pred``
+    and ``P_pred^-1 + J^T S^-1 J``: the same ``P_lin P_pred^-1`` and ``K`` to rounding,
+    on covariances whose variances span six decades (as the tracker's state and theta_d)."""
+    from formtwin.tracker.sandwich import _gains
+
+    rng = np.random.default_rng(11)
+    m, n_t = 6, 9
+    scales = np.logspace(-3, 0, m)  # std: variances 1e-6 .. 1
+    a = rng.standard_normal((m, m))
+    P_prev = scales[:, None] * (a @ a.T / m + np.eye(m)) * scales[None, :]
+    F, Q = rng.uniform(0.0, 1.0, m), (0.1 * scales) ** 2
+    J = rng.standard_normal((n_t, m)) / scales
+    S_inv_J = np.linalg.solve(np.diag(rng.uniform(0.5, 2.0, n_t)), J)
+    info = J.T @ S_inv_J
+    P_pred = np.diag(F) @ P_prev @ np.diag(F) + np.diag(Q)
+    P_lin = np.linalg.inv(np.linalg.inv(P_pred) + info)
+    M, K = _gains(P_prev, info, S_inv_J, F, Q)
+    cond = np.linalg.cond(np.eye(m) + P_pred @ info)
+    tol = 1e3 * cond * np.finfo(float).eps
+    np.testing.assert_allclose(M, P_lin @ np.linalg.inv(P_pred), rtol=tol,
+                               atol=tol * np.abs(M).max())
+    assert K is not None
+    np.testing.assert_allclose(K, P_lin @ S_inv_J.T, rtol=tol, atol=tol * np.abs(K).max())
+    assert _gains(P_prev, info, None, F, Q)[1] is None

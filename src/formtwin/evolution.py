@@ -38,6 +38,17 @@ def reflect(values: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
     return lo + np.where(u > width, 2.0 * width - u, u)
 
 
+def into_box(values: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """:func:`reflect` applied, in place, to the rows of ``values`` (N, d) that left the box
+    ``[lo, hi]`` (d,); the other rows are kept as they are (most rows stay inside, and
+    ``reflect`` costs a float modulo per entry and rounds a value inside the box through
+    ``lo + (value - lo)``: by at most an ulp)."""
+    rows = np.any((values < lo) | (values > hi), axis=1)
+    if rows.any():
+        values[rows] = reflect(values[rows], lo, hi)
+    return values
+
+
 def evolve(
     x: FloatArray,
     mu: FloatArray,
@@ -109,10 +120,11 @@ def jitter(
     rng: np.random.Generator,
     alpha: float = DEFAULT_ALPHA,
 ) -> FloatArray:
-    """Random-walk step (eq. 10) of parameters ``(N, d)``, std ``alpha (hi - lo)``, reflected."""
+    """Random-walk step (eq. 10) of parameters ``(N, d)``, std ``alpha (hi - lo)``, the rows
+    that left the box reflected back (:func:`into_box`)."""
     if alpha < 0:
         raise ValueError(f"alpha = {alpha}, expected alpha >= 0")
-    return reflect(theta + rng.standard_normal(theta.shape) * (alpha * (hi - lo)), lo, hi)
+    return into_box(theta + rng.standard_normal(theta.shape) * (alpha * (hi - lo)), lo, hi)
 
 
 # ---------------------------------------------------------------- conjugate learning of mu

@@ -86,9 +86,10 @@ class Step:
         out: FloatArray = self.w @ self.x
         return out
 
-    def std(self) -> FloatArray:
-        """Weighted standard deviation (d,) (eq. 14)."""
-        dev = self.x - self.mean()
+    def std(self, mean: FloatArray | None = None) -> FloatArray:
+        """Weighted standard deviation (d,) (eq. 14); ``mean`` (d,) :meth:`mean` when the
+        caller has it (None: computed here)."""
+        dev = self.x - (self.mean() if mean is None else mean)
         out: FloatArray = np.sqrt(np.maximum(self.w @ (dev * dev), 0.0))
         return out
 

@@ -14,7 +14,6 @@ evaluation hot path).
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import lru_cache
 from itertools import combinations_with_replacement
 
 import numpy as np
@@ -112,25 +111,33 @@ def monomial_powers(d: int, degree: int) -> NDArray[np.int64]:
     return np.array(rows, dtype=np.int64).reshape(-1, d)
 
 
-@lru_cache(maxsize=64)
-def _linear_plan(shape: tuple[int, int], data: bytes
-                 ) -> tuple[NDArray[np.intp], NDArray[np.bool_]] | None:
-    """For exponents (q, d) (as bytes) of degree at most 1: the column of ``V`` of each
-    monomial and where it is the constant; None for higher degrees (computed once)."""
-    powers = np.frombuffer(data, dtype=np.int64).reshape(shape)
+#: for exponents of degree at most 1: the column of ``V`` of each monomial and where it
+#: is the constant (:func:`linear_plan`)
+LinearPlan = tuple[NDArray[np.intp], NDArray[np.bool_]]
+
+
+def linear_plan(powers: NDArray[np.int64]) -> LinearPlan | None:
+    """For exponents ``powers`` (q, d) of degree at most 1: the column of ``V`` of each
+    monomial and where it is the constant (read-only); None for higher degrees. Made once
+    per set of exponents by its owner (:class:`~formtwin.metamodel.RBF` keeps it with
+    its ``powers``) and passed to :func:`polynomial`."""
+    powers = np.asarray(powers, dtype=np.int64)
     degrees = powers.sum(axis=1)
     if not np.all(degrees <= 1):
         return None
-    cols, const = powers.argmax(axis=1), degrees == 0
+    cols = powers.argmax(axis=1) if powers.shape[1] else np.zeros(powers.shape[0], np.intp)
+    const = degrees == 0
     cols.flags.writeable = const.flags.writeable = False
     return cols, const
 
 
-def polynomial(U: FloatArray, powers: NDArray[np.int64]) -> FloatArray:
-    """Monomials (n, q) of ``2U - 1`` for unit-box inputs ``U`` (n, d)."""
+def polynomial(U: FloatArray, powers: NDArray[np.int64],
+               plan: LinearPlan | None = None) -> FloatArray:
+    """Monomials (n, q) of ``2U - 1`` for unit-box inputs ``U`` (n, d); ``plan`` the
+    exponents' :func:`linear_plan` when the caller keeps it (None: made here)."""
     V = 2.0 * U - 1.0
-    p64 = np.ascontiguousarray(powers, dtype=np.int64)
-    plan = _linear_plan((p64.shape[0], p64.shape[1]), p64.tobytes())
+    if plan is None:
+        plan = linear_plan(powers)
     if plan is not None:  # constant and linear terms: columns of V (the same numbers)
         lin: FloatArray = V[:, plan[0]]
         lin[:, plan[1]] = 1.0

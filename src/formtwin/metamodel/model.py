@@ -124,6 +124,8 @@ class Metamodel:
         self.angle_approximation: Approximation = angle_approximation
         self.curve_model: Approximation | None = None
         self.angle_models: tuple[Approximation, ...] = ()
+        #: the input columns of each angle model (:meth:`_output_dims`), set with them
+        self._angle_dims: tuple[int, ...] = ()
         self._spec: ProcessSpec | None = None
         self.spec_text = ""
         self.lo = np.zeros(0)
@@ -192,9 +194,10 @@ class Metamodel:
         coeffs = self.reduction.fit(curves).transform(curves)
         self.curve_model = copy.deepcopy(self.approximation).fit(U[:, :n_in], coeffs)
         # outputs before the press settings act take (x, theta); those after, (x, theta, u)
+        self._angle_dims = self._output_dims(spec)
         self.angle_models = tuple(
             copy.deepcopy(self.angle_approximation).fit(U[:, :n], angles[:, j:j + 1])
-            for j, n in enumerate(self._output_dims(spec)))
+            for j, n in enumerate(self._angle_dims))
         self.n_train = X.shape[0]
         self.residuals = None  # they and the calibration described the previous fit
         self.calibration = None
@@ -256,14 +259,10 @@ class Metamodel:
     def _angles(self, U: FloatArray) -> FloatArray:
         if not self.angle_models:
             return np.empty((U.shape[0], 0))
-        # the spec builds its outputs on every access: their input widths are kept with
-        # the angle models they belong to
-        dims = self.__dict__.get("_angle_dims")
-        if dims is None or dims[0] is not self.angle_models:
-            dims = self.__dict__["_angle_dims"] = (self.angle_models,
-                                                   self._output_dims(self.spec))
+        # the spec builds its outputs on every access: their input widths were kept when
+        # the angle models were made
         return np.hstack([m.predict(U[:, :n]) for m, n in
-                          zip(self.angle_models, dims[1], strict=True)])
+                          zip(self.angle_models, self._angle_dims, strict=True)])
 
     def predict_curves(self, X: FloatArray) -> FloatArray:
         """Force curves (N, n_t), N, at inputs ``X`` (N, 10) ``[x, theta]`` or (N, 11)
@@ -375,6 +374,7 @@ class Metamodel:
             mm.spec_text = str(arrays["spec_text"])
             source = str(arrays["spec_source"])
             mm._spec = parse_spec(mm.spec_text, source)
+            mm._angle_dims = mm._output_dims(mm._spec)
             mm.angle_models = tuple(kind(f"angle{j}", APPROXIMATIONS).from_state(
                 part(f"angle{j}")) for j in range(mm._spec.n_outputs))
             mm._model_version = str(arrays["model_version"])

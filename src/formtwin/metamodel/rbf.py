@@ -49,6 +49,7 @@ from formtwin.metamodel.kernels import (
     KERNELS,
     SCALE_FREE,
     kernel_function,
+    linear_plan,
     monomial_powers,
     polynomial,
 )
@@ -152,6 +153,16 @@ class RBF:
         self.powers = np.zeros((0, 0), dtype=np.int64)
         self.loo_rmse = np.nan
         self._fast: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    @property
+    def powers(self) -> NDArray[np.int64]:
+        """Exponents (q, d) of the polynomial part's monomials."""
+        return self._powers
+
+    @powers.setter
+    def powers(self, value: NDArray[np.int64]) -> None:
+        self._powers = value
+        self._plan = linear_plan(value)  # the evaluation's plan, made with the exponents
 
     def __repr__(self) -> str:
         return (f"RBF(kernel={self.kernels if len(self.kernels) > 1 else self.kernels[0]!r}, "
@@ -270,7 +281,7 @@ class RBF:
             phi = kernel_function(self.kernel)(r2)
         out: FloatArray = (phi @ W).astype(np.float64)
         if self.powers.shape[0]:
-            out += polynomial(U, self.powers) @ self.poly_coef
+            out += polynomial(U, self.powers, self._plan) @ self.poly_coef
         return out
 
     def _check_precision(self, U: FloatArray) -> None:

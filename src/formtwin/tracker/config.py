@@ -86,7 +86,7 @@ class TrackerConfig:
         error of order ``std / sqrt(angle_particles)``; with an ESS of 20-100 of 500, 100
         hold the cloud's distinct particles and save ~15 % of a step at N = 500); ``None``
         (default, or a value >= N): all particles with their weights (but the lightest,
-        whose weights sum to at most ``1e-9``: :data:`formtwin.tracker.core.ANGLE_MASS`).
+        whose weights sum to at most ``1e-4``: :data:`formtwin.tracker.core.ANGLE_MASS`).
     learn_mu : learn the statistics mu by conjugate Normal updates of per-particle
         sufficient statistics (prior with the mean and variance of ``U(mu_min, mu_max)``,
         see :mod:`formtwin.tracker.ssm`); ``mu`` is then ignored. Default off (the paper's

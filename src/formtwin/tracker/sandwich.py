@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg.lapack import dgesv as _gesv
 
 from formtwin.tracker.discrepancy import residual_covariance
 
@@ -68,12 +69,23 @@ def _gains(P_prev: FloatArray, info: FloatArray, S_inv_J: FloatArray | None, F: 
            Q: FloatArray) -> tuple[FloatArray, FloatArray | None]:
     """``(I - K J) = P_lin P_pred^-1`` (m, m) and the gain ``K = P_lin J^T S^-1`` (m, n_t)
     of the linearised step (module doc) from the information ``J^T S^-1 J`` (m, m) and
-    ``S^-1 J`` (n_t, m) (None: ``K`` is not wanted, None)."""
-    P_pred = F[:, None] * P_prev * F[None, :] + np.diag(Q)
-    pred_inv = np.linalg.inv(P_pred)
-    P_lin = np.linalg.inv(pred_inv + info)
-    P_lin = 0.5 * (P_lin + P_lin.T)
-    return P_lin @ pred_inv, None if S_inv_J is None else P_lin @ S_inv_J.T
+    ``S^-1 J`` (n_t, m) (None: ``K`` is not wanted, None).
+
+    With ``P_lin = (P_pred^-1 + J^T S^-1 J)^-1 = (I + P_pred J^T S^-1 J)^-1 P_pred`` both
+    come from one LU solve with ``A = I + P_pred J^T S^-1 J``: ``P_lin P_pred^-1 = A^-1``,
+    ``K = A^-1 P_pred J^T S^-1`` (no inverse of ``P_pred``; the same matrices as the two
+    inverses of the formulas to rounding, tests/test_tracker_intervals.py).
+    """
+    P_pred = F[:, None] * P_prev * F[None, :]
+    P_pred.flat[::P_pred.shape[0] + 1] += Q
+    m = P_pred.shape[0]
+    a = P_pred @ info
+    a.flat[::m + 1] += 1.0
+    rhs = np.eye(m) if S_inv_J is None else np.hstack([np.eye(m), P_pred @ S_inv_J.T])
+    *_, sol, info_ = _gesv(a, rhs, overwrite_a=1, overwrite_b=1)
+    if info_ != 0:  # singular in floating point: NumPy's error, as np.linalg.inv raises
+        raise np.linalg.LinAlgError("Singular matrix")
+    return sol[:, :m], None if S_inv_J is None else sol[:, m:]
 
 
 def sandwich_step(G: FloatArray, P_prev: FloatArray, J: FloatArray, S_inv_J: FloatArray,

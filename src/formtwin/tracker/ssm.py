@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 from formtwin.deviation import DeviationModel
 from formtwin.evolution import (
     evolve,
+    into_box,
     jitter,
     mu_predictive,
     mu_update,
@@ -93,6 +94,10 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
     _lo: FloatArray = field(init=False, repr=False)
     _hi: FloatArray = field(init=False, repr=False)
     _sizes: tuple[int, int, int] = field(init=False, repr=False)
+    # the transition x -> a + b x + s v, v ~ N(0, 1), of the columns that vary (not
+    # learning mu): eq. 4-5 for x (a = (1 - rho) mu, b = rho, s = sqrt(1 - rho^2) sigma),
+    # the jitter of eq. 10 for theta (and theta_d) (a = 0, b = 1, s = alpha (hi - lo))
+    _drift: tuple[FloatArray, FloatArray, FloatArray] = field(init=False, repr=False)
     #: (2,) deg^2 added to the predicted angles' variance: the metamodel's held-out angle
     #: error (calibrated likelihood), zeros for the paper's
     angle_error_var: FloatArray = field(init=False, repr=False)
@@ -149,6 +154,12 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
         object.__setattr__(self, "_mu", st.mu_mid if c.mu is None else np.array(c.mu))
         object.__setattr__(self, "_sigma", st.sigma if c.sigma is None else np.array(c.sigma))
         object.__setattr__(self, "_rho", st.rho if c.rho is None else np.array(c.rho))
+        # the transition a + b x + s v per column (the field _drift)
+        width = (hi - lo)[self.n_x:self.n_aug if c.estimate_deviation else self.n_in]
+        rho = self._rho
+        object.__setattr__(self, "_drift", (
+            np.r_[(1.0 - rho) * self._mu, np.zeros(width.size)], np.r_[rho, np.ones(width.size)],
+            np.r_[np.sqrt(1.0 - rho**2) * self._sigma, c.alpha * width]))
         var = angle_residual_variance(self.model) if c.likelihood != "paper" else None
         object.__setattr__(self, "angle_error_var",
                            np.zeros(spec.n_outputs) if var is None else var)
@@ -245,15 +256,19 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
             else:  # the Normal predictive
                 mean, var = mu_predictive(m, P, x[:, :nx], self._sigma, self._rho)
                 new = mean + np.sqrt(var) * rng.standard_normal(mean.shape)
-            out[:, :nx] = _into_box(new, lo[:nx], hi[:nx])
+            out[:, :nx] = into_box(new, lo[:nx], hi[:nx])
             out[:, na:na + nx], out[:, na + nx:na + 2 * nx] = mu_update(
                 m, P, x[:, :nx], out[:, :nx], self._sigma, self._rho)
-        else:  # eq. 4-5, then reflection of the few rows that left the box
-            out[:, :nx] = _into_box(evolve(x[:, :nx], self._mu, self._sigma, self._rho, rng),
-                                    lo[:nx], hi[:nx])
         stop = na if self.config.estimate_deviation else self.n_in
-        out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
-                                 self.config.alpha)
+        if self.config.learn_mu:
+            out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
+                                     self.config.alpha)
+        else:  # eq. 4-5 and the jitter of eq. 10 in one pass: x -> a + b x + s v
+            a, b, s = self._drift
+            new = x[:, :stop] * b
+            new += a
+            new += rng.standard_normal(new.shape) * s
+            out[:, :stop] = into_box(new, lo[:stop], hi[:stop])
         out[:, stop:na] = x[:, stop:na]
         out[:, self._disc:] = x[:, self._disc:]
         self.shift_lags(x, out)
@@ -383,11 +398,3 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
                 obs = self.deviation.invert(y, td)
         return curves, obs, np.atleast_2d(obs - curves)
 
-
-def _into_box(v: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
-    """:func:`~formtwin.evolution.reflect` applied to the rows (N, d) that left the box
-    (most rows stay inside, and ``reflect`` costs a float modulo per entry)."""
-    rows = np.any((v < lo) | (v > hi), axis=1)
-    if rows.any():
-        v[rows] = reflect(v[rows], lo, hi)
-    return v
