@@ -62,7 +62,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
+import signal
 import socket
 import sqlite3
 import subprocess
@@ -149,6 +151,37 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process (Linux ``/proc``), s."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def thread_cpu_seconds(pid: int) -> dict[int, float]:
+    """User + system CPU time of each thread of a process (Linux ``/proc``), s."""
+    out: dict[int, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended
+            continue
+        out[int(task.name)] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return out
+
+
+def thread_names(pid: int) -> dict[int, str]:
+    """Python thread names of a process by native thread id (``py-spy dump``; {} without
+    py-spy)."""
+    spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
+    if not os.path.exists(spy):
+        return {}
+    try:
+        text = subprocess.run([spy, "dump", "--pid", str(pid)], capture_output=True,
+                              text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    names: dict[int, str] = {}
+    for line in text.splitlines():  # Thread 12345 (idle): "MainThread"
+        m = re.match(r'Thread (0x[0-9A-Fa-f]+|\d+) \(.*\): "(.*)"', line)
+        if m:
+            names[int(m.group(1), 0)] = m.group(2)
+    return names
 
 
 def run_phase(messages: list, broker: BrokerConfig, rx: Receiver, rate: float
@@ -249,6 +282,9 @@ def main() -> int:
                     help="do not tell the service the stream's state means (--mu)")
     ap.add_argument("--sensor-messages-per-product", type=int, choices=(0, 1), default=1,
                     help="sensor messages per product besides the stroke (default: 1)")
+    ap.add_argument("--py-spy", metavar="FILE",
+                    help="record the serve process with py-spy during the full-speed phase "
+                         "(collapsed stacks per thread, 200 samples/s)")
     ap.add_argument("--sensor", default="camera",
                     help="the spec's sensor those messages carry (default: camera)")
     args = ap.parse_args()
@@ -332,9 +368,29 @@ def main() -> int:
         startup = serve("b.sqlite", "serve")
         rx = Receiver(broker)
         run_phase(phase(0, n_warm), broker, rx, rate=0.0)
-        cpu0 = cpu_seconds(procs[-1].pid)
+        pid = procs[-1].pid
+        names = thread_names(pid)
+        spy = None
+        if args.py_spy:  # a sampling profile of the serve process over the full-speed phase
+            spy = subprocess.Popen(
+                [str(Path(sys.executable).with_name("py-spy")), "record", "--pid", str(pid),
+                 "--format", "raw", "--threads", "--rate", "200", "--output", args.py_spy],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            time.sleep(1.0)
+        cpu0, threads0 = cpu_seconds(pid), thread_cpu_seconds(pid)
         rate_full, lat_full = run_phase(phase(n_warm, n_warm + args.n), broker, rx, 0.0)
-        serve_cpu_ms = (cpu_seconds(procs[-1].pid) - cpu0) / args.n * 1e3
+        serve_cpu_ms = (cpu_seconds(pid) - cpu0) / args.n * 1e3
+        threads1 = thread_cpu_seconds(pid)
+        if spy is not None:
+            spy.send_signal(signal.SIGINT)
+            spy.wait(60)
+        names.update({t: n for t, n in thread_names(pid).items() if t not in names})
+        thread_ms: dict[str, float] = {}
+        for t, c in threads1.items():
+            name = names.get(t, "other threads (not Python)")
+            thread_ms[name] = thread_ms.get(name, 0.0) + (c - threads0.get(t, 0.0))
+        thread_ms = {k: round(v / args.n * 1e3, 2) for k, v in
+                     sorted(thread_ms.items(), key=lambda kv: -kv[1]) if v > 0}
         lat_rate = 0.5 * rate_full  # half the sustained rate: latency, not queueing
         _, lat = run_phase(phase(n_warm + args.n, len(strokes)), broker, rx, rate=lat_rate)
         time.sleep(1.0)  # the answers to the last sensor messages
@@ -426,6 +482,7 @@ def main() -> int:
         "startup_first_store_s": round(startup_first, 2),
         "restart_s": round(restart, 2),
         "processor_part_cpu_ms": per_part,
+        "serve_thread_cpu_ms": thread_ms,
         "targets": TARGETS,
         "met": met,
         "n_full_speed": args.n,
