@@ -37,11 +37,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
 import numpy as np
+import orjson
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
@@ -161,6 +163,33 @@ def _reject_constant(name: str) -> float:
 _DECODER = json.JSONDecoder(parse_constant=_reject_constant)
 
 
+#: a run of 19 digits: an integer that may not fit in 64 bits (orjson reads it as a float)
+_LONG_DIGITS = re.compile(rb"[0-9]{19}")
+
+
+def loads(payload: bytes) -> Any:
+    """A message's JSON document: orjson's parser (about ten times the standard library's
+    speed, the same numbers: both round every decimal correctly), and the standard
+    library's where orjson refuses the payload or would read a long integer as a float,
+    so that every message gets the same document, reason and detail as ever (NaN and
+    Infinity: ``non_finite``; integers beyond 64 bits and lone surrogates: parsed as
+    Python does; bad UTF-8 or JSON: ``ValueError``).
+
+    Raises
+    ------
+    MessageError
+        ``non_finite`` for a NaN or Infinity literal.
+    ValueError, RecursionError
+        For a payload that is not JSON (bad UTF-8 included).
+    """
+    if _LONG_DIGITS.search(payload) is None:
+        try:
+            return orjson.loads(payload)
+        except orjson.JSONDecodeError:
+            pass
+    return _DECODER.decode(payload.decode("utf-8"))
+
+
 #: the types of a JSON number (``bool``, a subclass of ``int``, is not one)
 _NUMBER_TYPES = frozenset((int, float))
 
@@ -227,7 +256,7 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
     if len(payload) > limits.max_bytes:
         raise MessageError("oversized", f"{len(payload)} bytes > limit {limits.max_bytes}")
     try:
-        doc = _DECODER.decode(payload.decode("utf-8"))
+        doc = loads(payload)
     except MessageError:
         raise
     except (ValueError, RecursionError) as exc:  # bad UTF-8, bad JSON, 5000-digit integers
@@ -305,6 +334,21 @@ def error_message(err: MessageError, topic: str, received_at: float) -> dict[str
             "part_id": err.part_id, "topic": topic, "received_at": received_at}
 
 
+def _scalar(obj: Any) -> Any:
+    """A NumPy scalar as the Python number the standard library's encoder wrote."""
+    if isinstance(obj, np.generic) and obj.dtype.kind in "biuf":
+        return obj.item()
+    raise TypeError(f"{type(obj).__name__} is not JSON serializable")
+
+
 def dumps(msg: dict[str, Any]) -> bytes:
-    """Compact JSON bytes; NaN/inf are refused (they are not JSON)."""
-    return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    """Compact JSON bytes (orjson: the shortest decimal that reads back as the same
+    float64, as :func:`repr` gives, ~15 times the standard library's speed on an estimate).
+    A non-finite number is written ``null`` (not JSON; the messages' convention, as
+    :meth:`formtwin.estimates.Estimate.to_dict` makes it). What orjson cannot write (an
+    integer beyond 64 bits) the standard library writes."""
+    try:
+        return orjson.dumps(msg, default=_scalar, option=orjson.OPT_NON_STR_KEYS)
+    except orjson.JSONEncodeError:
+        return json.dumps(msg, separators=(",", ":"), allow_nan=False,
+                          default=_scalar).encode("utf-8")

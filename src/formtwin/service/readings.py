@@ -5,12 +5,11 @@ expected."""
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from typing import Any
 
-from formtwin.service.messages import MessageError
+from formtwin.service.messages import MessageError, loads
 
 SENSOR_SCHEMA = "formtwin.sensor/1"
 
@@ -35,14 +34,6 @@ class Reading:
         return msg
 
 
-def _reject_constant(name: str) -> float:
-    raise MessageError("non_finite", f"JSON literal {name} is not a finite number")
-
-
-#: ``json.loads(text, parse_constant=...)`` makes a decoder per call; this one is made once
-_DECODER = json.JSONDecoder(parse_constant=_reject_constant)
-
-
 def parse_reading(payload: bytes, sensors: tuple[str, ...], max_bytes: int = 65536
                   ) -> Reading:
     """Parse and validate one sensor payload; ``sensors`` are the names the service fuses.
@@ -57,7 +48,7 @@ def parse_reading(payload: bytes, sensors: tuple[str, ...], max_bytes: int = 655
     if len(payload) > max_bytes:
         raise MessageError("oversized", f"{len(payload)} bytes > limit {max_bytes}")
     try:
-        doc = _DECODER.decode(payload.decode("utf-8"))
+        doc = loads(payload)
     except MessageError:
         raise
     except (ValueError, RecursionError) as exc:
