@@ -284,7 +284,8 @@ def main() -> int:
                     help="sensor messages per product besides the stroke (default: 1)")
     ap.add_argument("--py-spy", metavar="FILE",
                     help="record the serve process with py-spy during the full-speed phase "
-                         "(collapsed stacks per thread, 200 samples/s)")
+                         "(collapsed stacks per thread, 200 samples/s, without pausing it: a "
+                         "paused process would be charged the pauses)")
     ap.add_argument("--sensor", default="camera",
                     help="the spec's sensor those messages carry (default: camera)")
     args = ap.parse_args()
@@ -374,7 +375,8 @@ def main() -> int:
         if args.py_spy:  # a sampling profile of the serve process over the full-speed phase
             spy = subprocess.Popen(
                 [str(Path(sys.executable).with_name("py-spy")), "record", "--pid", str(pid),
-                 "--format", "raw", "--threads", "--rate", "200", "--output", args.py_spy],
+                 "--format", "raw", "--threads", "--nonblocking", "--rate", "200",
+                 "--output", args.py_spy],
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             time.sleep(1.0)
         cpu0, threads0 = cpu_seconds(pid), thread_cpu_seconds(pid)
