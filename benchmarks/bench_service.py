@@ -26,7 +26,15 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   ``capacity_products_per_s_one_free_core`` = 1000 / serve CPU ms;
 * ``serve_overhead_cpu_ms``: serve CPU per product minus the tracker step's CPU (what the
   service adds: MQTT, validation, store, state checkpoint, page), and
-  ``processor_overhead_cpu_ms`` the same for the in-process peer.
+  ``processor_overhead_cpu_ms`` the same for the in-process peer;
+* ``serve_thread_cpu_ms``: the serve process's CPU per product by thread (``/proc``, the
+  threads named by ``py-spy dump`` when py-spy is installed): the processing runs in
+  paho's network thread, the rest are the page, the WAL checkpoints, the main thread's
+  wait and the status line;
+* ``mqtt_floor_cpu_ms``: the same messages through the service's MQTT part alone
+  (``_mqtt_floor.py``: paho, QoS 1 in and out, acknowledgement after the answer, answers
+  of the stored estimates' and measurement answers' sizes, no processing), CPU ms per
+  product: the part of the overhead that no change to the processor removes.
 
 Machines differ, so the targets (``targets``/``met``) are ratios to the tracker's own step
 measured in the same run: ``capacity_over_step`` (products/s over 1000 / step CPU ms)
@@ -51,8 +59,12 @@ after the stroke its delay puts it behind; ``sensor_messages_per_product`` and
 the same tracker's (with the sensor's lag columns); the fusion and the final angle's
 calibrated interval are the service's. 0 sends strokes only.
 
+``--py-spy FILE`` records serve with py-spy over the full-speed phase (collapsed stacks
+per thread, without pausing the process).
+
 Usage: ``python benchmarks/bench_service.py [--model physics|analytic|FILE] [--n 1000]
-[--particles 500] [--sensor-messages-per-product 0|1] [--sensor NAME]``; the default model
+[--particles 500] [--sensor-messages-per-product 0|1] [--sensor NAME] [--py-spy FILE]``;
+the default model
 is the metamodel of the bundled physics DOE (what a fresh clone serves), fitted once and
 cached in ``benchmarks/.cache``.
 """
@@ -182,6 +194,41 @@ def thread_names(pid: int) -> dict[int, str]:
         if m:
             names[int(m.group(1), 0)] = m.group(2)
     return names
+
+
+def mqtt_floor(tmp: Path, port: int, broker: BrokerConfig, procs: list[Any], warm: list[Any],
+               full: list[Any], n: int) -> tuple[float, float]:
+    """The service's MQTT part alone (``_mqtt_floor.py``: answers of the sizes stored in
+    ``tmp/b.sqlite``, no processing) over the full-speed phase's messages: its CPU ms per
+    product and products/s."""
+    with sqlite3.connect(tmp / "b.sqlite") as db:
+        est = db.execute("SELECT AVG(LENGTH(estimate)) FROM products").fetchone()[0]
+        try:
+            ans = db.execute("SELECT AVG(LENGTH(message)) FROM measurements").fetchone()[0]
+        except sqlite3.OperationalError:  # no sensor messages
+            ans = None
+    log = tmp / "floor.log"
+    with open(log, "wb") as fh:
+        procs.append(subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name("_mqtt_floor.py")), "--port",
+             str(port), "--topic", TOPIC, "--estimate-bytes", str(int(est)),
+             "--answer-bytes", str(int(ans or 300))], stdout=fh, stderr=subprocess.STDOUT))
+    deadline = time.monotonic() + 60
+    while "connected and subscribed" not in log.read_text(errors="replace"):
+        if procs[-1].poll() is not None or time.monotonic() > deadline:
+            raise SystemExit(f"the MQTT floor did not start:\n{log.read_text()}")
+        time.sleep(0.02)
+    rx = Receiver(broker)
+    try:
+        run_phase(warm, broker, rx, rate=0.0)
+        cpu0 = cpu_seconds(procs[-1].pid)
+        rate, _ = run_phase(full, broker, rx, rate=0.0)
+        ms = (cpu_seconds(procs[-1].pid) - cpu0) / n * 1e3
+    finally:
+        rx.stop()
+        procs[-1].terminate()
+        procs.pop().wait(20)
+    return ms, rate
 
 
 def run_phase(messages: list, broker: BrokerConfig, rx: Receiver, rate: float
@@ -401,6 +448,8 @@ def main() -> int:
         stop()
         restart = serve("b.sqlite", "restart")  # after a crash: the same store
         stop()
+        floor_ms, floor_rate = mqtt_floor(tmp, port, broker, procs, phase(0, n_warm),
+                                          phase(n_warm, n_warm + args.n), args.n)
     finally:
         for p in reversed(procs):
             p.terminate()
@@ -485,6 +534,8 @@ def main() -> int:
         "restart_s": round(restart, 2),
         "processor_part_cpu_ms": per_part,
         "serve_thread_cpu_ms": thread_ms,
+        "mqtt_floor_cpu_ms": round(floor_ms, 3),
+        "mqtt_floor_products_per_s": round(floor_rate, 1),
         "targets": TARGETS,
         "met": met,
         "n_full_speed": args.n,
