@@ -64,9 +64,8 @@ per thread, without pausing the process).
 
 Usage: ``python benchmarks/bench_service.py [--model physics|analytic|FILE] [--n 1000]
 [--particles 500] [--sensor-messages-per-product 0|1] [--sensor NAME] [--py-spy FILE]``;
-the default model
-is the metamodel of the bundled physics DOE (what a fresh clone serves), fitted once and
-cached in ``benchmarks/.cache``.
+the default model is the metamodel of the bundled physics DOE (what a fresh clone serves),
+fitted once and cached in ``benchmarks/.cache``.
 """
 
 from __future__ import annotations
