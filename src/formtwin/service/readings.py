@@ -9,7 +9,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from formtwin.service.messages import MessageError, loads
+from formtwin.service.messages import LONG_INT, MessageError, loads
 
 SENSOR_SCHEMA = "formtwin.sensor/1"
 
@@ -48,7 +48,20 @@ def parse_reading(payload: bytes, sensors: tuple[str, ...], max_bytes: int = 655
     if len(payload) > max_bytes:
         raise MessageError("oversized", f"{len(payload)} bytes > limit {max_bytes}")
     try:
-        doc = loads(payload)
+        reading = _reading(payload, sensors, fast=True)
+    except MessageError:  # read again as the standard library reads it (:func:`loads`)
+        reading = None
+    if reading is None:
+        reading = _reading(payload, sensors, fast=False)
+        assert reading is not None  # only a fast read gives None
+    return reading
+
+
+def _reading(payload: bytes, sensors: tuple[str, ...], fast: bool) -> Reading | None:
+    """:func:`parse_reading` after the size check, the JSON read ``fast`` or not; None
+    where a fast read may differ from the standard library's (:data:`LONG_INT`)."""
+    try:
+        doc = loads(payload, fast)
     except MessageError:
         raise
     except (ValueError, RecursionError) as exc:
@@ -85,6 +98,8 @@ def parse_reading(payload: bytes, sensors: tuple[str, ...], max_bytes: int = 655
     if not math.isfinite(v):
         raise MessageError("non_finite", f"value is {v}", part_id)
     ts = doc.get("timestamp")
+    if fast and isinstance(ts, float) and abs(ts) >= LONG_INT:
+        return None
     return Reading(part_id, sensor, v, None if ts is None else str(ts)[:64])
 
 
