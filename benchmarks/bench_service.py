@@ -31,6 +31,9 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   threads named by ``py-spy dump`` when py-spy is installed): the processing runs in
   paho's network thread, the rest are the page, the WAL checkpoints, the main thread's
   wait and the status line;
+* ``serve_step_cpu_ms``: the tracker's step inside serve (its thread CPU, over all of
+  its products: warm-up, full speed, paced), beside ``tracker_step_cpu_ms``, the same
+  tracker's step in a loop of steps alone;
 * ``mqtt_floor_cpu_ms``: the same messages through the service's MQTT part alone
   (``_mqtt_floor.py``: paho, QoS 1 in and out, acknowledgement after the answer, answers
   of the stored estimates' and measurement answers' sizes, no processing), CPU ms per
@@ -72,6 +75,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import shutil
@@ -445,6 +449,8 @@ def main() -> int:
         sensor_answers = dict(rx.sensor_answers)
         rx.stop()
         stop()
+        got = re.search(r"tracker steps ([0-9.]+) s CPU", (tmp / "serve.log").read_text())
+        serve_step_s = float(got.group(1)) if got else math.nan
         restart = serve("b.sqlite", "restart")  # after a crash: the same store
         stop()
         floor_ms, floor_rate = mqtt_floor(tmp, port, broker, procs, phase(0, n_warm),
@@ -454,6 +460,8 @@ def main() -> int:
             p.terminate()
             p.wait(20)
     with sqlite3.connect(tmp / "b.sqlite") as db:
+        accepted = int(db.execute("SELECT COUNT(*) FROM products WHERE status = "
+                                  "'accepted'").fetchone()[0])
         alarm_products = int(db.execute("SELECT COUNT(DISTINCT seq) FROM alarms WHERE seq > ?",
                                         (n_warm,)).fetchone()[0])
         alarms_by_chart = {f"{v}:{c}": int(k) for v, c, k in db.execute(
@@ -533,6 +541,7 @@ def main() -> int:
         "restart_s": round(restart, 2),
         "processor_part_cpu_ms": per_part,
         "serve_thread_cpu_ms": thread_ms,
+        "serve_step_cpu_ms": round(serve_step_s / accepted * 1e3, 2),
         "mqtt_floor_cpu_ms": round(floor_ms, 3),
         "mqtt_floor_products_per_s": round(floor_rate, 1),
         "targets": TARGETS,
