@@ -26,7 +26,18 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   ``capacity_products_per_s_one_free_core`` = 1000 / serve CPU ms;
 * ``serve_overhead_cpu_ms``: serve CPU per product minus the tracker step's CPU (what the
   service adds: MQTT, validation, store, state checkpoint, page), and
-  ``processor_overhead_cpu_ms`` the same for the in-process peer.
+  ``processor_overhead_cpu_ms`` the same for the in-process peer;
+* ``serve_thread_cpu_ms``: the serve process's CPU per product by thread (``/proc``, the
+  threads named by ``py-spy dump`` when py-spy is installed): the processing runs in
+  paho's network thread, the rest are the page, the WAL checkpoints, the main thread's
+  wait and the status line;
+* ``serve_step_cpu_ms``: the tracker's step inside serve (its thread CPU, over all of
+  its products: warm-up, full speed, paced), beside ``tracker_step_cpu_ms``, the same
+  tracker's step in a loop of steps alone;
+* ``mqtt_floor_cpu_ms``: the same messages through the service's MQTT part alone
+  (``_mqtt_floor.py``: paho, QoS 1 in and out, acknowledgement after the answer, answers
+  of the stored estimates' and measurement answers' sizes, no processing), CPU ms per
+  product: the part of the overhead that no change to the processor removes.
 
 Machines differ, so the targets (``targets``/``met``) are ratios to the tracker's own step
 measured in the same run: ``capacity_over_step`` (products/s over 1000 / step CPU ms)
@@ -51,18 +62,24 @@ after the stroke its delay puts it behind; ``sensor_messages_per_product`` and
 the same tracker's (with the sensor's lag columns); the fusion and the final angle's
 calibrated interval are the service's. 0 sends strokes only.
 
+``--py-spy FILE`` records serve with py-spy over the full-speed phase (collapsed stacks
+per thread, without pausing the process).
+
 Usage: ``python benchmarks/bench_service.py [--model physics|analytic|FILE] [--n 1000]
-[--particles 500] [--sensor-messages-per-product 0|1] [--sensor NAME]``; the default model
-is the metamodel of the bundled physics DOE (what a fresh clone serves), fitted once and
-cached in ``benchmarks/.cache``.
+[--particles 500] [--sensor-messages-per-product 0|1] [--sensor NAME] [--py-spy FILE]``;
+the default model is the metamodel of the bundled physics DOE (what a fresh clone serves),
+fitted once and cached in ``benchmarks/.cache``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import re
 import shutil
+import signal
 import socket
 import sqlite3
 import subprocess
@@ -149,6 +166,72 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process (Linux ``/proc``), s."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def thread_cpu_seconds(pid: int) -> dict[int, float]:
+    """User + system CPU time of each thread of a process (Linux ``/proc``), s."""
+    out: dict[int, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended
+            continue
+        out[int(task.name)] = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return out
+
+
+def thread_names(pid: int) -> dict[int, str]:
+    """Python thread names of a process by native thread id (``py-spy dump``; {} without
+    py-spy)."""
+    spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
+    if not os.path.exists(spy):
+        return {}
+    try:
+        text = subprocess.run([spy, "dump", "--pid", str(pid)], capture_output=True,
+                              text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    names: dict[int, str] = {}
+    for line in text.splitlines():  # Thread 12345 (idle): "MainThread"
+        m = re.match(r'Thread (0x[0-9A-Fa-f]+|\d+) \(.*\): "(.*)"', line)
+        if m:
+            names[int(m.group(1), 0)] = m.group(2)
+    return names
+
+
+def mqtt_floor(tmp: Path, port: int, broker: BrokerConfig, procs: list[Any], warm: list[Any],
+               full: list[Any], n: int) -> tuple[float, float]:
+    """The service's MQTT part alone (``_mqtt_floor.py``: answers of the sizes stored in
+    ``tmp/b.sqlite``, no processing) over the full-speed phase's messages: its CPU ms per
+    product and products/s."""
+    with sqlite3.connect(tmp / "b.sqlite") as db:
+        est = db.execute("SELECT AVG(LENGTH(estimate)) FROM products").fetchone()[0]
+        try:
+            ans = db.execute("SELECT AVG(LENGTH(message)) FROM measurements").fetchone()[0]
+        except sqlite3.OperationalError:  # no sensor messages
+            ans = None
+    log = tmp / "floor.log"
+    with open(log, "wb") as fh:
+        procs.append(subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name("_mqtt_floor.py")), "--port",
+             str(port), "--topic", TOPIC, "--estimate-bytes", str(int(est)),
+             "--answer-bytes", str(int(ans or 300))], stdout=fh, stderr=subprocess.STDOUT))
+    deadline = time.monotonic() + 60
+    while "connected and subscribed" not in log.read_text(errors="replace"):
+        if procs[-1].poll() is not None or time.monotonic() > deadline:
+            raise SystemExit(f"the MQTT floor did not start:\n{log.read_text()}")
+        time.sleep(0.02)
+    rx = Receiver(broker)
+    try:
+        run_phase(warm, broker, rx, rate=0.0)
+        cpu0 = cpu_seconds(procs[-1].pid)
+        rate, _ = run_phase(full, broker, rx, rate=0.0)
+        ms = (cpu_seconds(procs[-1].pid) - cpu0) / n * 1e3
+    finally:
+        rx.stop()
+        procs[-1].terminate()
+        procs.pop().wait(20)
+    return ms, rate
 
 
 def run_phase(messages: list, broker: BrokerConfig, rx: Receiver, rate: float
@@ -249,6 +332,10 @@ def main() -> int:
                     help="do not tell the service the stream's state means (--mu)")
     ap.add_argument("--sensor-messages-per-product", type=int, choices=(0, 1), default=1,
                     help="sensor messages per product besides the stroke (default: 1)")
+    ap.add_argument("--py-spy", metavar="FILE",
+                    help="record the serve process with py-spy during the full-speed phase "
+                         "(collapsed stacks per thread, 200 samples/s, without pausing it: a "
+                         "paused process would be charged the pauses)")
     ap.add_argument("--sensor", default="camera",
                     help="the spec's sensor those messages carry (default: camera)")
     args = ap.parse_args()
@@ -332,22 +419,49 @@ def main() -> int:
         startup = serve("b.sqlite", "serve")
         rx = Receiver(broker)
         run_phase(phase(0, n_warm), broker, rx, rate=0.0)
-        cpu0 = cpu_seconds(procs[-1].pid)
+        pid = procs[-1].pid
+        names = thread_names(pid)
+        spy = None
+        if args.py_spy:  # a sampling profile of the serve process over the full-speed phase
+            spy = subprocess.Popen(
+                [str(Path(sys.executable).with_name("py-spy")), "record", "--pid", str(pid),
+                 "--format", "raw", "--threads", "--nonblocking", "--rate", "200",
+                 "--output", args.py_spy],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            time.sleep(1.0)
+        cpu0, threads0 = cpu_seconds(pid), thread_cpu_seconds(pid)
         rate_full, lat_full = run_phase(phase(n_warm, n_warm + args.n), broker, rx, 0.0)
-        serve_cpu_ms = (cpu_seconds(procs[-1].pid) - cpu0) / args.n * 1e3
+        serve_cpu_ms = (cpu_seconds(pid) - cpu0) / args.n * 1e3
+        threads1 = thread_cpu_seconds(pid)
+        if spy is not None:
+            spy.send_signal(signal.SIGINT)
+            spy.wait(60)
+        names.update({t: n for t, n in thread_names(pid).items() if t not in names})
+        thread_ms: dict[str, float] = {}
+        for t, c in threads1.items():
+            name = names.get(t, "other threads (not Python)")
+            thread_ms[name] = thread_ms.get(name, 0.0) + (c - threads0.get(t, 0.0))
+        thread_ms = {k: round(v / args.n * 1e3, 2) for k, v in
+                     sorted(thread_ms.items(), key=lambda kv: -kv[1]) if v > 0}
         lat_rate = 0.5 * rate_full  # half the sustained rate: latency, not queueing
         _, lat = run_phase(phase(n_warm + args.n, len(strokes)), broker, rx, rate=lat_rate)
         time.sleep(1.0)  # the answers to the last sensor messages
         sensor_answers = dict(rx.sensor_answers)
         rx.stop()
         stop()
+        got = re.search(r"tracker steps ([0-9.]+) s CPU", (tmp / "serve.log").read_text())
+        serve_step_s = float(got.group(1)) if got else math.nan
         restart = serve("b.sqlite", "restart")  # after a crash: the same store
         stop()
+        floor_ms, floor_rate = mqtt_floor(tmp, port, broker, procs, phase(0, n_warm),
+                                          phase(n_warm, n_warm + args.n), args.n)
     finally:
         for p in reversed(procs):
             p.terminate()
             p.wait(20)
     with sqlite3.connect(tmp / "b.sqlite") as db:
+        accepted = int(db.execute("SELECT COUNT(*) FROM products WHERE status = "
+                                  "'accepted'").fetchone()[0])
         alarm_products = int(db.execute("SELECT COUNT(DISTINCT seq) FROM alarms WHERE seq > ?",
                                         (n_warm,)).fetchone()[0])
         alarms_by_chart = {f"{v}:{c}": int(k) for v, c, k in db.execute(
@@ -426,6 +540,10 @@ def main() -> int:
         "startup_first_store_s": round(startup_first, 2),
         "restart_s": round(restart, 2),
         "processor_part_cpu_ms": per_part,
+        "serve_thread_cpu_ms": thread_ms,
+        "serve_step_cpu_ms": round(serve_step_s / accepted * 1e3, 2),
+        "mqtt_floor_cpu_ms": round(floor_ms, 3),
+        "mqtt_floor_products_per_s": round(floor_rate, 1),
         "targets": TARGETS,
         "met": met,
         "n_full_speed": args.n,

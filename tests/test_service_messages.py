@@ -155,3 +155,71 @@ def test_arbitrary_field_values_never_crash(value: object, key: str) -> None:
     else:
         assert np.all(np.isfinite(s.force_N)) and s.force_N.size == N_T
         assert not math.isnan(float(s.cycle))
+
+
+def _outcome(read: object) -> object:
+    """What a parse gave: the stroke's fields, or the rejection's reason and detail."""
+    try:
+        s = read()  # type: ignore[operator]
+    except MessageError as e:
+        return ("rejected", e.reason, e.detail, e.part_id)
+    return (s.part_id, s.cycle, s.timestamp, s.force_N.tobytes(), s.digest,
+            None if s.angles_deg is None else s.angles_deg.tobytes(),
+            None if s.u is None else s.u.tobytes())
+
+
+EDGES = [10**19, 2**64, -(2**63) - 1, 10**30, 10**400, 1e30, -1e19, 1.5e308, "\ud800",
+         "x\ud800y", 0.1, 2**53 + 1]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(st.sampled_from(EDGES), st.integers(), st.floats(allow_nan=True),
+                 st.text(max_size=4), st.lists(st.sampled_from(EDGES) | st.floats()
+                                               | st.integers(), min_size=1, max_size=3)),
+       st.sampled_from(["part_id", "cycle", "timestamp", "force_N", "angles_deg", "u",
+                        "extra"]),
+       st.booleans())
+def test_fast_read_is_the_standard_librarys(value: object, key: str, in_list: bool) -> None:
+    # orjson's read (the fast path) and the standard library's give the same stroke, or
+    # the same rejection with the same detail, also for integers beyond 64 bits (orjson
+    # reads them as floats), lone surrogates and non-finite literals (orjson refuses them)
+    from formtwin.service.messages import _stroke
+
+    msg = good()
+    if key == "force_N" and in_list:
+        force = list(np.linspace(0.0, 400.0, N_T))
+        force[3] = value
+        msg[key] = force
+    else:
+        msg[key] = value
+    try:
+        payload = json.dumps(msg).encode()  # NaN and Infinity as their literals
+    except (ValueError, TypeError):
+        return
+    assert _outcome(lambda: parse_stroke(payload, LIM)) == \
+        _outcome(lambda: _stroke(payload, LIM, fast=False))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.one_of(st.sampled_from(EDGES), st.integers(), st.floats(allow_nan=True),
+                 st.text(max_size=4)),
+       st.sampled_from(["part_id", "sensor", "value", "timestamp"]))
+def test_fast_read_of_a_sensor_message_is_the_standard_librarys(value: object,
+                                                                 key: str) -> None:
+    from formtwin.service.readings import SENSOR_SCHEMA, _reading, parse_reading
+
+    msg = {"schema": SENSOR_SCHEMA, "part_id": "P-1", "sensor": "camera", "value": 86.5,
+           "timestamp": "2026-11-21T23:00:00Z", key: value}
+    try:
+        payload = json.dumps(msg).encode()
+    except (ValueError, TypeError):
+        return
+
+    def outcome(read: object) -> object:
+        try:
+            return read()  # type: ignore[operator]
+        except MessageError as e:
+            return ("rejected", e.reason, e.detail, e.part_id)
+
+    assert outcome(lambda: parse_reading(payload, ("camera",))) == \
+        outcome(lambda: _reading(payload, ("camera",), fast=False))

@@ -199,6 +199,12 @@ def test_too_late_is_stored_flagged_and_not_fused(
     proc.close()
 
 
+def held_in_store(proc: Any) -> int:
+    """Values stored as held."""
+    return int(proc.store.query("SELECT COUNT(*) FROM measurements WHERE status = "
+                                "'held'")[0][0])
+
+
 def test_hold_is_bounded_in_count_and_age(
         tmp_path: Path, stream: tuple[list[bytes], list[str], Any],
         monkeypatch: pytest.MonkeyPatch) -> None:
@@ -210,7 +216,9 @@ def test_hold_is_bounded_in_count_and_age(
     assert early == ["held"] * 3
     full = proc.handle_sensor(reading(ids[2], "gauge", float(values["gauge"][2])))
     assert full.kind == "rejected" and full.message["reason"] == "hold_full"
+    assert proc.sensors._held == held_in_store(proc) == 3
     outs = play(proc, [("s", p) for p in pay[:4]])
+    assert proc.sensors._held == held_in_store(proc) == 0
     notices = [n for o in outs for n in o.notices]
     assert [o.kind for o in outs] == ["accepted"] * 4
     assert [n["reason"] for n in notices] == ["hold_expired"] * 3  # at the 4th product
@@ -370,6 +378,7 @@ def test_the_measurements_kept_in_memory_are_the_stored_ones(
         play(proc, [(k, p)])
         kept = proc.sensors.since_last()
         assert kept == proc.sensors._fused_since(proc.sensors.last_accepted)
+        assert proc.sensors._held == held_in_store(proc)  # the count kept in memory
         seen = max(seen, len(kept))
     proc.close()
     assert seen >= 2  # the scenario lists more than one value in an estimate

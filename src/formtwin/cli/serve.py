@@ -367,7 +367,8 @@ def _serve(args: argparse.Namespace) -> int:
               + (f", alarms -> {topics.alarms}" if monitor is not None else ""), flush=True)
         service.run(stop, timeout=args.connect_timeout,
                     on_connected=lambda: print("connected and subscribed", flush=True))
-        print(f"stopped after {service.handled} messages ({service.busy_s:.2f} s busy)",
+        print(f"stopped after {service.handled} messages ({service.busy_s:.2f} s busy, "
+              f"tracker steps {proc.step_cpu_s:.3f} s CPU)",
               flush=True)
         if check is not None:
             return check.report()

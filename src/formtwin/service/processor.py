@@ -198,6 +198,7 @@ class Processor:
             "SELECT COUNT(*) FROM products WHERE status = 'accepted' AND seq > ?",
             (0 if ck is None else ck[0],))[0][0])
         self.redelivered = 0
+        self.step_cpu_s = 0.0  #: CPU s (thread time) of the tracker steps made here
         #: the sensor messages' part (:mod:`formtwin.service.sensors`)
         self.sensors = SensorDesk(store, tracker, limits.max_bytes)
 
@@ -218,7 +219,6 @@ class Processor:
         if blas is not None:
             blas.__exit__(None, None, None)
 
-    # ------------------------------------------------------------------ internals
     def _rollback(self) -> None:
         replay(self.store, self.tracker)
         for m in (self.monitor, self.health, self.controller):
@@ -236,7 +236,6 @@ class Processor:
                 log.exception("on_outcome listener failed")
         return out
 
-    # ------------------------------------------------------------------ the step
     def handle(self, payload: bytes, topic: str = "", received_at: float | None = None
                ) -> Outcome:
         """Process one raw message and return its :class:`Outcome` (never raises for bad
@@ -302,7 +301,9 @@ class Processor:
             except MessageError as err:
                 return self._reject(err, payload, topic, now)
         try:
+            c0 = time.thread_time()
             est = self.tracker.step(stroke.force_N, stroke.u)
+            self.step_cpu_s += time.thread_time() - c0
         except ValueError as exc:  # the tracker's contract: state untouched
             return self._reject(MessageError("tracker_rejected", str(exc)[:300],
                                              stroke.part_id), payload, topic, now)
@@ -317,7 +318,7 @@ class Processor:
         except (sqlite3.Error, OSError, RuntimeError):  # storage: fatal for the service
             self._rollback()
             raise
-        except Exception as exc:  # e.g. an estimate that is not JSON: reject, go on
+        except Exception as exc:  # e.g. an estimate that is not storable: reject, go on
             log.exception("storing the estimate of part %s failed", stroke.part_id)
             self._rollback()
             return self._reject(MessageError(

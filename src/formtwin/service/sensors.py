@@ -168,6 +168,11 @@ class SensorDesk:
         #: the answers (``formtwin.measurement/1``) of the held values :meth:`at_product`
         #: decided for the product being committed (fused or rejected): the live page's
         self.held_answers: list[dict[str, Any]] = []
+        #: values stored as held (the store's count, kept here: most products have none,
+        #: and :meth:`at_product` then reads nothing); after the product being committed
+        self._held = int(store.query("SELECT COUNT(*) FROM measurements WHERE status = "
+                                     "'held'")[0][0])
+        self._held_after = self._held
 
     @property
     def active(self) -> bool:
@@ -259,14 +264,14 @@ class SensorDesk:
 
     def _hold(self, r: Reading, payload: bytes, topic: str, now: float, last_seq: int
               ) -> tuple[str, dict[str, Any]]:
-        held = int(self.store.query("SELECT COUNT(*) FROM measurements WHERE status = "
-                                    "'held'")[0][0])
+        held = self._held
         if held >= HOLD_COUNT:
             return "rejected", refuse(self.store, MessageError(
                 "hold_full", f"part {r.part_id!r} not yet seen and {held} values already "
                 f"held (at most {HOLD_COUNT})", r.part_id), payload, topic, now)
         msg = dict(self._answer(r, None, None), status="held")
         self._insert(r, "held", last_seq, None, None, now, msg)
+        self._held = self._held_after = held + 1
         return "held", msg
 
     def _insert(self, r: Reading, status: str, at_seq: int, index: int | None, u: Any,
@@ -298,6 +303,9 @@ class SensorDesk:
         notices: list[dict[str, Any]] = []
         self._pending = (part_id, int(index), u, final)
         self._pending_since, self.held_answers = [], []
+        self._held_after = self._held
+        if not self._held:
+            return notices
         held = cur.execute("SELECT id, sensor, value, message FROM measurements WHERE "
                            "status = 'held' AND part_id = ? ORDER BY id", (part_id,)).fetchall()
         est = {"final": final}
@@ -332,11 +340,13 @@ class SensorDesk:
                 "hold_expired", f"{sensor} of part {pid!r} held for {HOLD_PRODUCTS} "
                 "products without its curve: stored as expired, not fused", str(pid)),
                 "held", 0.0))
+        self._held_after = self._held - len(held) - len(old)
         return notices
 
     def committed(self, seq: int) -> None:
         """Accepted product ``seq`` is in (with what :meth:`at_product` saw of it)."""
         self.last_accepted = seq
+        self._held = self._held_after
         self._since, self._pending_since = self._pending_since, []
         if self._pending is not None:
             part_id, *known = self._pending
