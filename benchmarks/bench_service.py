@@ -339,6 +339,9 @@ def main() -> int:
     ap.add_argument("--sensor", default="camera",
                     help="the spec's sensor those messages carry (default: camera)")
     args = ap.parse_args()
+    if args.py_spy and not Path(sys.executable).with_name("py-spy").exists():
+        ap.error("--py-spy: py-spy is not installed in this environment "
+                 "(pip install py-spy; it is not a dependency of formtwin)")
     sensors = (args.sensor,) if args.sensor_messages_per_product else ()
     stream_model: Any = analytic_model()
     if args.model == "physics":
