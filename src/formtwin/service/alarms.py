@@ -112,7 +112,8 @@ def monitor_config(store: Store, tracker: Tracker, source: MonitorSource) -> Mon
 
 def _calibrated(store: Store, tracker: Tracker, source: MonitorSource) -> MonitorConfig:
     """The charts calibrated on simulated in-control runs, or the same calibration kept in
-    ``source.cache`` by a digest of its inputs."""
+    ``source.cache`` by a digest of its inputs (made by one service at a time: a second
+    one with the same inputs waits for it)."""
     path = None
     if source.cache is not None:
         inputs = {"model": store.get_meta("model_digest"),
@@ -121,6 +122,14 @@ def _calibrated(store: Store, tracker: Tracker, source: MonitorSource) -> Monito
                   "products": source.products, "seed": source.seed,
                   "design": dataclasses.asdict(source.design)}
         path = _cache.entry(source.cache, "monitor-config", inputs, ".json")
+    with _cache.computing(path):
+        return _kept_or_calibrated(tracker, source, path)
+
+
+def _kept_or_calibrated(tracker: Tracker, source: MonitorSource, path: Path | None
+                        ) -> MonitorConfig:
+    """The calibration kept at ``path``, else made (and kept there)."""
+    if path is not None:
         try:
             config = MonitorConfig.from_json(path.read_text(encoding="utf-8"))
         except (OSError, ValueError, KeyError, TypeError):
@@ -204,6 +213,11 @@ class ServiceMonitor:
         charts (seconds), or kept in ``cache`` by a digest of the chart configuration."""
         path = None if cache is None else _cache.entry(
             cache, "clear-after", {"config": self.config.to_json()}, ".json")
+        with _cache.computing(path):
+            return self._kept_or_simulated(path)
+
+    def _kept_or_simulated(self, path: Path | None) -> str:
+        """The clear-after products kept at ``path``, else simulated (and kept there)."""
         if path is not None and path.is_file():
             try:
                 text = path.read_text(encoding="utf-8")

@@ -11,7 +11,10 @@ the measurement model's fingerprint, the calibration's settings) and of the sour
 ``formtwin`` package that computes it (:func:`code_digest`): a new version of the code or
 any other input gives another key, never a stale entry. An entry is written atomically (a
 temporary file, then a rename), so services starting side by side never read half a file;
-one that cannot be read is computed again. The folder: ``serve --cache DIR``, by default
+one that cannot be read is computed again. While a process computes an entry it holds the
+entry's lock (:func:`computing`, a file lock beside it): a second service starting beside
+it with the same inputs waits for that result and reads it instead of computing it too.
+The folder: ``serve --cache DIR``, by default
 ``$FORMTWIN_CACHE``, else ``$XDG_CACHE_HOME/formtwin``, else ``~/.cache/formtwin``.
 """
 
@@ -21,6 +24,8 @@ import hashlib
 import json
 import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -74,3 +79,28 @@ def write_atomic(path: Path, data: bytes) -> None:
         os.replace(tmp, path)
     except OSError as exc:
         log.warning("cache %s not written: %s", path, exc)
+
+
+@contextmanager
+def computing(path: Path | None) -> Iterator[None]:
+    """Hold the lock of the entry ``path`` (an exclusive ``flock`` on ``.NAME.lock`` beside
+    it) for the block that reads the entry and, when it is missing, computes and writes it:
+    another process in the same block for the same entry waits, then finds the result. The
+    lock is released when the block ends, also by an exception or the process's death.
+    ``None`` (no cache) or a folder where no lock file can be made: no lock (the block
+    runs at once, as without it; the result is still computed)."""
+    if path is None:
+        yield
+        return
+    import fcntl  # POSIX; a service's store needs it too
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(path.with_name(f".{path.name}.lock"), "a+b")  # noqa: SIM115 (held below)
+    except OSError as exc:
+        log.warning("cache %s not locked: %s", path, exc)
+        yield
+        return
+    with fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        yield

@@ -150,10 +150,18 @@ def explainer(tracker: Tracker) -> Callable[[FloatArray, FloatArray | None], flo
 def _new_measurement(model: Any, settings: ServiceSettings, model_digest: str | None,
                      mpath: Path, cache: str | Path | None) -> None:
     """Write a new store's measurement model to ``mpath``: the one kept in ``cache`` for
-    the same model and tracker settings, else built (and kept there)."""
+    the same model and tracker settings, else built (and kept there; by one service at a
+    time, a second one with the same inputs waits for it)."""
     kept = None if cache is None else _cache.entry(
         cache, "measurement", {"model": model_digest, "tracker": settings.tracker.to_dict()},
         ".npz")
+    with _cache.computing(kept):
+        _kept_or_built(model, settings, mpath, kept)
+
+
+def _kept_or_built(model: Any, settings: ServiceSettings, mpath: Path, kept: Path | None
+                   ) -> None:
+    """Copy the measurement model kept at ``kept`` to ``mpath``, else build it there."""
     if kept is not None and kept.is_file():
         try:
             MeasurementModel.load(kept)  # readable: a file another service finished
