@@ -37,9 +37,10 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import orjson
@@ -190,6 +191,23 @@ def loads(payload: bytes, fast: bool = True) -> Any:
     return _DECODER.decode(payload.decode("utf-8"))
 
 
+_Doc = TypeVar("_Doc")
+
+
+def read_fast_then_exact(parse: Callable[[bool], _Doc | None]) -> _Doc:
+    """``parse(fast=True)``; ``parse(fast=False)`` (the standard library's read, see
+    :func:`loads`) where the fast read was rejected (a :class:`MessageError`) or says it
+    may differ (None): a rejected message gets the standard read's reason and detail."""
+    try:
+        out = parse(True)
+    except MessageError:
+        out = None
+    if out is None:
+        out = parse(False)
+        assert out is not None  # only a fast read gives None
+    return out
+
+
 #: the types of a JSON number (``bool``, a subclass of ``int``, is not one)
 _NUMBER_TYPES = frozenset((int, float))
 
@@ -255,14 +273,7 @@ def parse_stroke(payload: bytes, limits: Limits) -> Stroke:
     """
     if len(payload) > limits.max_bytes:
         raise MessageError("oversized", f"{len(payload)} bytes > limit {limits.max_bytes}")
-    try:
-        stroke = _stroke(payload, limits, fast=True)
-    except MessageError:  # read again as the standard library reads it (:func:`loads`)
-        stroke = None
-    if stroke is None:
-        stroke = _stroke(payload, limits, fast=False)
-        assert stroke is not None  # only a fast read gives None
-    return stroke
+    return read_fast_then_exact(lambda fast: _stroke(payload, limits, fast))
 
 
 def _stroke(payload: bytes, limits: Limits, fast: bool) -> Stroke | None:

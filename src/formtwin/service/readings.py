@@ -9,7 +9,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from formtwin.service.messages import LONG_INT, MessageError, loads
+from formtwin.service.messages import LONG_INT, MessageError, loads, read_fast_then_exact
 
 SENSOR_SCHEMA = "formtwin.sensor/1"
 
@@ -47,14 +47,7 @@ def parse_reading(payload: bytes, sensors: tuple[str, ...], max_bytes: int = 655
     """
     if len(payload) > max_bytes:
         raise MessageError("oversized", f"{len(payload)} bytes > limit {max_bytes}")
-    try:
-        reading = _reading(payload, sensors, fast=True)
-    except MessageError:  # read again as the standard library reads it (:func:`loads`)
-        reading = None
-    if reading is None:
-        reading = _reading(payload, sensors, fast=False)
-        assert reading is not None  # only a fast read gives None
-    return reading
+    return read_fast_then_exact(lambda fast: _reading(payload, sensors, fast))
 
 
 def _reading(payload: bytes, sensors: tuple[str, ...], fast: bool) -> Reading | None:
