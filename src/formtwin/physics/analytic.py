@@ -78,6 +78,12 @@ def _softplus(z: FloatArray) -> FloatArray:
     return np.logaddexp(0.0, z)
 
 
+def _coin_stiffness(c: dict[str, FloatArray]) -> FloatArray:
+    """The coining contact in series with the press (n, 1), N/mm, of the columns ``c``."""
+    out: FloatArray = 1.0 / (1.0 / _K_COIN + 1.0 / c["press_stiffness"])
+    return out
+
+
 def _angles(c: dict[str, FloatArray], k_coin: FloatArray) -> FloatArray:
     """Bend angles after stage 1 and stage 2 (n, 2), degrees, of the input columns ``c``
     (each (n, 1)): geometry minus springback (reduced by coining); ``k_coin`` (n, 1) N/mm
@@ -182,16 +188,14 @@ class AnalyticBending:
         f_slide = mu_tt * _F_SLIDE * engaged * np.tanh(-speed / _V_SLIDE)
         # coining: bent sheet pressed between punch and die, spring in series with press
         gap = d_end + v_al + p - _THICKEN * th
-        k_coin = 1.0 / (1.0 / _K_COIN + 1.0 / k_press)
+        k_coin = _coin_stiffness(c)
         f_coin = k_coin * _SOFT_COIN * _softplus(-gap / _SOFT_COIN)
         curves = f_bend + f_slide + f_coin
 
         angles = _angles(c, k_coin)
-
-        if self.failure_clearance is not None:
-            bad = (d_end + v_al - th)[:, 0] < self.failure_clearance
-            curves[bad] = np.nan
-            angles[bad] = np.nan
+        bad = self._failed(c)
+        curves[bad] = np.nan
+        angles[bad] = np.nan
         return curves, angles
 
     def run_angles(self, X: FloatArray) -> FloatArray:
@@ -199,11 +203,18 @@ class AnalyticBending:
         cost): ``X`` (n, 11) or (n, 10), internal units; returns (n, 2), degrees, NaN for
         failed runs."""
         c = self._columns(self.spec.run_columns(X))
-        angles = _angles(c, 1.0 / (1.0 / _K_COIN + 1.0 / c["press_stiffness"]))
-        if self.failure_clearance is not None:
-            bad = (c["punch_end_distance"] + c["vertical_alignment"] - c["thickness"])[:, 0]
-            angles[bad < self.failure_clearance] = np.nan
+        angles = _angles(c, _coin_stiffness(c))
+        angles[self._failed(c)] = np.nan
         return angles
+
+    def _failed(self, c: dict[str, FloatArray]) -> NDArray[np.bool_]:
+        """The runs (n,) of the input columns ``c`` whose clearance is below
+        ``failure_clearance`` (none without it)."""
+        clearance = (c["punch_end_distance"] + c["vertical_alignment"] - c["thickness"])[:, 0]
+        if self.failure_clearance is None:
+            return np.zeros(clearance.shape, dtype=bool)
+        out: NDArray[np.bool_] = clearance < self.failure_clearance
+        return out
 
     def failure_reason(self, x: FloatArray) -> str:
         """Why the run at ``x`` (shape ``(11,)`` or ``(10,)``) fails, or ``""`` if it does not."""

@@ -246,6 +246,7 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
     def sample_transition(self, x: FloatArray, rng: np.random.Generator) -> FloatArray:
         """Particles (N, d) of the next product given those of this one (N, d)."""
         lo, hi, nx, na = self._lo, self._hi, self.n_x, self.n_aug
+        stop = na if self.config.estimate_deviation else self.n_in
         out = np.empty_like(x)
         if self.config.learn_mu:  # a draw of the predictive with mu integrated out
             m, P = x[:, na:na + nx], x[:, na + nx:na + 2 * nx]
@@ -259,8 +260,6 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
             out[:, :nx] = into_box(new, lo[:nx], hi[:nx])
             out[:, na:na + nx], out[:, na + nx:na + 2 * nx] = mu_update(
                 m, P, x[:, :nx], out[:, :nx], self._sigma, self._rho)
-        stop = na if self.config.estimate_deviation else self.n_in
-        if self.config.learn_mu:
             out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                      self.config.alpha)
         else:  # eq. 4-5 and the jitter of eq. 10 in one pass: x -> a + b x + s v
