@@ -154,6 +154,37 @@ def test_health_window_opens_and_closes_once_per_episode() -> None:
         HealthRule(k=11, m=10)
 
 
+@pytest.mark.parametrize("explained", [(True, True, False), (False, False, True),
+                                       (True, False, True), (False, True, False),
+                                       (True, False, False)])
+def test_explain_check_stops_when_the_majority_is_decided(tmp_path: Path,
+                                                          explained: tuple[bool, ...]) -> None:
+    """The rule fires with three unexplained curves kept: the box search runs on them,
+    oldest first, only until the majority is decided (each search takes up to ~0.2 s),
+    and the decision is the majority of all three."""
+    from formtwin.service.health import ModelHealth, chi2_quantile
+    from formtwin.service.store import Store
+
+    q = chi2_quantile(0.999, 4)
+    calls: list[float] = []
+
+    def explain(curve: np.ndarray, mean: np.ndarray | None) -> float:
+        calls.append(float(curve[0]))
+        return 0.5 * q if explained[int(curve[0])] else 2.0 * q
+
+    store = Store(tmp_path / "h.sqlite")
+    health = ModelHealth(store, HealthRule(k=3, m=10), explain=explain)
+    fit = {"dof": 4, "distance2": 3.0 * q}
+    for i in range(3):
+        entry = health.observe({"health": "no_fit", "fit": fit}, np.full(4, float(i)))
+        health.committed()
+    vetoed = sum(explained) >= 2
+    assert ("explained" in entry) == vetoed and (entry["state"] == "ok") == vetoed
+    decided = 2 if explained[0] == explained[1] else 3
+    assert calls == [0.0, 1.0, 2.0][:decided]
+    store.close()
+
+
 def _episodes(health: np.ndarray) -> int:
     w = HealthWindow(HealthRule())
     return sum(w.push(str(h)) == "opened" for h in health)

@@ -8,8 +8,10 @@ health of the last ``m`` accepted products and, when at least ``k`` of them are
 ``no_fit`` (:class:`HealthRule`, defaults ``k = 5`` of ``m = 10``), asks whether the
 model could explain those curves at all (the ``explain`` check: the best fit over the
 model's whole box, :mod:`formtwin.tracker.explain`, on the last up to 3 unexplained
-curves). If it can, the *filter* is behind (its start-up, a process change, a cloud stuck
-in a wrong mode): nothing is raised, the entry says ``explained``, the count starts afresh.
+curves, until their majority is decided: 30-200 ms a curve for the bundled metamodel, the
+one product of the service that takes that long). If it can, the *filter* is behind (its
+start-up, a process change, a cloud stuck in a wrong mode): nothing is raised, the entry
+says ``explained``, the count starts afresh.
 If it cannot, a *model mismatch episode* opens:
 
 * one ``model_mismatch`` message (schema ``formtwin.error/1``) on the errors topic, in
@@ -207,8 +209,9 @@ class ModelHealth:
     explain : callable or None
         ``explain(curve, mean)``: the smallest squared Mahalanobis distance of a curve
         over the model's whole box (:func:`formtwin.tracker.explain.best_distance2`). When
-        the rule fires, the last (up to 3) unexplained curves are checked: if the model
-        reaches the 99.9 % quantile on most of them, the filter (not the model) is behind,
+        the rule fires, the last (up to 3) unexplained curves are checked, oldest first,
+        until the majority is decided: if the model reaches the 99.9 % quantile on most
+        of them, the filter (not the model) is behind,
         and no episode opens (``model_health.explained`` says so); the count starts afresh.
     """
 
@@ -261,10 +264,10 @@ class ModelHealth:
         self._remember(message, curve)
         entry: dict[str, Any] = {}
         if event == "opened" and self.explain is not None and self._failing:
-            best = [float(self.explain(c, m)) for c, m in self._failing]
             dof = int((message.get("fit") or {}).get("dof") or len(self._failing[0][0]))
             q = chi2_quantile(0.999, dof)
-            if 2 * sum(b <= q for b in best) > len(best):
+            best = self._search(q)
+            if 2 * sum(b <= q for b in best) > len(self._failing):
                 self.window.veto()
                 event = None
                 entry["explained"] = {
@@ -281,6 +284,20 @@ class ModelHealth:
             entry.update(_describe(list(self._recent), self.rule, self.expected_peak,
                                    entry.get("best_distance2")))
         return entry
+
+    def _search(self, q: float) -> list[float]:
+        """The best distances of the unexplained curves, newest last, searched (each
+        30-200 ms for the bundled metamodel) only until the majority is decided: those
+        at most ``q`` explain them, the others not."""
+        assert self.explain is not None
+        best: list[float] = []
+        n = len(self._failing)
+        for c, m in self._failing:
+            best.append(float(self.explain(c, m)))
+            ok = sum(b <= q for b in best)
+            if 2 * ok > n or 2 * (len(best) - ok) >= n:
+                break
+        return best
 
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
