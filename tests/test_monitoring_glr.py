@@ -175,3 +175,17 @@ def test_a_bounded_statistic_gets_no_glr_chart() -> None:
     lasting = {n: config.quantities[n].phi for n in names}
     assert 1.0 - sum(lasting["a"]) < 0.02 and set(config.glr) == {"b"}
     assert set(config.cusum_on or ()) == {"a", "b"}
+
+
+def test_kernel_loaded_at_start_is_the_one_the_chart_uses() -> None:
+    """:func:`load_kernel` (a service's start) gives the kernel the type signature of the
+    chart's own calls: the first charted product loads or compiles nothing more."""
+    from formtwin.monitoring.glr import _glr_step, load_kernel
+
+    load_kernel()
+    before = list(_glr_step.signatures)
+    assert len(before) >= 1
+    chart, state = Glr(level_signature((0.6,)), h=5.0, window=20), GlrState()
+    for z in (0.3, -1.2, 2.5):
+        state, _ = chart.update(state, z)
+    assert list(_glr_step.signatures) == before

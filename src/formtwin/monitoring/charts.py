@@ -13,8 +13,9 @@ Two-sided tabular CUSUM (Page 1954; Montgomery eq. 9.2-9.3), ``k`` and ``h`` in 
     signal when C+_i > h or C-_i > h
 
 A chart restarts after it signals (``Z``, ``C`` to 0 and ``i`` to 0), the usual practice once
-the cause has been looked for. Chart states are small immutable values, so a monitor's state
-is a plain record that can be saved and restored.
+the cause has been looked for. Chart states are small immutable values (named tuples: a
+monitor makes ~25 of them per product), so a monitor's state is a plain record that can be
+saved and restored.
 
 Run lengths: :func:`cusum_arl_siegmund` (Siegmund's approximation), :func:`ewma_arl`
 (Brook & Evans' Markov chain), and the inverses :func:`cusum_h` and :func:`ewma_L` that
@@ -30,7 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.optimize import brentq
@@ -73,24 +74,21 @@ class Alarm:
                 "side": self.side}
 
 
-@dataclass(frozen=True)
-class EwmaState:
+class EwmaState(NamedTuple):
     """EWMA statistic ``z`` after ``i`` observations since the (re)start."""
 
     z: float = 0.0
     i: int = 0
 
 
-@dataclass(frozen=True)
-class CusumState:
+class CusumState(NamedTuple):
     """Upper and lower CUSUM sums, sigma units."""
 
     hi: float = 0.0
     lo: float = 0.0
 
 
-@dataclass(frozen=True)
-class Signal:
+class Signal(NamedTuple):
     """A chart's verdict on one observation: its statistic, the limit it was held against
     and the side it crossed (``"high"``, ``"low"`` or ``""`` for none)."""
 

@@ -56,6 +56,7 @@ import numpy as np
 from formtwin.monitoring.calibrate import ChartDesign, calibrate, in_control_runs
 from formtwin.monitoring.charts import Alarm
 from formtwin.monitoring.episodes import Change, Episode, Episodes, clear_after
+from formtwin.monitoring.glr import load_kernel
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
 from formtwin.service import alarm_tables as tables
 from formtwin.service import cache as _cache
@@ -183,6 +184,8 @@ class ServiceMonitor:
         self.store = store
         had_episodes = tables.ensure(store)
         self.monitor = Monitor(config)
+        if config.glr:  # at the start, not at the first charted product
+            load_kernel()
         stored = store.get_meta("alarm_clear_after")
         if stored is None:
             stored = self._clear_after(cache)
