@@ -11,7 +11,10 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
 * ``full_speed_latency_p99_ms``: the same measured during the full-speed phase (queueing);
 * peers in the same run: ``processor_products_per_s`` (the same processing in-process, no
   broker: validation, tracker, model health, control charts, store, page feed; measured
-  once the charts run) and ``tracker_step_ms`` (the tracker alone);
+  once the charts run) and ``tracker_step_ms`` (the tracker alone, on the stream's next
+  200 products after the peer's 500, ``tracker_step_products``, as a service goes on;
+  ``tracker_step_cpu_ms_replayed_curves``: the same tracker on the stream's first 200 curves
+  again, ~1 ms a step less: a step's cost depends on the curves);
 * ``alarm_products``: products of the full-speed and paced phases whose estimate raised an
   alarm; ``alarms_by_chart`` counts them per ``variable:chart``. The stream is in control
   (no change) and the service is told its line's state means (``serve --mu``, the
@@ -320,6 +323,16 @@ class PartTimer:
                 setattr(obj, name, old)
 
 
+def step_alone(tracker: Any, strokes: list[Stroke]) -> tuple[float, float]:
+    """The tracker's step on ``strokes`` (at their settings) in a loop of steps alone: wall
+    and CPU (thread) ms a step."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    for s in strokes:
+        tracker.step(s.force_N, s.u)
+    return ((time.perf_counter() - t0) / len(strokes) * 1e3,
+            (time.thread_time() - c0) / len(strokes) * 1e3)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", default="physics",
@@ -499,12 +512,14 @@ def main() -> int:
     peer_cpu_ms = (time.thread_time() - c0) / (n_peer - peer_warm) * 1e3
     per_part = parts.ms_per_product(n_peer - peer_warm, peer_cpu_ms)
     parts.remove()
-    tail = strokes[:200]  # the curves again: the tracker does not mind
-    t0, c0 = time.perf_counter(), time.thread_time()
-    for s in tail:
-        proc.tracker.step(s.force_N)
-    step_ms = (time.perf_counter() - t0) / len(tail) * 1e3
-    step_cpu_ms = (time.thread_time() - c0) / len(tail) * 1e3
+    # the step alone on the stream's next products (the tracker goes on as in service; the
+    # first curves again cost ~1 ms less a step: recorded beside it)
+    first = n_peer
+    fresh = strokes[first:first + 200]
+    if len(fresh) < 50:  # a short stream: its first curves again
+        first, fresh = 0, strokes[:200]
+    step_ms, step_cpu_ms = step_alone(proc.tracker, fresh)
+    _, replayed_cpu_ms = step_alone(proc.tracker, strokes[:200])
     proc.close()
     proc.store.close()
     shutil.rmtree(tmp, ignore_errors=True)
@@ -535,6 +550,8 @@ def main() -> int:
         "tracker_step_ms": round(step_ms, 2),
         "serve_cpu_ms_per_product": round(serve_cpu_ms, 2),
         "tracker_step_cpu_ms": round(step_cpu_ms, 2),
+        "tracker_step_products": f"{first}..{first + len(fresh) - 1} of the stream",
+        "tracker_step_cpu_ms_replayed_curves": round(replayed_cpu_ms, 2),
         "serve_overhead_cpu_ms": round(overhead, 2),
         "processor_cpu_ms_per_product": round(peer_cpu_ms, 2),
         "processor_overhead_cpu_ms": round(peer_cpu_ms - step_cpu_ms, 2),
