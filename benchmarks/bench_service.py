@@ -14,7 +14,7 @@ temporary folder, default ``synchronous=NORMAL``), and this script as press and 
   once the charts run) and ``tracker_step_ms`` (the tracker alone, on the stream's next
   200 products after the peer's 500, ``tracker_step_products``, as a service goes on;
   ``tracker_step_cpu_ms_replayed_curves``: the same tracker on the stream's first 200 curves
-  again, ~1 ms a step less: a step's cost depends on the curves);
+  again, as earlier versions measured it);
 * ``alarm_products``: products of the full-speed and paced phases whose estimate raised an
   alarm; ``alarms_by_chart`` counts them per ``variable:chart``. The stream is in control
   (no change) and the service is told its line's state means (``serve --mu``, the
@@ -513,7 +513,7 @@ def main() -> int:
     per_part = parts.ms_per_product(n_peer - peer_warm, peer_cpu_ms)
     parts.remove()
     # the step alone on the stream's next products (the tracker goes on as in service; the
-    # first curves again cost ~1 ms less a step: recorded beside it)
+    # first curves again, as earlier versions measured it, recorded beside it)
     first = n_peer
     fresh = strokes[first:first + 200]
     if len(fresh) < 50:  # a short stream: its first curves again
