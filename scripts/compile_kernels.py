@@ -93,13 +93,15 @@ def main() -> None:
     t2 = time.perf_counter()
     print(f"metamodel and deviation kernels: {t2 - t1:.1f} s")
 
+    from formtwin.monitoring.episodes import run_lengths
     from formtwin.monitoring.glr import Glr, GlrState
 
     chart = Glr(signature=(1.0, 0.5), h=5.0, window=20)
     state = GlrState()
     for z in (0.1, -0.2, 0.3):
         state, _ = chart.update(state, z)
-    print(f"GLR kernel: {time.perf_counter() - t2:.1f} s")
+    run_lengths(chart, 1.0, runs=4, horizon=3)  # the clear-after's kernel
+    print(f"GLR kernels: {time.perf_counter() - t2:.1f} s")
 
 
 if __name__ == "__main__":

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.monitoring.charts import Alarm, Cusum, Ewma, ewma_limit
-from formtwin.monitoring.glr import Glr
+from formtwin.monitoring.glr import Glr, glr_advance
 from formtwin.monitoring.monitor import Monitor
 
 #: the quantile of the run length under a persistent shift after which an episode clears
@@ -242,11 +242,7 @@ def run_lengths(chart: Ewma | Cusum | Glr, shift: float, runs: int, horizon: int
             if chart.clip is not None:
                 z = np.clip(z, -chart.clip, chart.clip)
             sig, d2 = chart._s, chart._d2  # type: ignore[attr-defined]
-            sums[:, 1:] = sums[:, :-1].copy()
-            sums[:, 0] = 0.0
-            m = min(t, chart.window)
-            sums[:, :m] += sig[None, :m] * z[:, None]
-            hit = np.max(sums[:, :m] ** 2 / d2[None, :m], axis=1) > chart.h
+            hit = glr_advance(sums, sig, d2, z, min(t, chart.window), chart.h)
         out[left[hit]] = t
         keep = ~hit
         left, a, b, sums = left[keep], a[keep], b[keep], sums[keep]

@@ -183,6 +183,28 @@ def _glr_step(prev, s, d2, z, m):  # type: ignore[no-untyped-def]
     return sums, k, g
 
 
+@njit(cache=True)
+def glr_advance(sums, s, d2, z, m, h):  # type: ignore[no-untyped-def]
+    """One step of many streams' GLR sums (Numba; :func:`~formtwin.monitoring.episodes.
+    run_lengths`): each row of ``sums`` (streams, window) shifted by one age in place, its
+    first ``m`` ages plus ``s[:m] z`` (``z`` (streams,)), the NumPy steps' operations in
+    their order; returns whether each stream's largest ``sums^2 / d2`` exceeds ``h``."""
+    n, w = sums.shape
+    hit = np.zeros(n, dtype=np.bool_)
+    for r in range(n):
+        for j in range(w - 1, 0, -1):
+            sums[r, j] = sums[r, j - 1]
+        sums[r, 0] = 0.0
+        g = -np.inf
+        for j in range(m):
+            sums[r, j] = sums[r, j] + s[j] * z[r]
+            v = sums[r, j] * sums[r, j] / d2[j]
+            if v > g or v != v:
+                g = v
+        hit[r] = g > h
+    return hit
+
+
 def load_kernel() -> None:
     """Load :meth:`Glr.update`'s kernel now (from Numba's cache, ~10 ms; compiled, ~1 s),
     not at the first charted product: a service calls it at its start, so that product's
