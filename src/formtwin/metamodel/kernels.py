@@ -147,3 +147,30 @@ def polynomial(U: FloatArray, powers: NDArray[np.int64],
         for i in np.flatnonzero(p):
             out[:, j] *= V[:, i] ** p[i]
     return out
+
+
+def polynomial_gradient(U: FloatArray, powers: NDArray[np.int64],
+                        plan: LinearPlan | None = None) -> FloatArray:
+    """Derivatives (n, d, q) of the monomials (:func:`polynomial`) of ``2U - 1`` by the
+    unit-box inputs ``U`` (n, d): ``d p_j / d u_i``; ``plan`` as in :func:`polynomial`.
+
+    >>> polynomial_gradient(np.array([[0.5, 0.25]]), monomial_powers(2, 2))[0].tolist()
+    [[0.0, 2.0, 0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 2.0, 0.0, 0.0, -2.0]]
+    """
+    n, d = U.shape
+    out = np.zeros((n, d, powers.shape[0]))
+    if plan is None:
+        plan = linear_plan(powers)
+    if plan is not None:  # d (2 u_i - 1) / d u_i = 2; the constant's derivative is 0
+        lin = np.flatnonzero(~plan[1])
+        out[:, plan[0][lin], lin] = 2.0
+        return out
+    V = 2.0 * U - 1.0
+    for j, p in enumerate(powers):
+        for i in np.flatnonzero(p):  # 2 p_i V_i^(p_i - 1) times the other factors
+            term = 2.0 * p[i] * V[:, i] ** (p[i] - 1)
+            for k in np.flatnonzero(p):
+                if k != i:
+                    term = term * V[:, k] ** p[k]
+            out[:, i, j] = term
+    return out

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin._threads import single_blas_thread
+from formtwin.metamodel.gradient import Gradients
 from formtwin.metamodel.identity import data_digest, fit_id
 from formtwin.metamodel.pod import POD
 from formtwin.metamodel.protocols import Approximation, Dataset, Reduction
@@ -86,7 +87,7 @@ class Prediction:
     outside: BoolArray
 
 
-class Metamodel:
+class Metamodel(Gradients):
     """POD + RBF metamodel of a process model, fitted to a DOE dataset.
 
     Parameters

@@ -46,12 +46,14 @@ from scipy.spatial.distance import cdist
 
 from formtwin.metamodel._fused import cubic_from_gram
 from formtwin.metamodel.kernels import (
+    KERNEL_SLOPES,
     KERNELS,
     SCALE_FREE,
     kernel_function,
     linear_plan,
     monomial_powers,
     polynomial,
+    polynomial_gradient,
 )
 from formtwin.metamodel.loo import interpolation_matrix, loo_objective, loo_residuals
 
@@ -153,6 +155,9 @@ class RBF:
         self.powers = np.zeros((0, 0), dtype=np.int64)
         self.loo_rmse = np.nan
         self._fast: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # float64 scaled centres and, for a tail of degree <= 1, its constant gradient
+        # (d, k): what :meth:`value_and_gradient` reuses
+        self._grad_parts: tuple[FloatArray, FloatArray | None] | None = None
 
     @property
     def powers(self) -> NDArray[np.int64]:
@@ -204,7 +209,7 @@ class RBF:
             self._interpolate(U, Y)
         else:
             self._least_squares(U, Y, order[:self.n_centres])
-        self._fast = {}
+        self._fast, self._grad_parts = {}, None
         self._check_precision(U[order[:500]])
         return self
 
@@ -283,6 +288,32 @@ class RBF:
         if self.powers.shape[0]:
             out += polynomial(U, self.powers, self._plan) @ self.poly_coef
         return out
+
+    def value_and_gradient(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Outputs (N, k) and their derivatives (N, d, k) ``d s_k / d u_i`` at unit-box
+        inputs ``U`` (N, d), in float64: the interpolant of the module doc and its exact
+        gradient ``sum_j w_j 2 phi'(r_j^2) S^2 (u - c_j) + grad p(u) b`` (the evaluation in
+        ``dtype`` rounds the same interpolant). ``N`` times (m, d) temporaries: meant for
+        a few points (a linearisation), not for a cloud."""
+        U = np.atleast_2d(np.asarray(U, dtype=np.float64))
+        if self._grad_parts is None:
+            d = self.centres.shape[1]
+            tail = polynomial_gradient(np.zeros((1, d)), self.powers, self._plan)[0] \
+                @ self.poly_coef if self._plan is not None else None
+            self._grad_parts = (self.centres * self.scales, tail)
+        centres, tail = self._grad_parts
+        D = (U * self.scales)[:, None, :] - centres[None]  # (N, m, d)
+        r2 = np.einsum("nmd,nmd->nm", D, D)
+        value = kernel_function(self.kernel)(r2) @ self.weights
+        slope = KERNEL_SLOPES[self.kernel](r2)  # d phi / d r^2 (N, m)
+        D *= 2.0 * slope[:, :, None]
+        grad = np.matmul(D.transpose(0, 2, 1), self.weights)  # (N, d, k)
+        grad *= self.scales[None, :, None]
+        if self.powers.shape[0]:
+            value += polynomial(U, self.powers, self._plan) @ self.poly_coef
+            grad += tail if tail is not None else \
+                polynomial_gradient(U, self.powers, self._plan) @ self.poly_coef
+        return value, grad
 
     def _check_precision(self, U: FloatArray) -> None:
         """Fall back to float64 evaluation where float32 loses accuracy.

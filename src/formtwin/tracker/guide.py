@@ -53,6 +53,8 @@ class GuidedProposal(GridPosteriors):
     config: Any
     sample_transition: Any
     residuals: Any
+    model: Any
+    deviation: Any
     #: step of the finite differences of the linearisation, in units of sigma
     fd_step: float = 0.1
     #: factor on the proposal's covariance ``S``: above 1 its tails are heavier than the
@@ -132,15 +134,47 @@ class GuidedProposal(GridPosteriors):
         _, n_in, na = self._sizes
         return na if self.config.estimate_deviation else n_in
 
-    def _cloud_jacobian(self, c: FloatArray, spread: FloatArray, y: FloatArray
-                        ) -> tuple[FloatArray, FloatArray]:
+    def _cloud_jacobian(self, c: FloatArray, spread: FloatArray, y: FloatArray,
+                        exact: bool = False) -> tuple[FloatArray, FloatArray]:
         """``dh/dcolumn`` (n_t, m) at the particle ``c`` (d,) in the ``m`` columns that vary
         (:attr:`n_varying`), and its steps (m,): ``fd_step`` times the state's sigma and the
-        cloud's ``spread`` (m - n_x,) of the other columns (at least 1e-3 of their range)."""
+        cloud's ``spread`` (m - n_x,) of the other columns (at least 1e-3 of their range).
+        ``exact``: the model's own derivative in ``[x, theta]`` where it has one
+        (:meth:`_exact_jacobian`), else forward differences of these steps."""
         nx, m = self._sizes[0], self.n_varying
         width = self._hi[nx:m] - self._lo[nx:m]
         step = self.fd_step * np.r_[self._sigma, np.maximum(spread, 1e-3 * width)]
+        if exact and hasattr(self.model, "curve_jacobian"):
+            return self._exact_jacobian(c, step[self._sizes[1]:], y), step
         return self._jacobian(c, step, y), step
+
+    def _exact_jacobian(self, c: FloatArray, td_step: FloatArray, y: FloatArray
+                        ) -> FloatArray:
+        """``dh/dcolumn`` (n_t, m) at the particle ``c`` (d,): in ``[x, theta]`` from the
+        model's curve Jacobian (``model.curve_jacobian``), through ``g`` with the
+        particle's ``theta_d`` (``g`` is linear in the curve: ``dg(z, t)/dx = g(dz/dx,
+        t)``; with ``compare="model"`` the model side is the curve itself); in the
+        ``theta_d`` columns by forward differences of ``td_step`` (m - n_in,) of ``g``
+        of the particle's curve (``g^-1`` of ``y`` with ``compare="model"``), which the
+        model's inputs do not change: no model evaluation."""
+        n_in, m, n_td = self._sizes[1], self.n_varying, td_step.size
+        curve, dz = self.model.curve_jacobian(c[None, :n_in])
+        J = np.empty((dz.shape[1], m))
+        if n_td == 0:
+            J[:] = dz[0]
+            return J
+        td = np.repeat(c[None, n_in:m], n_td + 1, axis=0)
+        td[1:] += np.diag(td_step)
+        if self.config.compare == "model":  # r = g^-1(y, theta_d) - z~: h = z~ - g^-1
+            J[:, :n_in] = dz[0]
+            obs = self.deviation.invert(y, td)
+            J[:, n_in:] = (obs[0] - obs[1:]).T / td_step
+            return J
+        rows = np.concatenate([np.repeat(curve, n_td + 1, axis=0), dz[0].T])
+        g = self.deviation.apply(rows, np.concatenate([td, np.repeat(td[:1], n_in, axis=0)]))
+        J[:, :n_in] = g[n_td + 1:].T
+        J[:, n_in:] = (g[1:n_td + 1] - g[0]).T / td_step
+        return J
 
     def _jacobian(self, c: FloatArray, step: FloatArray, y: FloatArray) -> FloatArray:
         """``dh/dcolumn`` (n_t, m) of the model curve at the particle ``c`` (d,) in its first
