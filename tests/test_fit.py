@@ -129,6 +129,24 @@ def test_whitened_residuals_give_the_same_distance() -> None:
                                                                          rel=1e-9)
 
 
+def test_rows_without_a_likelihood_or_weight_are_left_out() -> None:
+    """A row with NaN or inf, or with predictive weight 0, gives the distance of the
+    cloud without it, bit for bit (N <= MAX_SPREAD: every row is in the spread); a
+    cloud of such rows only is ``no_fit``."""
+    rng = np.random.default_rng(8)
+    n_t = 12
+    mm = MeasurementModel(basis=np.eye(n_t)[:, :2], lam=np.array([2.0, 1.0]), s2=0.5)
+    r = rng.standard_normal((60, n_t)) + 0.3
+    v = rng.random(60) + 0.1
+    clean = assess(np.delete(r, [5, 9, 20], axis=0), np.delete(v, [5, 9, 20]), 30.0, mm)
+    bad_r, bad_v = r.copy(), v.copy()
+    bad_r[5, 3], bad_r[9, 0], bad_v[20] = np.nan, np.inf, 0.0
+    got = assess(bad_r, bad_v, 30.0, mm)
+    assert got.distance2 == clean.distance2 and got.health == clean.health
+    nothing = assess(np.full((4, n_t), np.nan), np.ones(4), 4.0, mm)
+    assert nothing.health == "no_fit" and nothing.distance2 == math.inf
+
+
 def test_one_distance_in_scalars_is_the_array_tail() -> None:
     """The step's scalar tail (``_distance_logsf1``) is :func:`distance_logsf` of one value,
     across scipy's range, beyond its underflow, and for inf, NaN and the Student-t."""

@@ -156,16 +156,23 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     """
     rule = FitRule() if rule is None else rule
     r = np.asarray(residuals, dtype=np.float64)
-    v = np.asarray(v, dtype=np.float64)
+    v = v_in = np.asarray(v, dtype=np.float64)
     share = min(float(ess) / max(r.shape[0], 1), 1.0)
-    ok = np.isfinite(r.sum(axis=1)) & (v > 0)  # rows with NaN or inf (a row sum is
-    if collapsed or not ok.any():              # finite below ~1e306 N: any curve)
-        return Fit(distance2=math.inf, dof=measurement.n_t, quantile=1.0, log10_p=-math.inf,
-                   ess_share=share, health="no_fit")
-    if not ok.all():
-        r, v = r[ok], v[ok]
-    v = v / v.sum()
-    r_bar = v @ r
+    r_bar = None
+    if not collapsed and r.shape[0] and v.min() > 0.0:  # the usual case: every row
+        v = v / v.sum()                                 # weighted, and a NaN or inf in
+        r_bar = v @ r                                   # a row carries into the mean
+        if not np.all(np.isfinite(r_bar)):
+            r_bar, v = None, np.asarray(v_in, dtype=np.float64)
+    if r_bar is None:
+        ok = np.isfinite(r.sum(axis=1)) & (v > 0)  # rows with NaN or inf (a row sum is
+        if collapsed or not ok.any():              # finite below ~1e306 N: any curve)
+            return Fit(distance2=math.inf, dof=measurement.n_t, quantile=1.0,
+                       log10_p=-math.inf, ess_share=share, health="no_fit")
+        if not ok.all():
+            r, v = r[ok], v[ok]
+        v = v / v.sum()
+        r_bar = v @ r
     stride = max(1, -(-r.shape[0] // MAX_SPREAD))
     rs, vs = r[::stride], v[::stride]
     rc = rs - r_bar
