@@ -40,15 +40,15 @@ from formtwin.tracker import Tracker, TrackerConfig
 
 
 class WithoutDerivatives:
-    """The metamodel without ``curve_jacobian`` and ``angle_gradient``: the sandwich then
-    takes forward differences of its evaluation (as before the closed form)."""
+    """The metamodel, not ``differentiable``: the sandwich then takes forward differences
+    of its evaluation (as before the closed form)."""
+
+    differentiable = False
 
     def __init__(self, model: Any) -> None:
         self._model = model
 
     def __getattr__(self, name: str) -> Any:
-        if name in ("curve_jacobian", "angle_gradient"):
-            raise AttributeError(name)
         return getattr(self._model, name)
 
 

@@ -117,8 +117,12 @@ def test_tracker_jacobian_from_the_gradient_matches_forward_differences(
     m = ssm.n_varying
     step = 1e-6 * (ssm._hi[:m] - ssm._lo[:m])
     step[ssm.n_in:] = 1e-3
+    assert small_mm.differentiable
     exact = ssm._exact_jacobian(c, step[ssm.n_in:], y)
     fd = ssm._jacobian(c, step, y)
+    # the sandwich's path takes it (steps from sigma and the spread)
+    got, steps = ssm._cloud_jacobian(c, np.full(m - ssm.n_x, 0.01), y, exact=True)
+    np.testing.assert_array_equal(got, ssm._exact_jacobian(c, steps[ssm.n_in:], y))
     assert exact.shape == fd.shape == (small_mm.spec.n_t, m)
     col = np.abs(exact).max(axis=0)
     assert np.all(col > 0)

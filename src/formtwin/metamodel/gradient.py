@@ -37,6 +37,14 @@ class Gradients:
     _inputs: Any
     scale: Any
 
+    @property
+    def differentiable(self) -> bool:
+        """Every fitted part has its closed-form gradient (``value_and_gradient``, as
+        :class:`~formtwin.metamodel.RBF`): :meth:`curve_jacobian` and
+        :meth:`angle_gradient` work."""
+        parts = (self.curve_model, *self.angle_models)
+        return all(hasattr(m, "value_and_gradient") for m in parts)
+
     def curve_jacobian(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The curves (N, n_t) N at inputs ``X`` (N, 10) ``[x, theta]``, internal units,
         and their derivatives (N, n_t, 10) N per internal unit, in float64."""

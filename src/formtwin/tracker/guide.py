@@ -140,11 +140,12 @@ class GuidedProposal(GridPosteriors):
         (:attr:`n_varying`), and its steps (m,): ``fd_step`` times the state's sigma and the
         cloud's ``spread`` (m - n_x,) of the other columns (at least 1e-3 of their range).
         ``exact``: the model's own derivative in ``[x, theta]`` where it has one
-        (:meth:`_exact_jacobian`), else forward differences of these steps."""
+        (``model.differentiable``, :meth:`_exact_jacobian`), else forward differences of
+        these steps."""
         nx, m = self._sizes[0], self.n_varying
         width = self._hi[nx:m] - self._lo[nx:m]
         step = self.fd_step * np.r_[self._sigma, np.maximum(spread, 1e-3 * width)]
-        if exact and hasattr(self.model, "curve_jacobian"):
+        if exact and getattr(self.model, "differentiable", False):
             return self._exact_jacobian(c, step[self._sizes[1]:], y), step
         return self._jacobian(c, step, y), step
 

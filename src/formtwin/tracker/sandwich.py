@@ -252,14 +252,13 @@ class Sandwich:
     def _refresh(self, mean: FloatArray, spread: FloatArray, y: FloatArray,
                  u: FloatArray | None) -> None:
         """The curve's Jacobian (n_t, m) and the angles' gradient (2, n_in) at ``mean``:
-        the model's own derivatives where it has them (``curve_jacobian``,
-        ``angle_gradient``; forward differences in ``theta_d``), else forward differences
-        (module doc)."""
+        the model's own derivatives where it has them (``model.differentiable``: its
+        ``curve_jacobian`` and ``angle_gradient``; forward differences in ``theta_d``),
+        else forward differences (module doc)."""
         ssm, n_in = self.ssm, self.ssm.n_in
         J, step = ssm._cloud_jacobian(mean, spread[ssm.n_x:], y, exact=True)
-        gradient = getattr(ssm.model, "angle_gradient", None)
-        if gradient is not None:
-            Ja = gradient(mean[None, :n_in], u)[0]
+        if getattr(ssm.model, "differentiable", False):
+            Ja = ssm.model.angle_gradient(mean[None, :n_in], u)[0]
         else:
             base = np.repeat(mean[None, :n_in], n_in + 1, axis=0)
             base[1:] += np.diag(step[:n_in])
