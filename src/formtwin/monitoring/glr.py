@@ -164,44 +164,47 @@ class Glr:
 
 
 @njit(cache=True)
-def _glr_step(prev, s, d2, z, m):  # type: ignore[no-untyped-def]
-    """One :meth:`Glr.update` in one pass (Numba), the NumPy steps' operations in their
-    order: the sums ``[0, prev[:m-1]] + s[:m] z`` (m,), and the age ``k`` of the largest
-    ``sums^2 / d2`` with its value (the first largest; the first NaN if any, as argmax)."""
-    sums = np.empty(m)
-    sums[0] = 0.0
-    for j in range(1, m):
-        sums[j] = prev[j - 1]
+def _add_and_max(sums, s, d2, z, m):  # type: ignore[no-untyped-def]
+    """In place: ``sums[:m] += s[:m] z`` (the NumPy steps' operations in their order); the
+    age ``k`` of the largest ``sums^2 / d2`` with its value (the first largest; the first
+    NaN if any, as argmax)."""
     k, g = 0, -np.inf
     for j in range(m):
         sums[j] = sums[j] + s[j] * z
         v = sums[j] * sums[j] / d2[j]
         if v != v:  # NaN: argmax stops at the first
-            return sums, j, v
+            return j, v
         if v > g:
             k, g = j, v
+    return k, g
+
+
+@njit(cache=True)
+def _glr_step(prev, s, d2, z, m):  # type: ignore[no-untyped-def]
+    """One :meth:`Glr.update` in one pass (Numba): the new sums ``[0, prev[:m-1]] + s[:m]
+    z`` (m,) and :func:`_add_and_max`'s age and value."""
+    sums = np.empty(m)
+    sums[0] = 0.0
+    for j in range(1, m):
+        sums[j] = prev[j - 1]
+    k, g = _add_and_max(sums, s, d2, z, m)
     return sums, k, g
 
 
 @njit(cache=True)
 def glr_advance(sums, s, d2, z, m, h):  # type: ignore[no-untyped-def]
     """One step of many streams' GLR sums (Numba; :func:`~formtwin.monitoring.episodes.
-    run_lengths`): each row of ``sums`` (streams, window) shifted by one age in place, its
-    first ``m`` ages plus ``s[:m] z`` (``z`` (streams,)), the NumPy steps' operations in
-    their order; returns whether each stream's largest ``sums^2 / d2`` exceeds ``h``."""
+    run_lengths`): each row of ``sums`` (streams, window) shifted by one age in place and
+    :func:`_add_and_max` with its ``z`` (streams,); returns whether each stream's largest
+    ``sums^2 / d2`` exceeds ``h``."""
     n, w = sums.shape
     hit = np.zeros(n, dtype=np.bool_)
     for r in range(n):
+        row = sums[r]
         for j in range(w - 1, 0, -1):
-            sums[r, j] = sums[r, j - 1]
-        sums[r, 0] = 0.0
-        g = -np.inf
-        for j in range(m):
-            sums[r, j] = sums[r, j] + s[j] * z[r]
-            v = sums[r, j] * sums[r, j] / d2[j]
-            if v > g or v != v:
-                g = v
-        hit[r] = g > h
+            row[j] = row[j - 1]
+        row[0] = 0.0
+        hit[r] = _add_and_max(row, s, d2, z[r], m)[1] > h
     return hit
 
 

@@ -156,14 +156,16 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     """
     rule = FitRule() if rule is None else rule
     r = np.asarray(residuals, dtype=np.float64)
-    v = v_in = np.asarray(v, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
     share = min(float(ess) / max(r.shape[0], 1), 1.0)
     r_bar = None
     if not collapsed and r.shape[0] and v.min() > 0.0:  # the usual case: every row
-        v = v / v.sum()                                 # weighted, and a NaN or inf in
-        r_bar = v @ r                                   # a row carries into the mean
-        if not np.all(np.isfinite(r_bar)):
-            r_bar, v = None, np.asarray(v_in, dtype=np.float64)
+        w = v / v.sum()                                 # weighted, and a NaN or inf in
+        r_bar = w @ r                                   # a row carries into the mean
+        if np.all(np.isfinite(r_bar)):
+            v = w
+        else:
+            r_bar = None
     if r_bar is None:
         ok = np.isfinite(r.sum(axis=1)) & (v > 0)  # rows with NaN or inf (a row sum is
         if collapsed or not ok.any():              # finite below ~1e306 N: any curve)
