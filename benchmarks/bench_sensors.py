@@ -133,6 +133,10 @@ def linear_discrepancy_bound(run: dict[str, np.ndarray], curves: np.ndarray,
     return float(np.sqrt(best))
 
 
+#: the default study's figures (``_sensor_control.py --only study``), kept from their run
+STUDY_FIGURES = ("study_s", "study_wall_s", "study_timings", "study_load_avg_1_5_15min")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="benchmarks/.cache/sensors")
@@ -282,9 +286,9 @@ def main() -> None:
     apart: list[dict[str, Any]] = []
     if not smoke and results.exists():  # study_s: measured apart, kept
         old = json.loads(results.read_text())
-        figures.update({k: v for k, v in old["figures"].items() if k.startswith("study_")})
+        figures.update({k: v for k, v in old["figures"].items() if k in STUDY_FIGURES})
         apart = [e for e in measured_apart(old.get("figures_measured_apart"), [], "")
-                 if e["keys"] and all(k.startswith("study_") for k in e["keys"])]
+                 if e["keys"] and all(k in STUDY_FIGURES for k in e["keys"])]
     path = write_result("sensors", figures, directory=out if smoke else None,
                         model=model_info)
     if not smoke and apart:
