@@ -94,13 +94,14 @@ def main() -> None:
     print(f"metamodel and deviation kernels: {t2 - t1:.1f} s")
 
     from formtwin.monitoring.episodes import run_lengths
-    from formtwin.monitoring.glr import Glr, GlrState
+    from formtwin.monitoring.glr import Glr, GlrState, glr_statistics
 
     chart = Glr(signature=(1.0, 0.5), h=5.0, window=20)
     state = GlrState()
     for z in (0.1, -0.2, 0.3):
         state, _ = chart.update(state, z)
     run_lengths(chart, 1.0, runs=4, horizon=3)  # the clear-after's kernel
+    glr_statistics((1.0, 0.5), 20, np.zeros((2, 3)))  # the threshold's simulation
     print(f"GLR kernels: {time.perf_counter() - t2:.1f} s")
 
 

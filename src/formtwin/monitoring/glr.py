@@ -224,15 +224,36 @@ def glr_statistics(signature: Sequence[float], window: int, z: FloatArray,
         z = np.clip(z, -clip, clip)
     s: FloatArray = g._s  # type: ignore[attr-defined]
     d2: FloatArray = g._d2  # type: ignore[attr-defined]
+    out: FloatArray = _statistics(s, d2, np.ascontiguousarray(z, dtype=np.float64), window)
+    return out
+
+
+@njit(cache=True)
+def _statistics(s, d2, z, window):  # type: ignore[no-untyped-def]
+    """:func:`glr_statistics`'s loop (Numba), (streams, steps): each stream's sums by age
+    in a ring (age ``j`` at ``(t - j) mod window``, the oldest's slot taken by age 0), and
+    the steps of :func:`_add_and_max` over the ages seen (the same operations in the same
+    order; a NaN ends the maximum as there)."""
     streams, steps = z.shape
-    sums = np.zeros((streams, window))
     out = np.empty((streams, steps))
-    for t in range(steps):
-        sums[:, 1:] = sums[:, :-1].copy()
-        sums[:, 0] = 0.0
-        sums += s[None, :] * z[:, t: t + 1]
-        m = min(t + 1, window)
-        out[:, t] = np.max(sums[:, :m] ** 2 / d2[None, :m], axis=1)
+    sums = np.zeros(window)
+    for r in range(streams):
+        sums[:] = 0.0
+        for t in range(steps):
+            pos = t % window
+            sums[pos] = 0.0
+            zt = z[r, t]
+            g = -np.inf
+            for j in range(min(t + 1, window)):
+                i = pos - j if pos >= j else pos - j + window
+                sums[i] = sums[i] + s[j] * zt
+                v = sums[i] * sums[i] / d2[j]
+                if v != v:  # NaN: the maximum is NaN
+                    g = v
+                    break
+                if v > g:
+                    g = v
+            out[r, t] = g
     return out
 
 
