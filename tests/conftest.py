@@ -66,6 +66,11 @@ def tutorial_fit(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     service) and test_same_twin's refit under another kernel, so the fit is made once:
     both tests use this fixture, and ``GROUPS`` keeps them on one worker.
 
+    The process keeps the held-out predictions of the calibration's folds (the
+    ``CrossValidation`` its ``cross_validate`` returned, as ``cv.npz`` in the folder; the
+    command runs unchanged): test_same_twin builds another estimate of the residual
+    statistics from them instead of fitting other folds again.
+
     Returns ``folder`` (the scratch folder, ``out/mm.npz`` in it), ``returncode``,
     ``stderr``, ``kernel`` (the kernel asked for, None: the CPU's) and ``kernels``
     (the OpenBLAS kernels the fitting process ran, from threadpoolctl)."""
@@ -81,11 +86,25 @@ def tutorial_fit(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     if kernel is not None:
         env["OPENBLAS_CORETYPE"] = kernel
-    # the command, then the kernels its OpenBLAS ran (on the last line of stdout)
-    code = ("import json, sys; from formtwin.cli import main; rc = main(); "
-            "from threadpoolctl import threadpool_info; "
+    # the command, its folds' predictions kept, then the kernels its OpenBLAS ran (on the
+    # last line of stdout)
+    code = ("import json, sys\n"
+            "import numpy as np\n"
+            "import formtwin.metamodel.validate\n"
+            "validate = sys.modules['formtwin.metamodel.validate']  # not the function\n"
+            "from formtwin.cli import main\n"
+            "def keep(*args, made=validate.cross_validate, **kwargs):\n"
+            "    cv = made(*args, **kwargs)\n"
+            "    np.savez('cv.npz', inputs=cv.inputs, curves=cv.curves, angles=cv.angles,\n"
+            "             predicted_curves=cv.predicted_curves, fold=cv.fold,\n"
+            "             predicted_angles=cv.predicted_angles)\n"
+            "    return cv\n"
+            "validate.cross_validate = keep\n"
+            "rc = main()\n"
+            "from threadpoolctl import threadpool_info\n"
             "print(json.dumps([i.get('architecture') for i in threadpool_info() "
-            "if i.get('internal_api') == 'openblas'])); sys.exit(rc)")
+            "if i.get('internal_api') == 'openblas']))\n"
+            "sys.exit(rc)\n")
     run = subprocess.run([sys.executable, "-c", code, *argv[1:]], cwd=folder, env=env,
                          capture_output=True, text=True, timeout=900, check=False)
     kernels = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else []

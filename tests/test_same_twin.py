@@ -15,9 +15,9 @@ from conftest import OTHER_KERNEL
 
 from formtwin.dataset import DoeDataset
 from formtwin.defaults import analytic_dataset, bundled_doe, bundled_metamodel, default_metamodel
-from formtwin.metamodel import POD, RBF, Metamodel, calibrate, cross_validate
+from formtwin.metamodel import POD, RBF, Metamodel, calibrate
 from formtwin.metamodel.identity import SIGNATURE_RTOL
-from formtwin.metamodel.validate import residual_model
+from formtwin.metamodel.validate import CrossValidation, residual_model
 from formtwin.tracker import Estimates, TrackerConfig, build_tracker
 from formtwin.tracker.intervals import (
     CALIBRATION_PATH,
@@ -114,10 +114,10 @@ def test_a_refit_under_another_blas_kernel_is_the_same_twin(tutorial_fit: dict[s
     ``formtwin metamodel fit`` line, fit and 5-fold calibration): the fit has the bundled
     fit's id, its K_res passes the calibration's sanity check (measured off by ~4e-4 of the
     largest entry between CPUs; tolerance SIGNATURE_RTOL = 1e-2), so the shipped
-    calibration applies; residual statistics of other held-out folds of the same settings
-    (another estimate of the same error: the smallest change there is) fail it. Trackers
-    on the bundled and the refitted metamodel differ by less than two seeds of the
-    particle filter do."""
+    calibration applies; the residual statistics of 4 of its 5 held-out folds (another
+    estimate of the same error, from 80 % of the same residuals: the smallest change
+    there is) fail it. Trackers on the bundled and the refitted metamodel differ by less
+    than two seeds of the particle filter do."""
     kernel = OTHER_KERNEL[platform.machine()]
     assert tutorial_fit["kernel"] == kernel
     assert tutorial_fit["returncode"] == 0, tutorial_fit["stderr"][-3000:]
@@ -133,10 +133,19 @@ def test_a_refit_under_another_blas_kernel_is_the_same_twin(tutorial_fit: dict[s
     sig = residual_signature(refit)
     assert sig is not None
     assert np.abs(sig - ref).max() / ref.max() < SIGNATURE_RTOL
-    # the same settings' residuals on other held-out folds (3 of them, seed 1; the BLAS
-    # kernel of this process: the check's sensitivity does not depend on it)
-    data = DoeDataset.load(bundled_doe("bending"))
-    other = residual_model(cross_validate(Metamodel(), data, 3, seed=1))
+    # the held-out predictions of the fit's 5 folds (kept by the fixture): all of them give
+    # the statistics stored in the file; 4 of them another estimate of the same error
+    # (measured off by 0.15 of the largest entry; other held-out folds of the same
+    # settings, 3 of seed 1, by 0.09)
+    with np.load(tutorial_fit["folder"] / "cv.npz") as f:
+        cv = CrossValidation(refit.spec, fit_seconds=0.0, **dict(f))
+    # (here under this CPU's kernel: sums of ~5000 squares in another order, within n eps)
+    np.testing.assert_allclose(residual_model(cv).curve_cov.diagonal(), sig, rtol=1e-12)
+    four = cv.fold != 4
+    other = residual_model(dataclasses.replace(
+        cv, **{k: getattr(cv, k)[four] for k in ("inputs", "curves", "predicted_curves",
+                                                 "angles", "predicted_angles", "fold")}))
+    assert 0 < other.n < residual_model(cv).n
     off = np.abs(other.curve_cov.diagonal() - ref).max() / ref.max()
     assert off > 2 * SIGNATURE_RTOL, off  # another estimate of the error fails the check
 
