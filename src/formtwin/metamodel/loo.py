@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
-from scipy.spatial.distance import cdist
 
 from formtwin.metamodel.kernels import KERNEL_SLOPES, kernel_function
 
@@ -52,6 +51,8 @@ def loo_residuals(Z: FloatArray, P: FloatArray, Y: FloatArray, kernel: str,
     ndarray, shape (n, k)
         ``y_i - s_{-i}(z_i)`` for every point and output.
     """
+    from scipy.spatial.distance import cdist  # on use: evaluating a metamodel needs none
+
     R2 = cdist(Z, Z, "sqeuclidean")
     return loo_from_distances(R2, P, Y, kernel, smoothing)[0]
 
@@ -82,6 +83,8 @@ def loo_objective(params: FloatArray, U: FloatArray, P: FloatArray, Y: FloatArra
     s2 = np.exp(2.0 * params[:d])
     if params.size > d:
         smoothing = float(np.exp(params[d]))
+    from scipy.spatial.distance import cdist  # on use: evaluating a metamodel needs none
+
     R2 = cdist(U * np.sqrt(s2), U * np.sqrt(s2), "sqeuclidean")
     e, Bn, w, g = loo_from_distances(R2, P, Y, kernel, smoothing)
     L = float(np.sum(e**2))

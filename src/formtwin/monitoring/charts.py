@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy.optimize import brentq
 
 #: the chart kinds of a monitor
 CHARTS = ("ewma", "cusum")
@@ -164,6 +163,8 @@ def cusum_arl_two_sided(k: float, h: float, shift: float = 0.0) -> float:
 
 def cusum_h(k: float, arl0: float, two_sided: bool = True) -> float:
     """Decision interval ``h`` giving in-control ARL ``arl0`` (Siegmund's approximation)."""
+    from scipy.optimize import brentq  # on use: a service with stored charts needs none
+
     arl = cusum_arl_two_sided if two_sided else cusum_arl_siegmund
     top = min(200.0, 300.0 / max(k, 1e-9))  # exp(2 k (h + 1.166)) stays finite
     return float(brentq(lambda h: math.log(arl(k, h)) - math.log(arl0), 0.01, top))
@@ -189,6 +190,8 @@ def ewma_arl(lam: float, L: float, shift: float = 0.0, states: int = 201) -> flo
 
 def ewma_L(lam: float, arl0: float, states: int = 201) -> float:
     """Limit width ``L`` giving in-control ARL ``arl0`` with asymptotic limits."""
+    from scipy.optimize import brentq  # on use: a service with stored charts needs none
+
     return float(brentq(lambda L: math.log(ewma_arl(lam, L, 0.0, states)) - math.log(arl0),
                         0.5, 8.0))
 

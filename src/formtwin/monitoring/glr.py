@@ -52,7 +52,6 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
-from scipy.optimize import brentq
 
 from formtwin.monitoring.charts import Signal
 
@@ -264,6 +263,8 @@ def glr_h(signature: Sequence[float], window: int, arl0: float, clip: float | No
     if not arl0 > 1:
         raise ValueError(f"ARL0 = {arl0}, expected > 1")
     c, a = glr_rate(tuple(round(float(v), 4) for v in signature), int(window), clip)
+    from scipy.optimize import brentq  # on use: a service with stored charts needs none
+
     return float(brentq(lambda h: c + a * math.log(h) - h + math.log(arl0), 1.0, 200.0))
 
 

@@ -37,7 +37,6 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import cholesky, solve_triangular
-from scipy.optimize import least_squares
 
 from formtwin.tracker.ssm import BendingSSM
 
@@ -94,6 +93,8 @@ def best_distance2(ssm: BendingSSM, y: FloatArray, starts: FloatArray,
         f = whitened(np.vstack([p, p + np.diag(h)]))
         out: FloatArray = ((f[1:] - f[0]) / h[:, None]).T
         return out
+
+    from scipy.optimize import least_squares  # on use: ~0.2 s CPU to import
 
     best = math.inf
     eps = 1e-9 * span
