@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -118,17 +119,13 @@ def test_study_knows_series_7_and_8_but_runs_the_papers_six_by_default() -> None
         StudySettings(series=(9,))
 
 
-def test_a_study_of_series_4_and_7_runs_and_reports(tmp_path: Path, spec: ProcessSpec) -> None:
-    from formtwin.doe import latin_hypercube, run_design
-    from formtwin.metamodel import Metamodel
+def test_a_study_of_series_4_and_7_runs_and_reports(
+        tmp_path: Path, spec: ProcessSpec, analytic_mm: tuple[Any, Path]) -> None:
     from formtwin.physics.analytic import AnalyticBending
     from formtwin.study.report import write_report
     from formtwin.study.run import run_study
 
-    data = run_design(AnalyticBending(spec), latin_hypercube(spec, 300, seed=11),
-                      tmp_path / "doe.h5", executor="serial")
-    mm = Metamodel().fit(data)
-    mm_path = mm.save(tmp_path / "mm.npz")
+    mm, mm_path = analytic_mm  # the session's fit of the analytic stand-in (600 runs)
     settings = StudySettings(n_products=40, window=20, n_realisations=1, n_repetitions=1,
                              tracker=TrackerConfig(n_particles=100), series=(4, 7), workers=1,
                              seed=3)
