@@ -12,11 +12,8 @@ import numpy as np
 import pytest
 
 from formtwin.cli import main
-from formtwin.doe import latin_hypercube, run_design
 from formtwin.metamodel import Metamodel
 from formtwin.monitoring.bound import steady_filter
-from formtwin.physics.analytic import AnalyticBending
-from formtwin.spec import load_spec
 from formtwin.study.sensor_bound import SensorRow, final_bound
 
 
@@ -66,12 +63,9 @@ def test_curve_only_matches_the_monitoring_filter() -> None:
     np.testing.assert_allclose(b.states, np.sqrt(np.diag(P)) / sigma, rtol=1e-6)
 
 
-def test_command_on_the_analytic_stand_in(tmp_path: Path,
-                                          capsys: pytest.CaptureFixture[str]) -> None:
-    spec = load_spec()
-    data = run_design(AnalyticBending(spec), latin_hypercube(spec, 400, seed=3),
-                      tmp_path / "doe.h5", executor="serial")
-    path = Metamodel().fit(data).save(tmp_path / "mm.npz")
+def test_command_on_the_analytic_stand_in(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                          analytic_mm: tuple[Metamodel, Path]) -> None:
+    path = analytic_mm[1]  # the session's fit of the analytic stand-in (600 runs)
     assert main(["sensors", "--out", str(tmp_path / "s"), "--metamodel", str(path),
                  "--realisations", "2", "--n-mc", "500", "--noise-factors", "1,2"]) == 0
     text = capsys.readouterr().out
