@@ -97,13 +97,17 @@ class _Serial(Executor):
 @contextmanager
 def make_executor(executor: str | Executor | None = None,
                   workers: int | None = None) -> Iterator[Executor]:
-    """``None``/``"processes"``: local process pool (all cores); ``"serial"``: in-process;
-    ``"dask tcp://HOST:PORT"``: a Dask cluster; an ``Executor`` is used as it is.
+    """``None``/``"processes"``: local process pool (all cores; ``workers=1``: in-process,
+    as ``"serial"``: one worker would only add its start, ~2 s of imports and kernel loads);
+    ``"serial"``: in-process; ``"dask tcp://HOST:PORT"``: a Dask cluster; an ``Executor``
+    is used as it is.
 
     The local pool starts its workers from a fork server: a worker forked while the caller
     holds a data file open (the DOE runner's HDF5 output) would keep its lock."""
     if isinstance(executor, Executor):
         yield executor
+    elif executor in (None, "processes") and workers == 1:
+        yield _Serial()
     elif executor in (None, "processes"):
         with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1,
                                  mp_context=multiprocessing.get_context("forkserver")) as pool:

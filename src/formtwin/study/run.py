@@ -31,6 +31,7 @@ from formtwin.study.series import (
     PAPER_SERIES,
     SERIES,
     Task,
+    forget_files,
     measurement_file,
     measurement_task,
     run_task,
@@ -139,7 +140,8 @@ def run_study(settings: StudySettings, folder: Path, metamodel: ProcessModel,
     t0 = time.perf_counter()
     data_dir = folder / "data"
     # one pool for the physics runs and the filter runs: each worker compiles the physics
-    # (Numba, ~11 s) once, not once per realisation
+    # (Numba, ~11 s) once, not once per realisation (one worker: this process)
+    forget_files()
     with make_executor(_executor_name(settings), settings.workers) as pool:
         data_key = cache_key(settings.seed, physics.version, files=(metamodel_path,))
         realisations = [make_realisation(spec, k, settings.n_products, settings.seed,

@@ -123,6 +123,14 @@ def _measurement(path: str) -> MeasurementModel:
     return MeasurementModel.load(path)
 
 
+def forget_files() -> None:
+    """Drop the files the tasks of this process have read (each study reads its own: a
+    study run in the calling process, ``workers=1``, starts afresh as a new pool's
+    workers do)."""
+    for read in (_metamodel, _realisation, _measurement):
+        read.cache_clear()
+
+
 def measurement_file(folder: Path, realisation: int, mu_known: bool,
                      likelihood: str = "calibrated", key: str = "") -> Path:
     """Where the study keeps the measurement model of a realisation (mu known or assumed,
