@@ -52,7 +52,7 @@ def register(sub: Any) -> None:
     p.add_argument("--camera-noise", default="0,0.1,0.2",
                    help="camera noise sds with --sensor-study, deg, comma-separated "
                    "(default: %(default)s)")
-    p.add_argument("--workers", type=int, help="physics worker processes")
+    p.add_argument("--workers", type=int, help="physics worker processes (1: in this process)")
     add_tracker_options(p, exclude=FIXED)
     p.set_defaults(run=run)
 

@@ -29,7 +29,8 @@ def register(sub: Any) -> None:
                      "(default: 5000, formtwin.doe.LHS_POINTS)")
     run.add_argument("--no-corners", action="store_true", help="leave out the 2^d corners")
     run.add_argument("--seed", type=int, default=0, help="design seed (default: %(default)s)")
-    run.add_argument("--workers", type=int, help="local worker processes (default: all cores)")
+    run.add_argument("--workers", type=int, help="local worker processes (default: all cores; "
+                     "1: in this process)")
     run.add_argument("--chunk", type=int, help="runs per task (default: automatic)")
     run.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     run.set_defaults(run=_run)

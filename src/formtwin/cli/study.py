@@ -48,7 +48,8 @@ def register(sub: Any) -> None:
     p.add_argument("--sensor-figures", default=SENSOR_FIGURES, metavar="JSON",
                    help="the sensor benchmark's results, shown in the report's sensor section "
                    "(default: %(default)s, when present)")
-    p.add_argument("--workers", type=int, help="worker processes (default: all cores)")
+    p.add_argument("--workers", type=int, help="worker processes (default: all cores; 1: in "
+                   "this process)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT")
     add_tracker_options(p, exclude=SERIES_FIELDS)
     p.set_defaults(run=run)
