@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-from formtwin.physics.bending.faces import face_trig, point_face_trig
+from formtwin.physics.bending.faces import element_lengths, node_point_trig, point_face_trig
 from formtwin.physics.bending.kernels import BW, FASTMATH
 
 #: margin (mm) by which a primitive's lower bound of the distance must exceed the best
@@ -67,21 +67,25 @@ def closest_point(px, py, p0, p1, ptype, pdata, pre):  # type: ignore[no-untyped
     beyond its ends; to an arc's circle, from the squared radius) exceeds the best distance
     so far by :data:`SKIP_MARGIN` cannot be the closest and is not evaluated further: the
     same result as evaluating it (its distance would not be below the best), fewer
-    ``hypot`` calls.
+    ``hypot`` calls. The bound it must beat is the smaller of the best so far and a cheap
+    upper bound of the distance taken first (:func:`distance_above`), so that the
+    primitives before the nearest one are skipped too.
     """
     best = 1e300
     sd = 0.0
     bnx = 0.0
     bny = 0.0
     brho = 0.0
+    above = distance_above(px, py, p0, p1, ptype, pdata, pre)
     for j in range(p0, p1):
+        lim = min(best, above)
         if ptype[j] == 0:
             x0, y0 = pdata[j, 0], pdata[j, 1]
             tx, ty, L = pre[j, 0], pre[j, 1], pre[j, 2]
             nx, ny = -ty, tx
             sp = (px - x0) * tx + (py - y0) * ty
             sgn = (px - x0) * nx + (py - y0) * ny
-            if max(abs(sgn), -sp, sp - L) > best + SKIP_MARGIN:
+            if max(abs(sgn), -sp, sp - L) > lim + SKIP_MARGIN:
                 continue
             spc = min(max(sp, 0.0), L)
             qx, qy = x0 + spc * tx, y0 + spc * ty
@@ -92,8 +96,8 @@ def closest_point(px, py, p0, p1, ptype, pdata, pre):  # type: ignore[no-untyped
             c0, s0, c1, s1 = pre[j, 0], pre[j, 1], pre[j, 2], pre[j, 3]
             rx, ry = px - cx, py - cy
             r2 = rx * rx + ry * ry  # |rho - R| <= dist: skip if rho > R + best or < R - best
-            outer = R + best + SKIP_MARGIN
-            inner = R - best - SKIP_MARGIN
+            outer = R + lim + SKIP_MARGIN
+            inner = R - lim - SKIP_MARGIN
             if r2 > outer * outer or (inner > 0.0 and r2 < inner * inner):
                 continue
             rho = math.hypot(rx, ry)
@@ -115,6 +119,28 @@ def closest_point(px, py, p0, p1, ptype, pdata, pre):  # type: ignore[no-untyped
             sd = sgn
             bnx, bny, brho = nx, ny, rho
     return best, sd, bnx, bny, brho
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
+def distance_above(px, py, p0, p1, ptype, pdata, pre):  # type: ignore[no-untyped-def]
+    """An upper bound (mm) of the distance of ``(px, py)`` to a tool (primitives ``p0:p1``,
+    tool frame) without a square root: the least over its primitives of a segment's
+    ``|normal offset| + distance beyond its ends along it`` and an arc's first end point's
+    distance ``|dx| + |dy|`` (both at least the distance, above it by far more than
+    :data:`SKIP_MARGIN` where not equal). ``pre`` from :func:`primitive_frames`.
+    """
+    above = 1e300
+    for j in range(p0, p1):
+        if ptype[j] == 0:
+            x0, y0 = pdata[j, 0], pdata[j, 1]
+            tx, ty, L = pre[j, 0], pre[j, 1], pre[j, 2]
+            sp = (px - x0) * tx + (py - y0) * ty
+            b = abs((py - y0) * tx - (px - x0) * ty) + max(0.0, -sp, sp - L)
+        else:
+            R = pdata[j, 2]
+            b = abs(px - pdata[j, 0] - R * pre[j, 0]) + abs(py - pdata[j, 1] - R * pre[j, 1])
+        above = min(above, b)
+    return above
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
@@ -166,16 +192,23 @@ def face_pressure(X, Xp, fn, tface, a, pface, towner=None):  # type: ignore[no-u
     pressure at the nodes ``X (n_nodes, 2)`` is independent of the point spacing.
     With ``pface (n, 3)`` and ``towner (n_tools,)`` the third column takes the pressure of
     the tools that move with the punch (``towner == 1``) alone (MPa, either face).
+    A node farther than ``a`` along either axis is passed over without its distance (by a
+    relative margin of 1e-12, far above the distance's roundoff: it would add nothing).
     """
     n = X.shape[0]
     pface[:, :] = 0.0
+    far = a * (1.0 + 1e-12)
     for j in range(Xp.shape[0]):
         for k in range(tface.shape[0]):
             if fn[j, k] == 0.0:
                 continue
             side = 1 if tface[k] > 0.0 else 0
             for i in range(n):
-                d = math.hypot(X[i, 0] - Xp[j, 0], X[i, 1] - Xp[j, 1])
+                dx = X[i, 0] - Xp[j, 0]
+                dy = X[i, 1] - Xp[j, 1]
+                if max(abs(dx), abs(dy)) > far:
+                    continue
+                d = math.hypot(dx, dy)
                 if d < a:
                     pface[i, side] += fn[j, k] * (1.0 - d / a) / a
                     if towner is not None and pface.shape[1] > 2 and towner[k] == 1:
@@ -222,32 +255,85 @@ def contact_forces(p, u, X, phi0, thick, points, tools, contact,  # type: ignore
 
     ``points = (el, xi, pen (n_p, 2))``, ``tools = (ptype, pdata, tstart, towner, tface, tmu)``,
     ``contact = (ct_t, ct_rel, ct_act)`` committed, ``ct_trial = (ct_t_t, ct_act_t, ct_n_t)``
-    written. Returns the punch's ``(F_v, F_lat)``.
+    written. Returns the punch's ``(F_v, F_lat)``. :func:`contact_forces_work` with a work
+    space of its own (:func:`contact_work`).
+    """
+    work = contact_work(X, thick, points[0].shape[0], tools[0], tools[1], tools[3].shape[0])
+    return contact_forces_work(p, u, X, phi0, thick, points, tools, contact, ct_trial, g0, Kb,
+                               R, col, Jp, work)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def contact_work(X, thick, n_p, ptype, pdata, n_tools):  # type: ignore[no-untyped-def]
+    """Work space of :func:`contact_forces_work` for a sheet ``X (n_nodes, 2)`` of thickness
+    ``thick`` with ``n_p`` contact points and a tool set of ``n_tools`` tools.
+
+    ``(pre, L0s, near, trig, dnode, dref, qref, J, d, B, JB)``: the primitives' frames
+    (:func:`primitive_frames`), the elements' reference lengths, each node's least and
+    largest threshold ``2 L0 + 1.5 t`` of its elements ``near (n_nodes, 2)``, the cosines
+    and sines of :func:`.faces.face_trig`, the nodes' distances to a tool, the last
+    computed distance of each node to each tool and the node's position in the tool's
+    frame then (``dref = NaN``: none yet), and the small matrices.
+    """
+    n_nodes = X.shape[0]
+    L0s = element_lengths(X)
+    near = np.empty((n_nodes, 2))
+    near[:, 0] = np.inf
+    near[:, 1] = -np.inf
+    for e in range(n_nodes - 1):
+        lim = 2.0 * L0s[e] + 1.5 * thick
+        for i in (e, e + 1):
+            near[i, 0] = min(near[i, 0], lim)
+            near[i, 1] = max(near[i, 1], lim)
+    dref = np.full((n_nodes, n_tools), np.nan)
+    return (primitive_frames(ptype, pdata), L0s, near, np.empty((n_nodes + n_p, 2)),
+            np.empty(n_nodes), dref, np.zeros((n_nodes, n_tools, 2)), np.zeros((2, 2)),
+            np.zeros((5, 2)), np.zeros((2, 6)), np.zeros((2, 6)))
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def contact_forces_work(p, u, X, phi0, thick, points, tools,  # type: ignore[no-untyped-def]
+                        contact, ct_trial, g0, Kb, R, col, Jp, work):
+    """:func:`contact_forces` with the work space ``work`` of :func:`contact_work` (made once
+    per solve: the tools' frames and the elements' lengths are those of the run).
+
+    The nodes' distances to a tool only decide which elements cannot hold a contact point
+    (both nodes farther than the element's threshold). The distance being 1-Lipschitz in
+    the node's position, a node whose last computed distance ``dref``, less how far it
+    moved since (``m = |dx| + |dy|`` in the tool's frame), still exceeds the largest
+    threshold of its elements by :data:`SKIP_MARGIN` is farther than them now too; one
+    whose ``dref + m`` is below their least threshold by that margin is nearer. Neither's
+    distance is computed again: each element is skipped or not as with every distance
+    computed (the margin is far above the distances' roundoff).
     """
     el, xi, pen = points
     ptype, pdata, tstart, towner, tface, tmu = tools
     ct_t, ct_rel, ct_act = contact
     ct_t_t, ct_act_t, ct_n_t = ct_trial
-    J = np.zeros((2, 2))
-    d = np.zeros((5, 2))
-    B = np.zeros((2, 6))
-    JB = np.zeros((2, 6))
+    pre, L0s, near, trig, dnode, dref, qref, J, d, B, JB = work
     fv = 0.0
     flat = 0.0
     half = 0.5 * thick
     n_nodes = X.shape[0]
-    dnode = np.empty(n_nodes)
-    pre = primitive_frames(ptype, pdata)
-    # cos, sin of the nodes' and the points' directions, the elements' lengths: once, not
-    # once per tool (the same numbers)
-    trig = np.empty((n_nodes + el.shape[0], 2))
-    L0s = face_trig(X, phi0, u, el, xi, trig)
+    # cos, sin of the nodes' and the points' directions: once, not once per tool
+    node_point_trig(X, phi0, u, el, xi, trig)
     for k in range(towner.shape[0]):
         ty = p if towner[k] == 1 else 0.0
         s = tface[k]
         for i in range(n_nodes):  # the nodes' distances to the tool, to skip far elements
-            dnode[i] = closest_point(X[i, 0] + u[3 * i], X[i, 1] + u[3 * i + 1] - ty,
-                                     tstart[k], tstart[k + 1], ptype, pdata, pre)[0]
+            qx = X[i, 0] + u[3 * i]
+            qy = X[i, 1] + u[3 * i + 1] - ty
+            moved = abs(qx - qref[i, k, 0]) + abs(qy - qref[i, k, 1])
+            if dref[i, k] - moved > near[i, 1] + SKIP_MARGIN:
+                dnode[i] = dref[i, k] - moved  # above both thresholds
+                continue
+            if dref[i, k] + moved < near[i, 0] - SKIP_MARGIN:
+                dnode[i] = dref[i, k] + moved  # below both
+                continue
+            dnode[i] = closest_point(qx, qy, tstart[k], tstart[k + 1], ptype, pdata, pre)[0]
+            dref[i, k] = dnode[i]
+            qref[i, k, 0] = qx
+            qref[i, k, 1] = qy
         for q in range(el.shape[0]):
             ct_act_t[q, k] = 0
             ct_t_t[q, k] = 0.0

@@ -79,22 +79,36 @@ def face_trig(X, phi0, u, el, xi, trig):  # type: ignore[no-untyped-def]
 
     Writes ``trig (n_nodes + n_points, 2)``: rows ``i < n_nodes`` ``cos, sin`` of node ``i``'s
     direction ``phi0[i] + u[3 i + 2]``, rows ``n_nodes + q`` those of point ``q``
-    (:func:`face_dir`); returns the elements' reference lengths ``(n_el,)`` (mm).
+    (:func:`face_dir`); returns the elements' reference lengths ``(n_el,)`` (mm,
+    :func:`element_lengths`).
     """
+    node_point_trig(X, phi0, u, el, xi, trig)
+    return element_lengths(X)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def element_lengths(X):  # type: ignore[no-untyped-def]
+    """The elements' reference lengths ``(n_el,)`` (mm) of the nodes ``X (n_nodes, 2)``."""
+    L0 = np.empty(X.shape[0] - 1)
+    for e in range(X.shape[0] - 1):
+        L0[e] = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
+    return L0
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def node_point_trig(X, phi0, u, el, xi, trig):  # type: ignore[no-untyped-def]
+    """The ``trig`` of :func:`face_trig` alone (the solver takes the elements' lengths
+    once per run, :func:`element_lengths`)."""
     n_nodes = X.shape[0]
     for i in range(n_nodes):
         trig[i, 0] = math.cos(phi0[i] + u[3 * i + 2])
         trig[i, 1] = math.sin(phi0[i] + u[3 * i + 2])
-    L0 = np.empty(n_nodes - 1)
-    for e in range(n_nodes - 1):
-        L0[e] = math.hypot(X[e + 1, 0] - X[e, 0], X[e + 1, 1] - X[e, 1])
     for q in range(el.shape[0]):
         e = el[q]
         cp, sp = face_dir(phi0[e] + u[3 * e + 2], trig[e, 0], trig[e, 1],
                           phi0[e + 1] + u[3 * e + 5], xi[q])
         trig[n_nodes + q, 0] = cp
         trig[n_nodes + q, 1] = sp
-    return L0
 
 
 @njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")

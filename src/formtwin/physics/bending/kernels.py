@@ -54,7 +54,7 @@ import math
 
 from numba import njit
 
-from formtwin.physics.bending.material import HARD_EPS, HARD_RATIO
+from formtwin.physics.bending.material import HARD_EPS, HARD_RATIO, HARD_SLOPE
 
 SQ = 2.0 / math.sqrt(3.0)  # plane-strain factor between sigma_xx and the von Mises stress
 #: smallest fraction of a layer's axial yield stress left by the shear stress (a lagged
@@ -82,7 +82,7 @@ def hardening(eb, hard):  # type: ignore[no-untyped-def]
     i = 0
     while i < n - 2 and eb > HARD_EPS[i + 1]:
         i += 1
-    slope = (HARD_RATIO[i + 1] - HARD_RATIO[i]) / (HARD_EPS[i + 1] - HARD_EPS[i])
+    slope = HARD_SLOPE[i]
     r = HARD_RATIO[i] + slope * (eb - HARD_EPS[i])
     return 1.0 + hard * (r - 1.0), hard * slope
 
@@ -151,16 +151,28 @@ def layer_scales_all(epb, tshear, mat, out):  # type: ignore[no-untyped-def]
                 out[e, g, k, 2] = math.nan
 
 
-@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
 def layer_return(de, sig_n, epb_n, E, sy, hard, syy, r, fac,  # type: ignore[no-untyped-def]
                  s0, rate_n, e0, q, tau):
     """:func:`layer_update` with the factors of :func:`layer_yield` given and ``s0`` of
     :func:`layer_s0` (NaN: computed here if the point yields); returns ``(sigma, eps_bar,
-    E_tangent, s0)``."""
+    E_tangent, s0)``.
+
+    Inlined into its callers, so that a point inside the rate-free yield surface (most of
+    a sheet's layer points) costs no call; :func:`layer_plastic` takes the others.
+    """
     sig_tr = sig_n + E * de - syy  # the stress difference that yields
-    a = abs(sig_tr)
-    if a <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
+    if abs(sig_tr) <= SQ * sy * r * fac:  # inside the rate-free (smallest) yield surface
         return sig_tr + syy, epb_n, E, s0
+    return layer_plastic(sig_tr, epb_n, E, sy, hard, syy, r, fac, s0, rate_n, e0, q, tau)
+
+
+@njit(cache=True, error_model="numpy", fastmath=FASTMATH)
+def layer_plastic(sig_tr, epb_n, E, sy, hard, syy, r, fac,  # type: ignore[no-untyped-def]
+                  s0, rate_n, e0, q, tau):
+    """:func:`layer_return` of a point outside the rate-free yield surface, from its trial
+    stress difference ``sig_tr`` (MPa)."""
+    a = abs(sig_tr)
     if math.isnan(s0):
         s0 = layer_s0(rate_n, sy, e0, q, tau, r, fac)
     if a - s0 * r <= 0.0:

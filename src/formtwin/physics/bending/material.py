@@ -29,6 +29,9 @@ HARD_EPS = np.array([0.0, 0.002, 0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.1
                      0.3, 0.4, 0.6, 1.0])
 #: flow stress / initial yield stress at :data:`HARD_EPS`
 HARD_RATIO = (1.0 + HARD_EPS / _EPS0) ** SWIFT_N
+#: slope of :data:`HARD_RATIO` over each interval of :data:`HARD_EPS` (the same quotients
+#: the hardening kernel took on every call)
+HARD_SLOPE = np.diff(HARD_RATIO) / np.diff(HARD_EPS)
 
 
 @dataclass(frozen=True)

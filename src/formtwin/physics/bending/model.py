@@ -19,10 +19,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from formtwin.physics.bending.assembly import crank
 from formtwin.physics.bending.faces import contact_points, face_points
 from formtwin.physics.bending.geometry import FlapGeometry, ToolSet, make_toolset
 from formtwin.physics.bending.material import Material
-from formtwin.physics.bending.solver import OK, crank, run_history
+from formtwin.physics.bending.solver import OK, run_history
 from formtwin.simulator import RunResult
 from formtwin.spec import ProcessSpec, load_spec
 

@@ -1,17 +1,8 @@
 """Incremental-iterative solver of the bending model (Numba).
 
-Unknowns: the nodal ``(u_x, u_y, theta)`` of the sheet (a chain of beam elements) and,
-when the press is compliant, the punch position ``p`` (the translation of the tools owned
-by the punch). The crank prescribes the ram position ``c(t)``; the press frame is a spring
-``k`` between ram and punch, so the punch equilibrium reads
-
-    G = k (p - c) - F_v - s mu_tt |F_lat| = 0,
-
-with ``F_v, F_lat`` the vertical and lateral forces of the sheet on the punch and
-``s = -tanh(c'(t) / v_eps)`` the direction of the guide friction (+1 moving down). The
-sensor measures the spring force ``k (p - c)``. With ``k <= 0`` the punch follows the
-crank exactly. The bordered system (banded sheet block + one punch row and column) is
-solved by block elimination.
+The equations (the sheet's residual and band tangent, the punch row and column when the
+press is compliant) are :mod:`.assembly`'s. The bordered system (banded sheet block + one
+punch row and column) is solved by block elimination.
 
 Time stepping: the history is a list of target times; between targets the step is
 halved on failure (down to ``dt_min``) and doubled after a few easy steps (up to
@@ -25,97 +16,30 @@ import math
 import numpy as np
 from numba import njit
 
-from formtwin.physics.bending.contact import contact_forces, face_pressure, friction_shear
+from formtwin.physics.bending.assembly import (
+    K_SPRING,
+    assemble_work,
+    assembly_work,
+    crank,
+)
+from formtwin.physics.bending.assembly import assemble as assemble
+from formtwin.physics.bending.contact import face_pressure, friction_shear
 from formtwin.physics.bending.faces import face_points
 from formtwin.physics.bending.kernels import (
     BW,
     SQ,
     band_lu,
     band_solve,
-    beam_element,
     element_shear,
     layer_scales_all,
 )
 
-# indices into the ``press`` array
-K_SPRING, MU_TT, V_EPS, CR_R, CR_L, CR_W, G0 = range(7)
 # indices into the ``opts`` array
 (DT_MAX, DT_MIN, MAX_IT, TOL_R, TOL_U, CAP_U, PREDICT, LS_MAX, LS_TOL, EASY_IT, EASY_N,
  RATE_TAU, SPREAD, SHEAR, LS_ENERGY, PINCH_REACH, PINCH_P0, PINCH_P1, RATE_SPEED,
  FRICTION_SHEAR) = range(20)
 # status codes
 OK, FAIL_STEP = 0, 1
-
-
-@njit(cache=True)
-def crank(t, press):  # type: ignore[no-untyped-def]
-    """Ram height above bottom dead centre ``c(t)`` (mm) and its speed (mm/s)."""
-    R, L, w = press[CR_R], press[CR_L], press[CR_W]
-    a = w * t
-    sa, ca = math.sin(a), math.cos(a)
-    root = math.sqrt(L * L - R * R * sa * sa)
-    return R * (1.0 - ca) + L - root, R * w * sa + R * R * w * sa * ca / root
-
-
-@njit(cache=True)
-def assemble(t, u, p, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyped-def]
-             tools, contact, ct_trial, press, fext, Kb, R, col, row, out):
-    """Residual ``R = f_int - f_contact - f_ext`` and band tangent ``Kb``.
-
-    ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``trial = (sig_t, epb_t, eps_t)``
-    (written), ``tools = (ptype, pdata, tstart, towner, tface, tmu, el, xi, pen, Xp)``: the
-    tools and the contact points (element, ``xi``, penalties, reference positions;
-    :mod:`.contact`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear, scales)``
-    (per point and tool, committed; ``pface`` the face pressures at the nodes, MPa;
-    ``tshear`` the elements' mean shear stresses, MPa; ``scales`` the layers' yield factors
-    of the committed state, :func:`.kernels.layer_scales_all`),
-    ``ct_trial = (ct_t_t, ct_act_t, ct_n_t)`` (written; ``ct_n_t`` normal forces, N/mm).
-    Contact acts at points on the sheet's faces (:func:`.contact.contact_forces`), so the
-    normal and friction forces also load the nodes' rotations.
-    ``col = dR/dp``, ``row = dG/du``; ``out = [G, dG/dp, F_v, F_lat, spring/measured force]``.
-    """
-    X, phi0, thick, ylay, wlay, xg, wg, mat = mesh
-    sig_t, epb_t, eps_t = trial
-    ptype, pdata, tstart, towner, tface, tmu, el, xi, pen = tools[:9]
-    pface, tshear, scales = contact[3], contact[4], contact[5]
-    n_dof = u.shape[0]
-    n_el = X.shape[0] - 1
-    Kb[:, :] = 0.0
-    col[:] = 0.0
-    row[:] = 0.0
-    for i in range(n_dof):
-        R[i] = -fext[i]
-    fe = np.zeros(6)
-    Ke = np.zeros((6, 6))
-    Bw = np.zeros((3, 6))
-    for e in range(n_el):
-        beam_element(e, X, u, thick, ylay, wlay, xg, wg, mat,
-                     sig, epb, eps, rate, sig_t, epb_t, eps_t, fe, Ke, Bw, pface, tshear,
-                     scales)
-        i0 = 3 * e
-        for a in range(6):
-            R[i0 + a] += fe[a]
-            for b in range(6):
-                Kb[i0 + a, b - a + BW] += Ke[a, b]
-    n_nodes = X.shape[0]
-    Jp = np.zeros((n_nodes, 2, 3))
-    fv, flat = contact_forces(p, u, X, phi0, thick, (el, xi, pen),
-                              (ptype, pdata, tstart, towner, tface, tmu), contact[:3], ct_trial,
-                              press[G0], Kb, R, col, Jp)
-    c, v = crank(t, press)
-    sdir = -math.tanh(v / press[V_EPS])
-    mtt = sdir * press[MU_TT] * (1.0 if flat >= 0.0 else -1.0)
-    dgdp = press[K_SPRING]
-    for nd in range(n_nodes):
-        for b in range(3):
-            row[3 * nd + b] = Jp[nd, 1, b] + mtt * Jp[nd, 0, b]
-        dgdp -= Jp[nd, 1, 1] + mtt * Jp[nd, 0, 1]
-    meas = fv + sdir * press[MU_TT] * abs(flat)
-    out[0] = press[K_SPRING] * (p - c) - meas
-    out[1] = dgdp
-    out[2] = fv
-    out[3] = flat
-    out[4] = press[K_SPRING] * (p - c) if press[K_SPRING] > 0.0 else meas
 
 
 @njit(cache=True)
@@ -150,7 +74,7 @@ def _work(x, dp, R, g, spring):  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untyped-def]
            tools, contact, ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters,
-           reac):
+           reac, work):
     """Newton iterations with a backtracking line search at time ``t``.
 
     The line search halves the step until, with ``opts[LS_ENERGY]``, the work of the residual
@@ -159,18 +83,17 @@ def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untype
     residual norm is below ``opts[LS_TOL]`` times the last one.
 
     Starts from the predictor in ``u, pa[0]``; ``free[i] = 0`` marks a prescribed dof
-    (its value is already set in ``u``). The groups are those of :func:`assemble`.
+    (its value is already set in ``u``). The groups are those of :func:`.assembly.assemble`.
     ``reac (n,)`` receives the residual of the last assembly with the prescribed dofs
-    kept (their reactions); ``out`` is that assembly's.
+    kept (their reactions); ``out`` is that assembly's. ``work = (assembly, x1, x2, u0)``:
+    :func:`assembly_work` and three ``(n,)`` vectors.
     Returns the number of iterations, or -1 if not converged within ``opts[MAX_IT]``.
     """
     n = u.shape[0]
     spring = press[K_SPRING] > 0.0
-    x1 = np.zeros(n)
-    x2 = np.zeros(n)
-    u0 = np.zeros(n)
-    assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial, press,
-             fext, Kb, R, col, row, out)
+    aw, x1, x2, u0 = work
+    assemble_work(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
+                  press, fext, Kb, R, col, row, out, aw)
     reac[:] = R
     norm = _fix(R, Kb, col, row, free)
     if spring:
@@ -220,8 +143,8 @@ def newton(t, u, pa, mesh, sig, epb, eps, rate, trial,  # type: ignore[no-untype
             for i in range(n):
                 u[i] = u0[i] + alpha * x1[i]
             pa[0] = p0 + alpha * dp
-            assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
-                     press, fext, Kb, R, col, row, out)
+            assemble_work(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact,
+                          ct_trial, press, fext, Kb, R, col, row, out, aw)
             counters[3] += 1
             reac[:] = R
             norm = _fix(R, Kb, col, row, free)
@@ -246,7 +169,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
 
     Grouped arguments: ``mesh = (X, phi0, thick, ylay, wlay, xg, wg, mat)``, ``state =
     (u, pa, sig, epb, eps, rate)``, ``tools = (ptype, pdata, tstart, towner, tface, tmu, el,
-    xi, pen, Xp)`` (:func:`assemble`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear,
+    xi, pen, Xp)`` (:func:`.assembly.assemble`), ``contact = (ct_t, ct_rel, ct_act, pface, tshear,
     scales)`` (``scales`` work space, kept in step with the committed state),
     ``loads = (press, fref, fix_idx, fix_ref)``, ``record = (rec_u, rec_f, rec_r, counters)``.
 
@@ -287,6 +210,8 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
     for i in fix_idx:
         free[i] = 0
     u_trial = np.empty(n)
+    pt = np.empty(1)
+    work = (assembly_work(mesh, tools), np.zeros(n), np.zeros(n), np.zeros(n))
     tadd = np.zeros(n_el)  # the face friction's distributed moment as V/t (friction_shear)
     du_prev = np.zeros(n)
     dp_prev = 0.0
@@ -309,7 +234,6 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
             for m in range(fix_idx.shape[0]):
                 u_trial[fix_idx[m]] = lff * fix_ref[m]
             c_new, _ = crank(tn, press)
-            pt = np.empty(1)
             if spring:
                 if dt_prev > 0.0 and opts[PREDICT] > 0.0:
                     pt[0] = pa[0] + dp_prev * h / dt_prev
@@ -320,7 +244,7 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
                 pt[0] = c_new
             its = newton(tn, u_trial, pt, mesh, sig, epb, eps, rate, trial, tools, contact,
                          ct_trial, press, fext, free, opts, Kb, R, col, row, out, counters,
-                         reac)
+                         reac, work)
             fresh = its >= 0
             if its < 0:
                 counters[2] += 1
@@ -379,8 +303,8 @@ def run_history(targets, lam, lam_fix, t_start, mesh, state,  # type: ignore[no-
         # record the forces and reactions of the converged state: those of the last Newton
         # assembly (assemble only if no step was taken since the last record)
         if not fresh:
-            assemble(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact, ct_trial,
-                     press, fext, Kb, R, col, row, out)
+            assemble_work(t, u, pa[0], mesh, sig, epb, eps, rate, trial, tools, contact,
+                          ct_trial, press, fext, Kb, R, col, row, out, work[0])
             reac[:] = R
             fresh = True
         for i in range(n):

@@ -97,7 +97,7 @@ class ProcessPoint:
 def ram_height(t: FloatArray, g: FlapGeometry) -> tuple[FloatArray, FloatArray]:
     """Ram height above bottom dead centre ``c(t)`` (mm) and its speed (mm/s), ``t`` in s.
 
-    The crank with connecting rod of :func:`formtwin.physics.bending.solver.crank`.
+    The crank with connecting rod of :func:`formtwin.physics.bending.assembly.crank`.
     """
     R, L, w = 0.5 * g.stroke, g.rod, g.omega
     a = w * np.asarray(t, dtype=np.float64)
