@@ -8,7 +8,8 @@ services and commands the tests start) that reach a kernel at about the same tim
 compile it, the bending model's ~60 s of CPU among them. ``make test`` runs this script
 beside the lint, so the tests load the kernels instead. The calls are those of the
 package's own code paths: one bending run at the centre of the design, tracker steps on
-the bundled metamodel with the deviation model, a GLR chart update.
+the bundled metamodel with the deviation model (the metamodel's and the deviation's
+kernels, and the tracker's own: ``formtwin.tracker._kernels``), a GLR chart update.
 
 Usage: ``python scripts/compile_kernels.py`` (prints what it compiled and the time it took).
 """
@@ -91,7 +92,7 @@ def main() -> None:
         for curve in curves:
             tracker.step(curve)
     t2 = time.perf_counter()
-    print(f"metamodel and deviation kernels: {t2 - t1:.1f} s")
+    print(f"metamodel, deviation and tracker kernels: {t2 - t1:.1f} s")
 
     from formtwin.monitoring.episodes import run_lengths
     from formtwin.monitoring.glr import Glr, GlrState, glr_statistics

@@ -35,6 +35,7 @@ from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.spec.sensors import output_column
 from formtwin.tracker import state as _state
+from formtwin.tracker._kernels import select_heaviest
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.final_angles import FinalAngles
 from formtwin.tracker.fit import FitRule, assess
@@ -69,14 +70,10 @@ def heaviest(w: FloatArray, mass: float) -> NDArray[np.intp]:
     """
     # only weights <= mass can be dropped, and they come first in the stable ascending
     # order of all weights: sorting them alone gives the same prefix and the same sums
-    light = np.flatnonzero(w <= mass)
-    order = light[np.argsort(w[light], kind="stable")]
-    n_drop = int(np.searchsorted(np.cumsum(w[order]), mass, side="right"))
-    if n_drop == 0:
-        return np.arange(w.size)
-    keep = np.ones(w.size, dtype=bool)
-    keep[order[:n_drop]] = False
-    return np.flatnonzero(keep)
+    # (in one Numba pass: the stable sort and the sums in order, the same selection)
+    out: NDArray[np.intp] = select_heaviest(np.ascontiguousarray(w, dtype=np.float64),
+                                            float(mass))
+    return out
 
 
 class Tracker(SensorFusion):

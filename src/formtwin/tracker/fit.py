@@ -35,6 +35,7 @@ Health of the estimate (:data:`formtwin.estimates.HEALTH`), with :class:`FitRule
 
 >>> import numpy as np
 >>> from formtwin.measurement import MeasurementModel
+from formtwin.tracker._kernels import centred_spread
 >>> mm = MeasurementModel(basis=np.eye(4)[:, :2], lam=np.array([4.0, 1.0]), s2=1.0)
 >>> r = np.zeros((10, 4)); r[:, 1] = 1.0          # every particle 1 std off, no spread
 >>> f = assess(r, np.full(10, 0.1), ess=10.0, measurement=mm)
@@ -58,6 +59,7 @@ from scipy.special import gammaincc, gammaln
 
 from formtwin.estimates import Fit
 from formtwin.measurement import MeasurementModel
+from formtwin.tracker._kernels import centred_spread
 
 FloatArray = NDArray[np.float64]
 
@@ -88,6 +90,12 @@ class FitRule:
                              f"({self.p_warn}) < 1")
         if not 0 <= self.ess_share_min < 1:
             raise ValueError(f"ess_share_min = {self.ess_share_min}, expected in [0, 1)")
+
+
+def _stride(n: int) -> int:
+    """The stride of the rows of ``n`` that give the cloud's spread (at most
+    :data:`MAX_SPREAD` rows)."""
+    return max(1, -(-n // MAX_SPREAD))
 
 
 def distance_logsf(m2: FloatArray, measurement: MeasurementModel) -> FloatArray:
@@ -155,31 +163,24 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
         the (n_t, n_t) covariance).
     """
     rule = FitRule() if rule is None else rule
-    r = np.asarray(residuals, dtype=np.float64)
-    v = np.asarray(v, dtype=np.float64)
+    r = np.ascontiguousarray(residuals, dtype=np.float64)
+    v = np.ascontiguousarray(v, dtype=np.float64)
     share = min(float(ess) / max(r.shape[0], 1), 1.0)
-    r_bar = None
+    finite = False
     if not collapsed and r.shape[0] and v.min() > 0.0:  # the usual case: every row
-        w = v / v.sum()                                 # weighted, and a NaN or inf in
-        r_bar = w @ r                                   # a row carries into the mean
-        if np.all(np.isfinite(r_bar)):
-            v = w
-        else:
-            r_bar = None
-    if r_bar is None:
+        # weighted, and a NaN or inf in a row carries into the mean: the mean and the
+        # spread's rows in one pass (Numba)
+        r_bar, finite, rc = centred_spread(r, v / v.sum(), _stride(r.shape[0]))
+    if not finite:
         ok = np.isfinite(r.sum(axis=1)) & (v > 0)  # rows with NaN or inf (a row sum is
         if collapsed or not ok.any():              # finite below ~1e306 N: any curve)
             return Fit(distance2=math.inf, dof=measurement.n_t, quantile=1.0,
                        log10_p=-math.inf, ess_share=share, health="no_fit")
         if not ok.all():
             r, v = r[ok], v[ok]
-        v = v / v.sum()
-        r_bar = v @ r
-    stride = max(1, -(-r.shape[0] // MAX_SPREAD))
-    rs, vs = r[::stride], v[::stride]
-    rc = rs - r_bar
-    rc *= np.sqrt(vs / vs.sum())[:, None]
-    cov = _syrk(1.0, rc, trans=1, lower=1)  # rc^T rc, its lower triangle (all potrf reads)
+        r_bar, _, rc = centred_spread(r, v / v.sum(), _stride(r.shape[0]))
+    # rc^T rc, its lower triangle (all potrf reads); rc in Fortran order: no copy
+    cov = _syrk(1.0, rc, trans=1, lower=1)
     if covariance is None:
         cov += scale * measurement.covariance()
     elif covariance.ndim == 1:

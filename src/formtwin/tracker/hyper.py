@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from formtwin.filters import logsumexp
+from formtwin.tracker._kernels import row_sums, shifted_columns
 from formtwin.tracker.config import SCALES
 
 FloatArray = NDArray[np.float64]
@@ -49,7 +50,12 @@ class GridPosteriors:
         grid = self._last.pop("grid", None)
         if grid is None or grid.shape[1] < 2:
             return
-        ev = logsumexp(logw_prev[:, None] + grid, axis=0)
+        # logsumexp(logw_prev[:, None] + grid, axis=0), its steps but exp and log in
+        # two Numba passes: the same numbers
+        t, top = shifted_columns(np.ascontiguousarray(logw_prev, dtype=np.float64),
+                                 np.ascontiguousarray(grid, dtype=np.float64))
+        with np.errstate(divide="ignore"):
+            ev = np.log(row_sums(np.exp(t, out=t))) + top
         if not np.all(np.isfinite(ev)):
             return  # a collapsed step says nothing about the share
         logp = self.share_logpost + ev

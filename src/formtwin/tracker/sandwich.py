@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dgesv as _gesv
 
+from formtwin.tracker._kernels import information, mu_gain_step, term_variances, weighted_cov
 from formtwin.tracker.discrepancy import residual_covariance
 
 FloatArray = NDArray[np.float64]
@@ -202,17 +203,22 @@ class Sandwich:
         caller has it (None: computed here)."""
         m, n_in = self.m, self._n_in
         mean = w @ x if mean is None else mean
-        dev = x[:, :m] - mean[:m]
-        P = (dev * w[:, None]).T @ dev
+        P, finite = weighted_cov(x, w, mean, m)  # one pass (Numba, :mod:`._kernels`)
         if self.J is None or t % EVERY == 0:
             self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
         assert self.J is not None and self.Ja is not None
-        if self._j_finite and np.all(np.isfinite(P)):
-            M, K = _gains(self.P, *self._information(), self.F, self.Q)
-            if K is not None:
+        if self._j_finite and finite:
+            if self.k_half.size:  # the gain K too: one LAPACK solve for both terms
+                M, K = _gains(self.P, *self._information(), self.F, self.Q)
+                assert K is not None
                 self.G = _next_G(M, K, self.F, self.G)
-            if self.mu_half.size:
-                self.G_mu = _next_G_mu(M, self.F, self.G_mu, self._drive)
+                if self.mu_half.size:
+                    self.G_mu = _next_G_mu(M, self.F, self.G_mu, self._drive)
+            elif self.mu_half.size:  # G_mu alone: one kernel solves for it
+                self.G_mu, ok = mu_gain_step(self.P, self._information()[0], self.F,
+                                             self.Q, self.G_mu, self._drive)
+                if not ok:  # singular in floating point: NumPy's error, as before
+                    raise np.linalg.LinAlgError("Singular matrix")
             self.P = P
         # each term present adds its variances (m,) and the angles' (n_out,); a term left
         # out would add exactly 0, so it is not computed
@@ -224,10 +230,9 @@ class Sandwich:
             var[:m] += c * np.sum(H * H, axis=1)
             avar += c * np.sum(Ha * Ha, axis=1)
         if self.mu_half.size:
-            H_mu = self.G_mu @ self.mu_half
-            Ha_mu = self.Ja @ H_mu[:n_in]
-            var[:m] += np.sum(H_mu * H_mu, axis=1)
-            avar += np.sum(Ha_mu * Ha_mu, axis=1)
+            var_mu, avar_mu = term_variances(self.G_mu, self.mu_half, self.Ja, n_in)
+            var[:m] += var_mu
+            avar += avar_mu
         return var, avar
 
     def _information(self) -> tuple[FloatArray, FloatArray | None]:
@@ -246,8 +251,10 @@ class Sandwich:
         if self._tj is None or self._tj[0] is not self.J or self._tj[1] is not T:
             self._tj = (self.J, T, T @ self.J)
         TJ = self._tj[2]
+        if not want:
+            return information(TJ, v), None
         scaled = TJ / v[:, None]
-        return TJ.T @ scaled, T.T @ scaled if want else None
+        return TJ.T @ scaled, T.T @ scaled
 
     def _refresh(self, mean: FloatArray, spread: FloatArray, y: FloatArray,
                  u: FloatArray | None) -> None:
