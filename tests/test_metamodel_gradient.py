@@ -127,3 +127,21 @@ def test_tracker_jacobian_from_the_gradient_matches_forward_differences(
     col = np.abs(exact).max(axis=0)
     assert np.all(col > 0)
     assert np.all(np.abs(exact - fd).max(axis=0) <= 1e-4 * col + 1e-9 * np.abs(y).max())
+
+
+def test_cubic_kernel_and_slope_in_one_pass_are_the_numpy_formulas() -> None:
+    """``cubic_value_slope`` (the cubic RBF's gradient, Numba) against the NumPy steps of
+    the other kernels' path: ``phi = r^3`` and ``S = 2 phi'(r^2) (z - c)``, to ``d eps``
+    of their scale, for several points at once."""
+    from formtwin.metamodel._fused import cubic_value_slope
+    from formtwin.metamodel.kernels import KERNEL_SLOPES, kernel_function
+
+    rng = np.random.default_rng(12)
+    Z, C = rng.random((3, 10)) * 2.0, rng.random((200, 10)) * 2.0
+    phi, S = cubic_value_slope(Z, C)
+    D = Z[:, None, :] - C[None]
+    r2 = np.einsum("nmd,nmd->nm", D, D)
+    eps = 10 * np.finfo(float).eps
+    np.testing.assert_allclose(phi, kernel_function("cubic")(r2), rtol=eps)
+    want = (D * (2.0 * KERNEL_SLOPES["cubic"](r2))[:, :, None]).transpose(0, 2, 1)
+    np.testing.assert_allclose(S, want, rtol=0, atol=eps * np.abs(want).max())

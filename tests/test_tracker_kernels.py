@@ -64,8 +64,8 @@ def test_share_evidence_columns_are_logsumexp_bit_for_bit() -> None:
 
 
 def test_fit_spread_rows_are_the_centred_weighted_residuals() -> None:
-    """The mean residual and the spread's rows (Fortran order, what ``dsyrk`` reads
-    without a copy) against the NumPy formulas, to ``N eps`` of the residuals' scale;
+    """The mean residual and the spread's rows against the NumPy formulas, to ``N eps``
+    of the residuals' scale, and their Gram matrix by ``dsyrk`` as ``assess`` calls it;
     a NaN row makes the mean non-finite."""
     rng = np.random.default_rng(4)
     r = rng.normal(3.0, 2.0, (500, 101))
@@ -76,11 +76,11 @@ def test_fit_spread_rows_are_the_centred_weighted_residuals() -> None:
         want_bar = w @ r
         ws = w[::stride]
         want_rc = (r[::stride] - want_bar) * np.sqrt(ws / ws.sum())[:, None]
-        assert finite and rc.flags.f_contiguous and rc.shape == want_rc.shape
+        assert finite and rc.shape == want_rc.shape
         tol = 500 * EPS * np.abs(r).max()
         np.testing.assert_allclose(r_bar, want_bar, rtol=0, atol=tol)
         np.testing.assert_allclose(rc, want_rc, rtol=0, atol=tol)
-        np.testing.assert_allclose(dsyrk(1.0, rc, trans=1, lower=1),
+        np.testing.assert_allclose(dsyrk(1.0, rc.T, trans=0, lower=1),
                                    np.tril(want_rc.T @ want_rc), rtol=0,
                                    atol=4 * tol * np.abs(rc).max() * rc.shape[0])
     r[17, 5] = np.nan
@@ -103,25 +103,51 @@ def _recursion_case(m: int = 18, nx: int = 7, n_t: int = 101, seed: int = 5
             "Ja": rng.standard_normal((2, 10))}
 
 
-def test_cloud_covariance_and_information_are_the_numpy_products() -> None:
-    """``weighted_cov`` is ``(dev w)^T dev`` and ``information`` is ``TJ^T diag(1/v) TJ``,
-    to ``n eps`` of the products' scale (n the rows summed over)."""
+def test_cloud_moments_and_information_are_the_numpy_products() -> None:
+    """``cloud_moments`` gives every column's variance ``w @ (x - mean)^2`` (eq. 14's
+    std squared) and the first ``m`` columns' covariance ``(dev w)^T dev``,
+    ``information`` is ``TJ^T diag(1/v) TJ``, to ``n eps`` of the products' scale (n the
+    rows summed over)."""
     c = _recursion_case()
     x, w, m = c["x"], c["w"], 18
     mean = w @ x
-    P, finite = k.weighted_cov(x, w, mean, m)
+    var, P, finite = k.cloud_moments(x, w, mean, m)
+    np.testing.assert_allclose(var, w @ (x - mean) ** 2, rtol=500 * EPS)
     dev = x[:, :m] - mean[:m]
     want = (dev * w[:, None]).T @ dev
     scale = np.sqrt(np.outer(np.diag(want), np.diag(want)))
     assert finite
     np.testing.assert_array_less(np.abs(P - want), 500 * EPS * scale + 1e-300)
+    var0, P0, _ = k.cloud_moments(x, w, mean, 0)
+    np.testing.assert_array_equal(var0, var)
+    assert P0.shape == (0, 0)
     TJ, v = c["TJ"], c["v"]
     info = k.information(TJ, v)
     ref = TJ.T @ (TJ / v[:, None])
     scale = np.sqrt(np.outer(np.diag(ref), np.diag(ref)))
     np.testing.assert_array_less(np.abs(info - ref), 101 * 4 * EPS * scale)
     x[3, 2] = np.inf
-    assert not k.weighted_cov(x, w, mean, m)[1]
+    assert not k.cloud_moments(x, w, mean, m)[2]
+
+
+def test_angle_moments_leave_out_rows_with_nan_or_inf() -> None:
+    """The angles' weighted mean and std, the extra variance added to the std's square:
+    as NumPy's formulas on the finite rows with their weights renormalised (to ``M eps``);
+    NaN when no row is finite."""
+    rng = np.random.default_rng(6)
+    a = rng.normal([30.0, 5.0], [2.0, 0.5], (134, 2))
+    w = rng.dirichlet(np.full(134, 0.5))
+    extra = np.array([0.04, 0.01])
+    a[[3, 50], [0, 1]] = np.nan, np.inf
+    good = np.all(np.isfinite(a), axis=1)
+    wg = w[good] / w[good].sum()
+    want_mean = wg @ a[good]
+    want_std = np.sqrt(wg @ (a[good] - want_mean) ** 2 + extra)
+    mean, std = k.angle_moments(a, w, extra)
+    np.testing.assert_allclose(mean, want_mean, rtol=134 * EPS)
+    np.testing.assert_allclose(std, want_std, rtol=1e3 * 134 * EPS)
+    none = k.angle_moments(np.full((3, 2), np.nan), np.full(3, 1 / 3), extra)
+    assert np.isnan(none[0]).all() and np.isnan(none[1]).all()
 
 
 def test_mu_gain_step_is_the_lapack_solve_of_the_recursion() -> None:

@@ -10,13 +10,15 @@ call (~2-5 us) was most of their time, with one pass:
   (:meth:`~formtwin.tracker.hyper.GridPosteriors.update_share`): the same operations in
   their order around NumPy's ``exp`` and ``log``, so the same numbers bit for bit;
 * :func:`centred_spread`: the goodness of fit's mean residual and the rows of the cloud's
-  spread (:func:`formtwin.tracker.fit.assess`), in Fortran order for ``dsyrk``;
-* :func:`weighted_cov`, :func:`information`, :func:`mu_gain_step`, :func:`term_variances`:
-  the assumed mu's interval term (:class:`formtwin.tracker.sandwich.Sandwich`): the
-  cloud's covariance, ``J^T S^-1 J``, the recursion's solve (Gaussian elimination with
-  partial pivoting, as LAPACK's ``dgesv``) and the variances it adds.
+  spread (:func:`formtwin.tracker.fit.assess`);
+* :func:`cloud_moments`, :func:`angle_moments`: the estimate's std (eq. 14) and the
+  cloud's covariance for the intervals in one pass; the predicted angles' moments;
+* :func:`information`, :func:`mu_gain_step`, :func:`term_variances`: the assumed mu's
+  interval term (:class:`formtwin.tracker.sandwich.Sandwich`): ``J^T S^-1 J``, the
+  recursion's solve (Gaussian elimination with partial pivoting, as LAPACK's ``dgesv``)
+  and the variances it adds.
 
-The last two groups sum in another order than BLAS and solve without LAPACK: their
+The last three groups sum in another order than BLAS and solve without LAPACK: their
 numbers agree with the NumPy formulas to rounding (``tests/test_tracker_kernels.py``
 holds them to tolerances from ``eps`` and the solve's condition number), and they are
 deterministic, so a tracker restored from its state continues bit for bit. No fast-math.
@@ -97,7 +99,7 @@ def row_sums(t):  # type: ignore[no-untyped-def]
 def centred_spread(r, w, stride):  # type: ignore[no-untyped-def]
     """``r_bar = sum_k w_k r_k`` (n_t,) of residuals ``r`` (N, n_t) with weights ``w``
     (N,); whether it is finite; and the rows ``s = 0, stride, ...`` centred and scaled,
-    ``(r_s - r_bar) sqrt(w_s / sum w_s)`` (ceil(N / stride), n_t), Fortran order."""
+    ``(r_s - r_bar) sqrt(w_s / sum w_s)`` (ceil(N / stride), n_t)."""
     n_rows, n_t = r.shape
     r_bar = np.zeros(n_t)
     for k in range(n_rows):
@@ -112,27 +114,32 @@ def centred_spread(r, w, stride):  # type: ignore[no-untyped-def]
     total = 0.0
     for s in range(n_s):
         total += w[s * stride]
-    out = np.empty((n_t, n_s))
+    out = np.empty((n_s, n_t))
     for s in range(n_s):
         k = s * stride
         f = np.sqrt(w[k] / total)
         for j in range(n_t):
-            out[j, s] = (r[k, j] - r_bar[j]) * f
-    return r_bar, finite, out.T
+            out[s, j] = (r[k, j] - r_bar[j]) * f
+    return r_bar, finite, out
 
 
 @njit(cache=True)
-def weighted_cov(x, w, mean, m):  # type: ignore[no-untyped-def]
-    """``P = sum_k w_k (x_k - mean)(x_k - mean)^T`` (m, m) over the first ``m`` columns of
-    the particles ``x`` (N, d), weights ``w`` (N,), ``mean`` (d,); and whether every
-    entry is finite."""
+def cloud_moments(x, w, mean, m):  # type: ignore[no-untyped-def]
+    """In one pass over the particles ``x`` (N, d) with weights ``w`` (N,) and weighted
+    mean ``mean`` (d,): the weighted variance of every column (d,), the covariance ``P =
+    sum_k w_k (x_k - mean)(x_k - mean)^T`` (m, m) of the first ``m`` columns and whether
+    every entry of ``P`` is finite."""
+    n, n_col = x.shape
+    var = np.zeros(n_col)
     P = np.zeros((m, m))
-    d = np.empty(m)
-    for k in range(x.shape[0]):
-        for i in range(m):
+    d = np.empty(n_col)
+    for k in range(n):
+        wk = w[k]
+        for i in range(n_col):
             d[i] = x[k, i] - mean[i]
+            var[i] += wk * (d[i] * d[i])
         for i in range(m):
-            a = w[k] * d[i]
+            a = wk * d[i]
             for j in range(m):
                 P[i, j] += a * d[j]
     finite = True
@@ -140,7 +147,44 @@ def weighted_cov(x, w, mean, m):  # type: ignore[no-untyped-def]
         for j in range(m):
             if not np.isfinite(P[i, j]):
                 finite = False
-    return P, finite
+    return var, P, finite
+
+
+@njit(cache=True)
+def angle_moments(angles, w, extra):  # type: ignore[no-untyped-def]
+    """Weighted mean and std (n_out,) of the angles (M, n_out) with weights ``w`` (M,),
+    rows with a NaN or inf left out and the rest renormalised, the variances ``extra``
+    (n_out,) added to the std's square; NaN when no row is left."""
+    n, n_out = angles.shape
+    ok = np.empty(n, dtype=np.bool_)
+    total = 0.0
+    for i in range(n):
+        ok[i] = True
+        for j in range(n_out):
+            if not np.isfinite(angles[i, j]):
+                ok[i] = False
+        if ok[i]:
+            total += w[i]
+    mean = np.full(n_out, np.nan)
+    std = np.full(n_out, np.nan)
+    if not total > 0.0:
+        return mean, std
+    mean[:] = 0.0
+    for i in range(n):
+        if ok[i]:
+            wi = w[i] / total
+            for j in range(n_out):
+                mean[j] += wi * angles[i, j]
+    var = np.zeros(n_out)
+    for i in range(n):
+        if ok[i]:
+            wi = w[i] / total
+            for j in range(n_out):
+                e = angles[i, j] - mean[j]
+                var[j] += wi * (e * e)
+    for j in range(n_out):
+        std[j] = np.sqrt(max(var[j], 0.0) + extra[j])
+    return mean, std
 
 
 @njit(cache=True)

@@ -35,7 +35,7 @@ from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.spec.sensors import output_column
 from formtwin.tracker import state as _state
-from formtwin.tracker._kernels import select_heaviest
+from formtwin.tracker._kernels import angle_moments, cloud_moments, select_heaviest
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.final_angles import FinalAngles
 from formtwin.tracker.fit import FitRule, assess
@@ -254,19 +254,17 @@ class Tracker(SensorFusion):
         angles = self.ssm.predict_angles(xa, u)
         if self.finals is not None:  # kept for the final angle's interval and the camera
             self._keep_finals(s, angles, rows, u, parents)
-        ok = np.all(np.isfinite(angles), axis=1)
-        w = np.where(ok, wa, 0.0)
-        if w.sum() > 0:
-            w = w / w.sum()
-            a = np.where(ok[:, None], angles, 0.0)
-            am = w @ a
-            astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
-        else:
-            am = astd = np.full(2, np.nan)
+        # the angles' weighted mean and std, rows with NaN or inf left out (Numba)
+        am, astd = angle_moments(np.ascontiguousarray(angles, dtype=np.float64), wa,
+                                 self.ssm.angle_error())
         mean, na = s.mean(), len(self.names)
-        std = s.std(mean)  # the mean computed once
-        if self.sandwich is not None and y is not None:  # the intervals only
-            var, avar = self.sandwich.update(s.x, s.w, y, self.filter.t - 1, u, mean)
+        # the std (eq. 14) and, for the intervals, the cloud's covariance in one pass (the
+        # mean computed once)
+        sw = self.sandwich if y is not None else None
+        var_x, P, _ = cloud_moments(s.x, s.w, mean, 0 if sw is None else sw.m)
+        std = np.sqrt(np.maximum(var_x, 0.0))
+        if self.sandwich is not None and y is not None:
+            var, avar = self.sandwich.update(s.x, s.w, y, self.filter.t - 1, u, mean, P)
             std = np.sqrt(std[:na] ** 2 + var)
             astd = np.sqrt(astd**2 + avar)
         mu = self.ssm.mu_moments(s.x, s.w) if self.config.learn_mu else None

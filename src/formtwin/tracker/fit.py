@@ -179,8 +179,9 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
         if not ok.all():
             r, v = r[ok], v[ok]
         r_bar, _, rc = centred_spread(r, v / v.sum(), _stride(r.shape[0]))
-    # rc^T rc, its lower triangle (all potrf reads); rc in Fortran order: no copy
-    cov = _syrk(1.0, rc, trans=1, lower=1)
+    # rc^T rc, its lower triangle (all potrf reads), as A A^T of A = rc^T (n_t, rows):
+    # Fortran order, no copy
+    cov = _syrk(1.0, rc.T, trans=0, lower=1)
     if covariance is None:
         cov += scale * measurement.covariance()
     elif covariance.ndim == 1:

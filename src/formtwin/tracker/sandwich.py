@@ -57,7 +57,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dgesv as _gesv
 
-from formtwin.tracker._kernels import information, mu_gain_step, term_variances, weighted_cov
+from formtwin.tracker._kernels import cloud_moments, information, mu_gain_step, term_variances
 from formtwin.tracker.discrepancy import residual_covariance
 
 FloatArray = NDArray[np.float64]
@@ -195,15 +195,20 @@ class Sandwich:
         return float(np.exp(self.ssm.share_logpost) @ (d.shares > 0))
 
     def update(self, x: FloatArray, w: FloatArray, y: FloatArray, t: int,
-               u: FloatArray | None, mean: FloatArray | None = None
-               ) -> tuple[FloatArray, FloatArray]:
+               u: FloatArray | None, mean: FloatArray | None = None,
+               cov: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
         """After product ``t`` (0-based) with particles ``x`` (N, d), weights ``w`` (N,)
         and curve ``y`` (n_t,): the variances (n_aug,) and (2,) to add to the cloud's
-        for the state and the angles at setting ``u``; ``mean`` (d,) ``w @ x`` when the
-        caller has it (None: computed here)."""
+        for the state and the angles at setting ``u``; ``mean`` (d,) ``w @ x`` and
+        ``cov`` the cloud's covariance (m, m) of the :attr:`m` columns that vary
+        (:func:`~formtwin.tracker._kernels.cloud_moments`) when the caller has them
+        (None: computed here)."""
         m, n_in = self.m, self._n_in
         mean = w @ x if mean is None else mean
-        P, finite = weighted_cov(x, w, mean, m)  # one pass (Numba, :mod:`._kernels`)
+        if cov is None:
+            cov = cloud_moments(x, w, mean, m)[1]
+        P = cov
+        finite = bool(np.all(np.isfinite(P)))
         if self.J is None or t % EVERY == 0:
             self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
         assert self.J is not None and self.Ja is not None
