@@ -216,8 +216,12 @@ def mu_gain_step(P_prev, info, F, Q, G_mu, drive):  # type: ignore[no-untyped-de
         for j in range(m):
             P_pred[i, j] = F[i] * P_prev[i, j] * F[j]
         P_pred[i, i] += Q[i]
-    A = P_pred @ info
+    A = np.zeros((m, m))  # I + P_pred info, in loops (no BLAS call for 18 x 18)
     for i in range(m):
+        for k in range(m):
+            a = P_pred[i, k]
+            for j in range(m):
+                A[i, j] += a * info[k, j]
         A[i, i] += 1.0
     B = np.empty((m, nx))
     for i in range(m):
