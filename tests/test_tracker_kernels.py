@@ -64,15 +64,15 @@ def test_share_evidence_columns_are_logsumexp_bit_for_bit() -> None:
 
 
 def test_fit_spread_rows_are_the_centred_weighted_residuals() -> None:
-    """The mean residual and the spread's rows against the NumPy formulas, to ``N eps``
-    of the residuals' scale, and their Gram matrix by ``dsyrk`` as ``assess`` calls it;
-    a NaN row makes the mean non-finite."""
+    """The mean residual and the spread's rows from unnormalised weights against the
+    NumPy formulas, to ``N eps`` of the residuals' scale, and their Gram matrix by
+    ``dsyrk`` as ``assess`` calls it; a weight of 0 or a NaN row is flagged."""
     rng = np.random.default_rng(4)
     r = rng.normal(3.0, 2.0, (500, 101))
     v = rng.random(500) + 0.01
     w = v / v.sum()
     for stride in (1, 2, 3):
-        r_bar, finite, rc = k.centred_spread(r, w, stride)
+        r_bar, finite, rc = k.centred_spread(r, v, stride)
         want_bar = w @ r
         ws = w[::stride]
         want_rc = (r[::stride] - want_bar) * np.sqrt(ws / ws.sum())[:, None]
@@ -83,8 +83,11 @@ def test_fit_spread_rows_are_the_centred_weighted_residuals() -> None:
         np.testing.assert_allclose(dsyrk(1.0, rc.T, trans=0, lower=1),
                                    np.tril(want_rc.T @ want_rc), rtol=0,
                                    atol=4 * tol * np.abs(rc).max() * rc.shape[0])
+    v[3] = 0.0  # a weight of 0: not the usual case either
+    assert not k.centred_spread(r, v, 2)[1]
+    v[3] = 1.0
     r[17, 5] = np.nan
-    assert not k.centred_spread(r, w, 2)[1]
+    assert not k.centred_spread(r, v, 2)[1]
 
 
 def _recursion_case(m: int = 18, nx: int = 7, n_t: int = 101, seed: int = 5

@@ -96,20 +96,28 @@ def row_sums(t):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def centred_spread(r, w, stride):  # type: ignore[no-untyped-def]
-    """``r_bar = sum_k w_k r_k`` (n_t,) of residuals ``r`` (N, n_t) with weights ``w``
-    (N,); whether it is finite; and the rows ``s = 0, stride, ...`` centred and scaled,
-    ``(r_s - r_bar) sqrt(w_s / sum w_s)`` (ceil(N / stride), n_t)."""
+def centred_spread(r, v, stride):  # type: ignore[no-untyped-def]
+    """For residuals ``r`` (N, n_t) with weights ``v`` (N,), normalised here to ``w``:
+    ``r_bar = sum_k w_k r_k`` (n_t,); whether every weight is positive and ``r_bar``
+    finite (then no row has a NaN or inf); and the rows ``s = 0, stride, ...`` centred
+    and scaled, ``(r_s - r_bar) sqrt(w_s / sum w_s)`` (ceil(N / stride), n_t)."""
     n_rows, n_t = r.shape
+    total = 0.0
+    positive = True
+    for k in range(n_rows):
+        total += v[k]
+        if not v[k] > 0.0:
+            positive = False
+    w = v / total
     r_bar = np.zeros(n_t)
     for k in range(n_rows):
         wk = w[k]
         for j in range(n_t):
             r_bar[j] += wk * r[k, j]
-    finite = True
+    ok = positive
     for j in range(n_t):
         if not np.isfinite(r_bar[j]):
-            finite = False
+            ok = False
     n_s = (n_rows + stride - 1) // stride
     total = 0.0
     for s in range(n_s):
@@ -120,7 +128,7 @@ def centred_spread(r, w, stride):  # type: ignore[no-untyped-def]
         f = np.sqrt(w[k] / total)
         for j in range(n_t):
             out[s, j] = (r[k, j] - r_bar[j]) * f
-    return r_bar, finite, out
+    return r_bar, ok, out
 
 
 @njit(cache=True)

@@ -166,19 +166,19 @@ def assess(residuals: FloatArray, v: FloatArray, ess: float,
     r = np.ascontiguousarray(residuals, dtype=np.float64)
     v = np.ascontiguousarray(v, dtype=np.float64)
     share = min(float(ess) / max(r.shape[0], 1), 1.0)
-    finite = False
-    if not collapsed and r.shape[0] and v.min() > 0.0:  # the usual case: every row
-        # weighted, and a NaN or inf in a row carries into the mean: the mean and the
+    every = False
+    if not collapsed and r.shape[0]:  # the usual case: every row weighted, and a NaN or
+        # inf in a row carries into the mean: the weights normalised, the mean and the
         # spread's rows in one pass (Numba)
-        r_bar, finite, rc = centred_spread(r, v / v.sum(), _stride(r.shape[0]))
-    if not finite:
+        r_bar, every, rc = centred_spread(r, v, _stride(r.shape[0]))
+    if not every:
         ok = np.isfinite(r.sum(axis=1)) & (v > 0)  # rows with NaN or inf (a row sum is
         if collapsed or not ok.any():              # finite below ~1e306 N: any curve)
             return Fit(distance2=math.inf, dof=measurement.n_t, quantile=1.0,
                        log10_p=-math.inf, ess_share=share, health="no_fit")
         if not ok.all():
             r, v = r[ok], v[ok]
-        r_bar, _, rc = centred_spread(r, v / v.sum(), _stride(r.shape[0]))
+        r_bar, _, rc = centred_spread(r, v, _stride(r.shape[0]))
     # rc^T rc, its lower triangle (all potrf reads), as A A^T of A = rc^T (n_t, rows):
     # Fortran order, no copy
     cov = _syrk(1.0, rc.T, trans=0, lower=1)
