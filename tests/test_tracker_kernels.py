@@ -185,3 +185,29 @@ def test_mu_gain_step_is_the_lapack_solve_of_the_recursion() -> None:
     G3 = np.ones((3, 2))
     got, ok = k.mu_gain_step(P3, info3, F3, Q3, G3, np.eye(3, 2))
     assert not ok and got is G3
+
+
+def test_transition_kernel_is_the_numpy_steps_bit_for_bit() -> None:
+    """``drift`` gives ``x * b + a + z * s`` of the first ``q`` columns exactly as the
+    NumPy steps, and flags exactly the rows that left the box (``into_box`` reflects
+    them)."""
+    from formtwin.evolution import into_box
+
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-1.0, 1.0, (500, 21))
+    q = 18
+    a, b, s = rng.normal(0, 0.1, q), rng.uniform(0.5, 1.0, q), rng.uniform(0.01, 0.3, q)
+    lo, hi = np.full(21, -1.0), np.full(21, 1.0)
+    z = rng.standard_normal((500, q))
+    out = np.full_like(x, np.nan)
+    left = k.drift(x, a, b, s, z, lo, hi, out)
+    new = x[:, :q] * b
+    new += a
+    new += z * s
+    np.testing.assert_array_equal(out[:, :q], new)
+    assert np.isnan(out[:, q:]).all()
+    want_left = np.any((new < lo[:q]) | (new > hi[:q]), axis=1)
+    assert 0 < want_left.sum() < 500
+    np.testing.assert_array_equal(left, want_left)
+    out[left, :q] = into_box(out[left, :q], lo[:q], hi[:q])
+    np.testing.assert_array_equal(out[:, :q], into_box(new, lo[:q], hi[:q]))

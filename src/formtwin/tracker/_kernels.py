@@ -3,6 +3,8 @@
 Each replaces a handful of NumPy calls on arrays of 8 to 500 rows, whose fixed cost per
 call (~2-5 us) was most of their time, with one pass:
 
+* :func:`drift`: the transition ``a + b x + s v`` (:meth:`formtwin.tracker.BendingSSM.
+  sample_transition`), the same float steps as NumPy's, so the same particles;
 * :func:`select_heaviest`: the particles whose angles are predicted
   (:func:`formtwin.tracker.core.heaviest`): the same selection, exactly (a stable sort
   and sequential prefix sums, as NumPy's);
@@ -286,3 +288,23 @@ def term_variances(G, half, Ja, n_in):  # type: ignore[no-untyped-def]
                 s += Ja[o, i] * H[i, j]
             avar[o] += s * s
     return var, avar
+
+
+@njit(cache=True)
+def drift(x, a, b, s, z, lo, hi, out):  # type: ignore[no-untyped-def]
+    """The transition ``out[:, :q] = a + b x + s z`` of the first ``q`` columns of the
+    particles ``x`` (N, d) with the normal draws ``z`` (N, q) and the columns' ``a, b, s``
+    (q,), as NumPy's ``x * b``, ``+= a``, ``+= z * s`` (the same float steps); returns
+    the rows (N,) that left the box ``[lo, hi]`` in one of those columns (to be
+    reflected: :func:`formtwin.evolution.into_box`)."""
+    n, q = z.shape
+    rows = np.zeros(n, dtype=np.bool_)
+    for k in range(n):
+        for j in range(q):
+            v = x[k, j] * b[j]
+            v = v + a[j]
+            v = v + z[k, j] * s[j]
+            out[k, j] = v
+            if v < lo[j] or v > hi[j]:
+                rows[k] = True
+    return rows

@@ -56,6 +56,7 @@ from formtwin.evolution import (
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
+from formtwin.tracker._kernels import drift
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.discrepancy import Discrepancy, angle_residual_variance
 from formtwin.tracker.fusion import LagColumns
@@ -262,12 +263,11 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
                 m, P, x[:, :nx], out[:, :nx], self._sigma, self._rho)
             out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                      self.config.alpha)
-        else:  # eq. 4-5 and the jitter of eq. 10 in one pass: x -> a + b x + s v
-            a, b, s = self._drift
-            new = x[:, :stop] * b
-            new += a
-            new += rng.standard_normal(new.shape) * s
-            out[:, :stop] = into_box(new, lo[:stop], hi[:stop])
+        else:  # eq. 4-5 and the jitter of eq. 10 in one pass: x -> a + b x + s v (Numba),
+            a, b, s = self._drift  # then the rows that left the box reflected
+            left = drift(x, a, b, s, rng.standard_normal((x.shape[0], stop)), lo, hi, out)
+            if left.any():
+                out[left, :stop] = reflect(out[left, :stop], lo[:stop], hi[:stop])
         out[:, stop:na] = x[:, stop:na]
         out[:, self._disc:] = x[:, self._disc:]
         self.shift_lags(x, out)
