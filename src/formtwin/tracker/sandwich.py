@@ -205,9 +205,7 @@ class Sandwich:
         (None: computed here)."""
         m, n_in = self.m, self._n_in
         mean = w @ x if mean is None else mean
-        if cov is None:
-            cov = cloud_moments(x, w, mean, m)[1]
-        P = cov
+        P = cloud_moments(x, w, mean, m)[1] if cov is None else cov
         finite = bool(np.all(np.isfinite(P)))
         if self.J is None or t % EVERY == 0:
             self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
