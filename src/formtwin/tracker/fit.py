@@ -35,7 +35,6 @@ Health of the estimate (:data:`formtwin.estimates.HEALTH`), with :class:`FitRule
 
 >>> import numpy as np
 >>> from formtwin.measurement import MeasurementModel
-from formtwin.tracker._kernels import centred_spread
 >>> mm = MeasurementModel(basis=np.eye(4)[:, :2], lam=np.array([4.0, 1.0]), s2=1.0)
 >>> r = np.zeros((10, 4)); r[:, 1] = 1.0          # every particle 1 std off, no spread
 >>> f = assess(r, np.full(10, 0.1), ess=10.0, measurement=mm)
