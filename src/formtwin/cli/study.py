@@ -114,7 +114,7 @@ def physics_source(args: argparse.Namespace, spec: Any) -> tuple[Any, str]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``formtwin study``: the metamodel, the study and its report; returns the exit code."""
-    from formtwin.defaults import default_metamodel
+    from formtwin.defaults import bundled_metamodel, default_metamodel
     from formtwin.study.report import write_report
     from formtwin.study.run import run_study
     from formtwin.study.sensor_report import load_sensor_figures
@@ -136,8 +136,11 @@ def run(args: argparse.Namespace) -> int:
     calibration = find_calibration(metamodel).describe() if calibrated else ""
     if calibration.startswith("uncalibrated"):
         print(f"WARNING: {calibration}; the report's intervals are the particle cloud's")
+    # the bundled file by its name in the package: a report names no path of this machine
+    shown = f"formtwin/data/{mm_path.name} (bundled)" \
+        if mm_path == bundled_metamodel(args.physics) else str(mm_path)
     report = write_report(result, metamodel.spec, out, sources={
-        "metamodel": f"{mm_path} (fit {metamodel.fit_id or 'without id'})",
+        "metamodel": f"{shown} (fit {metamodel.fit_id or 'without id'})",
         "physics model": f"{label} ({physics.version})"}, calibration=calibration,
         sensors=load_sensor_figures(args.sensor_figures), sensor_source=args.sensor_figures)
     print(f"study done in {result.timings['total_s']:.0f} s; report: {report}")
