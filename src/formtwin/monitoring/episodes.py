@@ -242,7 +242,7 @@ def run_lengths(chart: Ewma | Cusum | Glr, shift: float, runs: int, horizon: int
             if chart.clip is not None:
                 z = np.clip(z, -chart.clip, chart.clip)
             sig, d2 = chart._s, chart._d2  # type: ignore[attr-defined]
-            hit = glr_advance(sums, sig, d2, z, min(t, chart.window), chart.h)
+            hit = glr_advance(sums, sig, d2, z, min(t, chart.window)) > chart.h
         out[left[hit]] = t
         keep = ~hit
         left, a, b, sums = left[keep], a[keep], b[keep], sums[keep]

@@ -191,20 +191,19 @@ def _glr_step(prev, s, d2, z, m):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def glr_advance(sums, s, d2, z, m, h):  # type: ignore[no-untyped-def]
-    """One step of many streams' GLR sums (Numba; :func:`~formtwin.monitoring.episodes.
-    run_lengths`): each row of ``sums`` (streams, window) shifted by one age in place and
-    :func:`_add_and_max` with its ``z`` (streams,); returns whether each stream's largest
-    ``sums^2 / d2`` exceeds ``h``."""
+def glr_advance(sums, s, d2, z, m):  # type: ignore[no-untyped-def]
+    """One step of many streams' GLR sums (Numba): each row of ``sums`` (streams, window)
+    shifted by one age in place and :func:`_add_and_max` with its ``z`` (streams,) over
+    the first ``m`` ages; returns each stream's largest ``sums^2 / d2`` (streams,)."""
     n, w = sums.shape
-    hit = np.zeros(n, dtype=np.bool_)
+    g = np.empty(n)
     for r in range(n):
         row = sums[r]
         for j in range(w - 1, 0, -1):
             row[j] = row[j - 1]
         row[0] = 0.0
-        hit[r] = _add_and_max(row, s, d2, z[r], m)[1] > h
-    return hit
+        g[r] = _add_and_max(row, s, d2, z[r], m)[1]
+    return g
 
 
 def load_kernel() -> None:
@@ -223,36 +222,12 @@ def glr_statistics(signature: Sequence[float], window: int, z: FloatArray,
         z = np.clip(z, -clip, clip)
     s: FloatArray = g._s  # type: ignore[attr-defined]
     d2: FloatArray = g._d2  # type: ignore[attr-defined]
-    out: FloatArray = _statistics(s, d2, np.ascontiguousarray(z, dtype=np.float64), window)
-    return out
-
-
-@njit(cache=True)
-def _statistics(s, d2, z, window):  # type: ignore[no-untyped-def]
-    """:func:`glr_statistics`'s loop (Numba), (streams, steps): each stream's sums by age
-    in a ring (age ``j`` at ``(t - j) mod window``, the oldest's slot taken by age 0), and
-    the steps of :func:`_add_and_max` over the ages seen (the same operations in the same
-    order; a NaN ends the maximum as there)."""
     streams, steps = z.shape
+    zt = np.ascontiguousarray(np.transpose(z), dtype=np.float64)  # (steps, streams)
+    sums = np.zeros((streams, window))
     out = np.empty((streams, steps))
-    sums = np.zeros(window)
-    for r in range(streams):
-        sums[:] = 0.0
-        for t in range(steps):
-            pos = t % window
-            sums[pos] = 0.0
-            zt = z[r, t]
-            g = -np.inf
-            for j in range(min(t + 1, window)):
-                i = pos - j if pos >= j else pos - j + window
-                sums[i] = sums[i] + s[j] * zt
-                v = sums[i] * sums[i] / d2[j]
-                if v != v:  # NaN: the maximum is NaN
-                    g = v
-                    break
-                if v > g:
-                    g = v
-            out[r, t] = g
+    for t in range(steps):
+        out[:, t] = glr_advance(sums, s, d2, zt[t], min(t + 1, window))
     return out
 
 

@@ -136,9 +136,8 @@ def centred_spread(r, v, stride):  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def cloud_moments(x, w, mean, m):  # type: ignore[no-untyped-def]
     """In one pass over the particles ``x`` (N, d) with weights ``w`` (N,) and weighted
-    mean ``mean`` (d,): the weighted variance of every column (d,), the covariance ``P =
-    sum_k w_k (x_k - mean)(x_k - mean)^T`` (m, m) of the first ``m`` columns and whether
-    every entry of ``P`` is finite."""
+    mean ``mean`` (d,): the weighted variance of every column (d,) and the covariance ``P =
+    sum_k w_k (x_k - mean)(x_k - mean)^T`` (m, m) of the first ``m`` columns."""
     n, n_col = x.shape
     var = np.zeros(n_col)
     P = np.zeros((m, m))
@@ -152,12 +151,7 @@ def cloud_moments(x, w, mean, m):  # type: ignore[no-untyped-def]
             a = wk * d[i]
             for j in range(m):
                 P[i, j] += a * d[j]
-    finite = True
-    for i in range(m):
-        for j in range(m):
-            if not np.isfinite(P[i, j]):
-                finite = False
-    return var, P, finite
+    return var, P
 
 
 @njit(cache=True)

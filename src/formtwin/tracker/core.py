@@ -261,7 +261,7 @@ class Tracker(SensorFusion):
         # the std (eq. 14) and, for the intervals, the cloud's covariance in one pass (the
         # mean computed once)
         sw = self.sandwich if y is not None else None
-        var_x, P, _ = cloud_moments(s.x, s.w, mean, 0 if sw is None else sw.m)
+        var_x, P = cloud_moments(s.x, s.w, mean, 0 if sw is None else sw.m)
         std = np.sqrt(np.maximum(var_x, 0.0))
         if self.sandwich is not None and y is not None:
             var, avar = self.sandwich.update(s.x, s.w, y, self.filter.t - 1, u, mean, P)

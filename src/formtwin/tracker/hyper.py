@@ -54,12 +54,8 @@ class GridPosteriors:
         # two Numba passes: the same numbers
         t, top = shifted_columns(np.ascontiguousarray(logw_prev, dtype=np.float64),
                                  np.ascontiguousarray(grid, dtype=np.float64))
-        sums = row_sums(np.exp(t, out=t))
-        if sums.min() > 0.0:  # as usual: no log of 0, no errstate to enter
-            ev = np.log(sums) + top
-        else:
-            with np.errstate(divide="ignore"):
-                ev = np.log(sums) + top
+        with np.errstate(divide="ignore"):  # a column of zero weight: -inf, as logsumexp
+            ev = np.log(row_sums(np.exp(t, out=t))) + top
         if not np.all(np.isfinite(ev)):
             return  # a collapsed step says nothing about the share
         logp = self.share_logpost + ev
