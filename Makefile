@@ -20,7 +20,9 @@ TEST_WORKERS ?= 2
 # it) every process the tests start (services, commands, pool workers) would compile numpy,
 # scipy, matplotlib and numba from source again, ~8 s of CPU each; the recipes run without it
 unexport PYTHONDONTWRITEBYTECODE
-UV := $(BIN)/uv pip install --quiet --python $(BIN)/python
+# uv reads neither pip.conf nor PIP_* variables: the package sources pip is configured with
+# (mirror index, wheel folders, constraints, certificate) are given to it as flags
+UV = $(BIN)/uv pip install --quiet --python $(BIN)/python $$($(BIN)/python scripts/uv_sources.py)
 $(CORE): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --disable-pip-version-check uv
