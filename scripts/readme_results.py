@@ -27,7 +27,7 @@ def _study(f: dict[str, Any]) -> str:
     return (f"state error of the default likelihood / the paper's on physics data: series 5 "
             f"{f['s5_state_ratio']:.2f}, series 6 {f['s6_state_ratio']:.2f} (metamodel data "
             f"{f['s1_state_ratio']:.2f}); 90 % intervals cover {f['coverage90_min']:.2f}-"
-            f"{f['coverage90_max']:.2f}; the study {f['study_s']:.0f} s on 2 cores")
+            f"{f['coverage90_max']:.2f}")
 
 
 def _physics(f: dict[str, Any]) -> str:
