@@ -26,6 +26,7 @@ from formtwin._threads import single_blas_thread
 from formtwin.control import Combined, Feedforward, Predictive
 from formtwin.measurement import ProcessModel
 from formtwin.tracker import FusionError, TrackerConfig, build_tracker
+from formtwin.tracker.ahead import refusal
 from formtwin.tracker.fusion import angle_sd, update_angle
 
 FloatArray = NDArray[np.float64]
@@ -82,8 +83,9 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
     (a camera's error: the plant's angle stays exact, the controller reads
     ``plant(j, u) + noise[c, j]``; None: exact). ``readings`` are values (n,) of sensors of
     ``config.sensors`` that read a product before it is formed (delay 0, internal units),
-    fused by :meth:`~formtwin.tracker.Tracker.fuse` right after the product's curve, so
-    that its setting is chosen on the fused posterior (NaN: no value).
+    fused by :meth:`~formtwin.tracker.Tracker.fuse` into the product's step where the
+    filter allows (:mod:`formtwin.tracker.ahead`; else right after its curve), so that its
+    setting is chosen on the fused posterior (NaN: no value).
 
     ``predictive`` are further controllers (:class:`~formtwin.control.Predictive`: the
     feedforward on the posterior predictive through a discrepancy learned from the measured
@@ -119,6 +121,7 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
     input_mean = np.full((n, n_in), np.nan)
     prev = [nominal] * m
     s_angle = angle_sd(tracker) if sd is None else float(sd)
+    by_name = {s.name: s for s in tracker.sensors}
     with single_blas_thread():
         for i in range(n):
             j = i - delay  # the newest product whose angle is known now
@@ -137,11 +140,16 @@ def track_and_choose(metamodel: ProcessModel, config: TrackerConfig, curves: Flo
                     except FusionError as exc:  # refused: the particles as they were
                         log.warning("product %d: %s", j, exc)
             if ok[i]:
+                # a reading of the strip known before the bend enters the product's step
+                early = {n: float(v[i]) for n, v in (readings or {}).items()
+                         if np.isfinite(v[i]) and refusal(tracker, by_name[n]) is None}
+                for name, value in early.items():
+                    tracker.fuse(stepped + 1, name, value)
                 input_mean[i] = tracker.step(curves[i]).mean[:n_in]
                 stepped += 1
                 index[i] = stepped
                 for name, values in (readings or {}).items():
-                    if np.isfinite(values[i]):
+                    if name not in early and np.isfinite(values[i]):
                         tracker.fuse(stepped, name, float(values[i]))
                 w = tracker.weights()
                 x = tracker.filter.x

@@ -11,8 +11,8 @@ series-6 conditions, the physics model as the plant) with two changes:
   (its own random stream), scaled by ``s``, so the noise levels share their draws;
 * the posterior the feedforward chooses on: ``curve`` the stage-1 curve alone (the
   paper), ``gauge`` the curve and the strip gauge's thickness of the same product
-  (the spec's noise, 0.5 um), fused by :meth:`~formtwin.tracker.Tracker.fuse` before the
-  setting is chosen.
+  (the spec's noise, 0.5 um), fused into the product's step (known before its curve,
+  :mod:`formtwin.tracker.ahead`) before the setting is chosen.
 
 Per dataset, camera noise and set, three feedforwards:
 

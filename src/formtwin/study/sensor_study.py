@@ -5,9 +5,12 @@ One run (:func:`sensor_run`) takes a study :class:`~formtwin.study.series.Task` 
 dataset, repetition, measurement model), reads the dataset's sensor pseudo-data
 (:mod:`formtwin.study.sensor_data`) and, for every product ``i`` with a curve:
 
-1. steps the tracker with the curve;
-2. fuses the camera's final angle of the previous product (delay 1) and the gauge's
-   thickness of this one (delay 0), for the sensors of the run's set;
+1. fuses the gauge's thickness of the product (delay 0: the strip is read before it is
+   bent) into the product's step, where the filter allows it
+   (:mod:`formtwin.tracker.ahead`; the first product's after its step), and steps the
+   tracker with the curve;
+2. fuses the camera's final angle of the previous product (delay 1), for the sensors of
+   the run's set;
 3. takes the posterior (:meth:`~formtwin.tracker.Tracker.posterior`: the particles'
    weighted mean and std, the predicted angles at the product's setting) and reports its
    std with the tracker's default intervals (:func:`reported_std`: what the step's
@@ -41,6 +44,7 @@ from formtwin.spec.sensors import line_sensors, sensor_by_name
 from formtwin.study.sensor_data import sensor_readings
 from formtwin.study.series import SERIES, Task, prepare
 from formtwin.tracker import FusionError
+from formtwin.tracker.ahead import refusal
 from formtwin.tracker.conformal import AdaptiveConformal
 
 FloatArray = NDArray[np.float64]
@@ -77,23 +81,25 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
     aci = AdaptiveConformal(alpha_target=0.1, gamma=gamma)
     rejected = 0
     with single_blas_thread():
+        gauge = sensor_by_name(line_sensors(spec), "gauge")
         for k, i in enumerate(idx):
             uk = None if u is None else u[k]
+            # the gauge reads the strip before the product is bent: its value enters the
+            # product's step where the filter allows (formtwin.tracker.ahead)
+            ahead = "gauge" in sensors and refusal(tracker, gauge) is None
+            values = [(k, "gauge", read["gauge"][i], uk)] if ahead else []
+            rejected += _fuse_all(tracker, values, task)
             est = tracker.step(curves[k], uk)
             added = np.maximum(est.std**2 - tracker.posterior(uk).std ** 2, 0.0)
-            values = [(k, "gauge", read["gauge"][i], uk)] if "gauge" in sensors else []
+            values = [(k, "gauge", read["gauge"][i], uk)] \
+                if "gauge" in sensors and not ahead else []
             if k >= 1:
                 j = int(idx[k - 1])
                 aci.update(k - 1, float(read["camera"][j]))
                 if "camera" in sensors:
                     values.append((k - 1, "camera", read["camera"][j],
                                    None if u is None else u[k - 1]))
-            for product, name, value, setting in values:
-                try:
-                    tracker.fuse(product, name, float(value), u=setting)
-                except FusionError as exc:
-                    rejected += 1
-                    log.warning("task %s: %s", task.out_path, exc)
+            rejected += _fuse_all(tracker, values, task)
             p = tracker.posterior(uk)
             out["mean"][i], out["cloud_std"][i] = p.mean, p.std
             out["std"][i] = reported_std(p.std, added)
@@ -109,6 +115,18 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
                     k, float(p.angles_mean[1]), sd)
     out["rejected"] = rejected
     return out
+
+
+def _fuse_all(tracker: Any, values: list[tuple[int, str, float, Any]], task: Task) -> int:
+    """Fuse ``(product, sensor, value, setting)`` in order; return how many were refused."""
+    refused = 0
+    for product, name, value, setting in values:
+        try:
+            tracker.fuse(product, name, float(value), u=setting)
+        except FusionError as exc:
+            refused += 1
+            log.warning("task %s: %s", task.out_path, exc)
+    return refused
 
 
 def reported_std(cloud: FloatArray, added: FloatArray) -> FloatArray:

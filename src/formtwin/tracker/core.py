@@ -36,6 +36,7 @@ from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.spec.sensors import output_column
 from formtwin.tracker import state as _state
 from formtwin.tracker._kernels import angle_moments, cloud_moments, select_heaviest
+from formtwin.tracker.ahead import ahead_columns
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.final_angles import FinalAngles
 from formtwin.tracker.fit import FitRule, assess
@@ -184,6 +185,7 @@ class Tracker(SensorFusion):
         fa = None if self.finals is None else self.finals.snapshot()
         try:
             logw_prev = f.logw
+            self.ssm.ahead.update(ahead_columns(self))  # values known before this curve
             s = f.step(y)
             if scale is not None:
                 self.ssm.update_scale(logw_prev)
@@ -191,7 +193,9 @@ class Tracker(SensorFusion):
             self.ssm.update_share(logw_prev if ratio is None else logw_prev + ratio)
             self.ssm.update_residuals(s)
             c = 1.0 if scale is None else float(np.exp(scale) @ np.array(SCALES))
-            return self._estimate(s, np.exp(saved[1]), c, uu, y, saved[0])
+            est = self._estimate(s, np.exp(saved[1]), c, uu, y, saved[0])
+            self.fused.ahead.clear()
+            return est
         except BaseException:
             f.x, f.logw, f.t = saved[0], saved[1], saved[2]
             if self.sandwich is not None and sw is not None:
@@ -206,6 +210,8 @@ class Tracker(SensorFusion):
             self.ssm.set_share_logpost(share)
             self.ssm.learned_restore(learned)
             raise
+        finally:
+            self.ssm.ahead.clear()
 
     def final_angle(self, u: Any) -> FloatArray:
         """Final angle (N, n_u), degrees, of the current particles (:attr:`particles`,

@@ -29,16 +29,22 @@ class FusedLog:
     conformal: AdaptiveConformal = field(default_factory=AdaptiveConformal)
     #: the model's final-angle discrepancy learned from the camera (None: not yet made)
     discrepancy: AngleDiscrepancy | None = None
+    #: sensor -> value of the next product, known before its curve: for its step
+    #: (:mod:`formtwin.tracker.ahead`)
+    ahead: dict[str, float] = field(default_factory=dict)
 
     def state(self) -> dict[str, list[float]]:
         """The log as JSON numbers: ``fused`` ``[product, sensor position, ...]``, the
         calibration's ``aci_alpha``, ``aci_scores`` and ``aci_pending`` ``[product, mean,
-        scale, q, ...]``, ``final_discrepancy`` ``[noise_var, *AngleDiscrepancy.state()]``
-        (keys only where there is something)."""
+        scale, q, ...]``, ``final_discrepancy`` ``[noise_var, *AngleDiscrepancy.state()]``,
+        ``ahead`` ``[sensor position, value, ...]`` (keys only where there is something)."""
         out: dict[str, list[float]] = {}
         if self.done:
             pairs = sorted((p, self.sensors.index(s)) for p, s in self.done)
             out["fused"] = [float(v) for pair in pairs for v in pair]
+        if self.ahead:
+            out["ahead"] = [float(v) for name, value in sorted(self.ahead.items())
+                            for v in (self.sensors.index(name), value)]
         d = self.discrepancy
         if d is not None and math.isfinite(d.ref):
             out["final_discrepancy"] = [d.noise_var, *d.state()]
@@ -53,6 +59,9 @@ class FusedLog:
         """Inverse of :meth:`state`."""
         flat = [int(v) for v in model.get("fused", [])]
         self.done = {(flat[i], self.sensors[flat[i + 1]]) for i in range(0, len(flat), 2)}
+        ahead = model.get("ahead", [])
+        self.ahead = {self.sensors[int(ahead[i])]: float(ahead[i + 1])
+                      for i in range(0, len(ahead), 2)}
         pend = model.get("aci_pending", [])
         c = AdaptiveConformal(alpha=float(model.get("aci_alpha", [math.nan])[0]),
                               scores=[float(v) for v in model.get("aci_scores", [])])

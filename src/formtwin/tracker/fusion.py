@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from formtwin.filters.lagged import distinct_rows, lagged, reweight, shift
 from formtwin.spec import ProcessSpec
 from formtwin.spec.sensors import Sensor, line_sensors, output_column
+from formtwin.tracker.ahead import fuse_ahead, refusal
 from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
 from formtwin.tracker.config import TrackerConfig
 from formtwin.tracker.final_angles import FinalAngles
@@ -139,14 +140,17 @@ class SensorFusion:
         """Fuse sensor ``sensor``'s ``value`` (internal units: mm for thickness, degrees
         for an angle) of product ``product`` (0-based, as :attr:`Estimate.index`): the
         current product or one of the last ``L`` before it, in any order, each (product,
-        sensor) once. ``u`` is the product's press setting (None: nominal) for a model
+        sensor) once; or, for a sensor of a state variable, the next product (its value
+        known before its curve enters that product's step: :mod:`formtwin.tracker.ahead`).
+        ``u`` is the product's press setting (None: nominal) for a model
         output, ``offset`` a known bias of the model output (degrees). Returns the log
         evidence increment ``log p(value | everything fused so far)``.
 
         Raises :class:`FusionError` (a ``ValueError``) for a sensor this tracker does not
-        fuse, a non-finite value or offset, a product not yet stepped or older than ``L``,
-        a second value of the same (product, sensor), a bad setting, or a value no
-        particle explains; the tracker is then untouched.
+        fuse, a non-finite value or offset, a product not yet stepped (but the next one's
+        state variable where :func:`~formtwin.tracker.ahead.refusal` allows it) or older
+        than ``L``, a second value of the same (product, sensor), a bad setting, or a
+        value no particle explains; the tracker is then untouched.
         """
         used = {s.name: s for s in self.sensors}
         if sensor not in used:
@@ -160,7 +164,12 @@ class SensorFusion:
         newest, depth = self.filter.t - 1, self.ssm.lag_depth
         if isinstance(product, bool) or not isinstance(product, int | np.integer):
             raise FusionError(f"fuse: product = {product!r}, expected a whole number")
-        if self.filter.x is None or product > newest:
+        if self.filter.x is not None and product == newest + 1:  # before its curve
+            why = refusal(self, s)
+            if why is not None:
+                raise FusionError(f"fuse: {sensor} of product {product}, not yet seen "
+                                  f"(the newest is {newest}): {why}")
+        elif self.filter.x is None or product > newest:
             raise FusionError(f"fuse: {sensor} of product {product}, not yet seen (the "
                               f"newest is {newest})")
         if product < newest - depth or product < 0:
@@ -173,6 +182,10 @@ class SensorFusion:
             uu = validate_controls(u, self.spec)
         except ValueError as exc:
             raise FusionError(f"fuse: {exc}") from None
+        if product == newest + 1:
+            inc = fuse_ahead(self, s, float(value) - float(offset))
+            self.fused.done.add((int(product), sensor))
+            return inc
         x = self.ssm.lagged_inputs(self.filter.x, newest - int(product))
         if s.kind == "state":
             pred, var = x[:, self.spec.state.index[s.measures]], 0.0

@@ -57,6 +57,7 @@ from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.production import ProductionRun, draw_production_run
 from formtwin.spec import ProcessSpec
 from formtwin.tracker._kernels import drift
+from formtwin.tracker.ahead import conditioned
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.discrepancy import Discrepancy, angle_residual_variance
 from formtwin.tracker.fusion import LagColumns
@@ -66,9 +67,8 @@ from formtwin.tracker.moves import MoveHooks
 
 FloatArray = NDArray[np.float64]
 
-#: particles per block when evaluating the model: bounds peak memory at large N and keeps
-#: the RBF distance blocks in cache (N = 1e4 on the 7024-point metamodel: 0.7 s per step
-#: with 512, 1.9 s with 8192)
+#: particles per block when evaluating the model: bounds peak memory at large N and keeps the
+#: RBF blocks in cache (N = 1e4, 7024-point metamodel: 0.7 s a step with 512, 1.9 s with 8192)
 CHUNK = 512
 
 
@@ -99,6 +99,9 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
     # learning mu): eq. 4-5 for x (a = (1 - rho) mu, b = rho, s = sqrt(1 - rho^2) sigma),
     # the jitter of eq. 10 for theta (and theta_d) (a = 0, b = 1, s = alpha (hi - lo))
     _drift: tuple[FloatArray, FloatArray, FloatArray] = field(init=False, repr=False)
+    #: state values known before this step's curve, column -> (value, noise variance): the
+    #: transition of their columns conditioned on them (:mod:`formtwin.tracker.ahead`)
+    ahead: dict[int, tuple[float, float]] = field(init=False, repr=False, default_factory=dict)
     #: (2,) deg^2 added to the predicted angles' variance: the metamodel's held-out angle
     #: error (calibrated likelihood), zeros for the paper's
     angle_error_var: FloatArray = field(init=False, repr=False)
@@ -110,12 +113,10 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
     discrepancy: Discrepancy | None = field(init=False, repr=False, default=None)
     #: the line's residual moment (``learn_residuals``), else None
     learned: ResidualMoment | None = field(init=False, repr=False, default=None)
-    # columns [0, _n_bounded) have finite bounds: [x, theta, theta_d]
-    _n_bounded: int = field(init=False, repr=False, default=0)
+    _n_bounded: int = field(init=False, repr=False, default=0)  # [0, this): finite bounds
     # the discrepancy's statistics are the columns [_disc, d)
     _disc: int = field(init=False, repr=False, default=0)
-    # filter "guided_lin": each particle's model curve (as the likelihood compared it at
-    # its last product) in the columns [_curve, _curve + n_t); 0: none
+    # filter "guided_lin": each particle's model curve at its last product, columns [_curve, +n_t)
     _curve: int = field(init=False, repr=False, default=0)
 
     def __post_init__(self) -> None:
@@ -263,10 +264,10 @@ class BendingSSM(MoveHooks, GuidedProposal, LearnedResiduals, LagColumns):
                 m, P, x[:, :nx], out[:, :nx], self._sigma, self._rho)
             out[:, nx:stop] = jitter(x[:, nx:stop], lo[nx:stop], hi[nx:stop], rng,
                                      self.config.alpha)
-        else:  # eq. 4-5 and the jitter of eq. 10 in one pass: x -> a + b x + s v (Numba),
-            a, b, s = self._drift  # then the rows that left the box reflected
+        else:  # eq. 4-5 and the jitter of eq. 10 in one pass: x -> a + b x + s v (Numba;
+            a, b, s = conditioned(self._drift, self.ahead)  # with the values ahead)
             left = drift(x, a, b, s, rng.standard_normal((x.shape[0], stop)), lo, hi, out)
-            if left.any():
+            if left.any():  # the rows that left the box: reflected
                 out[left, :stop] = reflect(out[left, :stop], lo[:stop], hi[:stop])
         out[:, stop:na] = x[:, stop:na]
         out[:, self._disc:] = x[:, self._disc:]
