@@ -55,9 +55,11 @@ SENSOR_SETS: dict[str, tuple[str, ...]] = {"curve": (), "camera": ("camera",),
                                            "gauge": ("gauge",), "both": ("gauge", "camera")}
 
 
-def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> dict[str, Any]:
+def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005,
+               gauge_ahead: bool = True) -> dict[str, Any]:
     """Run ``task``'s tracker with ``sensors`` fused (see the module doc), the spec's sensor
-    noise in the data and the likelihood, ACI step ``gamma``.
+    noise in the data and the likelihood, ACI step ``gamma``; ``gauge_ahead=False`` fuses
+    the gauge after its product's step (the bootstrap's way, for comparison).
 
     Returns arrays over the dataset's ``n`` products (NaN where a curve is missing):
     ``mean, std`` (n, 18) (``std`` with the tracker's default intervals, ``cloud_std`` the
@@ -86,7 +88,7 @@ def sensor_run(task: Task, sensors: tuple[str, ...], gamma: float = 0.005) -> di
             uk = None if u is None else u[k]
             # the gauge reads the strip before the product is bent: its value enters the
             # product's step where the filter allows (formtwin.tracker.ahead)
-            ahead = "gauge" in sensors and refusal(tracker, gauge) is None
+            ahead = gauge_ahead and "gauge" in sensors and refusal(tracker, gauge) is None
             values = [(k, "gauge", read["gauge"][i], uk)] if ahead else []
             rejected += _fuse_all(tracker, values, task)
             est = tracker.step(curves[k], uk)
