@@ -79,7 +79,9 @@ def scenario(pay: list[bytes], ids: list[str], values: dict[str, Any]
 
 def direct(tmp: Path, pay: list[bytes], items: list[tuple[str, bytes]]) -> list[Any]:
     """The same sequence on a tracker called directly (step, the interval issued, fuse),
-    skipping what the service stores without fusing: the reference of the orchestration."""
+    skipping what the service stores without fusing: the reference of the orchestration.
+    A held gauge value enters its product's step (fused before it, from the second product
+    on); a held camera value is fused after it."""
     model = load_model("analytic")
     tracker = build_tracker(model, SETTINGS.tracker,
                             MeasurementModel.load(measurement_path(tmp / "a.sqlite")))
@@ -90,12 +92,17 @@ def direct(tmp: Path, pay: list[bytes], items: list[tuple[str, bytes]]) -> list[
     for kind, p in items:
         m = json.loads(p)
         if kind == "s":
+            waiting = held.pop(m["part_id"], [])
+            ahead = [(s, v) for s, v in waiting if s == "gauge" and tracker.n_steps > 0]
+            for sensor, value in ahead:
+                tracker.fuse(tracker.n_steps, sensor, value)
             est = tracker.step(np.array(m["force_N"]))
             tracker.issue_final(None)
             index[m["part_id"]] = tracker.n_steps - 1
             out.append(est.to_dict())
-            for sensor, value in held.pop(m["part_id"], []):
-                tracker.fuse(tracker.n_steps - 1, sensor, value)
+            for sensor, value in waiting:
+                if (sensor, value) not in ahead:
+                    tracker.fuse(tracker.n_steps - 1, sensor, value)
             continue
         key = (m["part_id"], m["sensor"])
         if key in seen:
@@ -125,10 +132,15 @@ def test_late_out_of_order_held_and_duplicates_match_the_tracker_called_directly
     stored = rows(proc)
     assert len(stored) == len({(r[0], r[1]) for r in stored}) == 2 * N - 2
     assert {r[3] for r in stored} == {"fused"}
-    # which measurements went into each estimate: those fused after the previous one
+    # which measurements went into each estimate: those fused after the previous one and,
+    # last, the product's own held gauge value, fused into its step
+    assert got[5]["measurements"][-1] == \
+        {"part_id": ids[5], "sensor": "gauge", "value": float(values["gauge"][5])}
     assert got[6]["measurements"] == [
-        {"part_id": ids[5], "sensor": "gauge", "value": float(values["gauge"][5])},  # held
         {"part_id": ids[4], "sensor": "camera", "value": float(values["camera"][4])}]
+    held_answer = next(o.message for o in outs if o.sensor_answers
+                       and o.sensor_answers[0]["part_id"] == ids[5]).get("index")
+    assert held_answer == got[5]["index"]
     listed = [(m["part_id"], m["sensor"]) for e in got for m in e["measurements"]]
     assert len(listed) == len(set(listed)) == 2 * N - 2 - 2  # the last two follow
     # the camera's answer carries the prediction issued for its product
@@ -229,9 +241,9 @@ def test_hold_is_bounded_in_count_and_age(
     # room again: a value held now is fused when its curve comes
     assert proc.handle_sensor(reading(ids[4], "gauge", float(values["gauge"][4]))).kind \
         == "held"
-    proc.handle(pay[4])
-    assert rows(proc)[-1][3] == "fused"
-    assert proc.handle(pay[5]).message["measurements"][0]["part_id"] == ids[4]
+    got = proc.handle(pay[4])
+    assert rows(proc)[-1][3] == "fused"  # into its step: listed by its own estimate
+    assert got.message["measurements"][-1]["part_id"] == ids[4]
     proc.close()
 
 
@@ -293,6 +305,25 @@ def test_a_gated_products_values_are_rejected(tmp_path: Path) -> None:
     o = proc.handle_sensor(reading("odd", "gauge", 0.3))
     assert o.kind == "rejected" and o.message["reason"] == "product_gated"
     assert proc.tracker.state_bytes() == state and rows(proc) == []
+    proc.close()
+
+
+def test_a_value_fused_into_a_gated_step_is_undone(tmp_path: Path) -> None:
+    """A gauge value held for a product enters its step; when the gate keeps the product
+    out, the step and the value are undone together (the tracker as before the stroke) and
+    the value stays held, then expires as any held value of a product never fused."""
+    path = make_stream(tmp_path / "s.npz", 26, seed=1)
+    pay = [json.loads(dumps(s.to_message())) for s in read_stream(path)]
+    odd = dict(pay[24], part_id="odd", force_N=[3.0 * f + 300.0 for f in pay[24]["force_N"]])
+    proc = open_processor(tmp_path / "a.sqlite", replace(SETTINGS, gate_k=50.0))
+    play(proc, [("s", dumps(m)) for m in pay[:24]])
+    assert proc.handle_sensor(reading("odd", "gauge", 0.3)).kind == "held"
+    before = proc.tracker.state_bytes()
+    assert proc.handle(dumps(odd)).message["reason"] == "outlier_gated"
+    assert proc.tracker.state_bytes() == before
+    assert [r[3] for r in rows(proc)] == ["held"]
+    assert proc.handle(dumps(pay[25])).kind == "accepted"  # nothing of the value in it
+    assert proc.tracker.fused.ahead == {} and [r[3] for r in rows(proc)] == ["held"]
     proc.close()
 
 

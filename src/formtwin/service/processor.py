@@ -7,10 +7,11 @@ For every message :meth:`Processor.handle`
 2. looks its part id up in the store: the same curve again is a *redelivery* (the stored
    estimate is returned, nothing is counted twice), a different curve is a
    ``duplicate_part_id`` rejection; a cycle count not above the last one is ``out_of_order``;
-3. steps the tracker, optionally gates a single outlier
-   (:class:`~formtwin.service.gate.OutlierGate`), and commits product, estimate, the
-   product's alarm and model-health rows and, every ``checkpoint_every`` accepted
-   products, the tracker checkpoint in **one** SQLite transaction.
+3. steps the tracker (the values held for the part that can enter its step fused into
+   it first: :meth:`~formtwin.service.sensors.SensorDesk.before_step`), optionally gates
+   a single outlier (:class:`~formtwin.service.gate.OutlierGate`), and commits product,
+   estimate, the product's alarm and model-health rows and, every ``checkpoint_every``
+   accepted products, the tracker checkpoint in **one** SQLite transaction.
 
 A process killed at any instant restarts from a store in which every product is either
 fully in (and its redelivery is recognised) or not at all; the tracker is restored from the
@@ -80,8 +81,7 @@ class MonitorLike(Protocol):
 
     def write(self, cur: sqlite3.Cursor, seq: int, part_id: str, entry: dict[str, Any],
               now: float) -> list[dict[str, Any]]:
-        """Write the product's alarm episodes and signals inside its transaction; return
-        the messages for the alarms topic."""
+        """Write the product's alarm rows in its transaction; return the alarms' messages."""
         ...
 
     def committed(self) -> None:
@@ -93,8 +93,7 @@ class TrackerLike(Protocol):
     """What the processor needs of :class:`formtwin.tracker.Tracker`."""
 
     def step(self, curve: FloatArray, u: Any = None) -> Any:
-        """Assimilate one curve (press setting ``u``, None: nominal); return its estimate
-        (state untouched on ValueError)."""
+        """One curve in (setting ``u``, None: nominal), its estimate out (ValueError: untouched)."""
         ...
 
     def state_bytes(self) -> bytes:
@@ -180,9 +179,8 @@ class Processor:
         self.gate = gate
         self.on_outcome = on_outcome
         self._lock = threading.Lock()
-        # one BLAS thread for as long as the processor is open: each model evaluation in
-        # a step then costs a counter instead of setting and restoring the limit (two per
-        # product, ~0.5 ms together; the numbers are the same)
+        # one BLAS thread while the processor is open: a step's model evaluations then cost
+        # a counter, not a limit set and restored (two per product, ~0.5 ms; same numbers)
         self._blas: Any = single_blas_thread()
         self._last_cycle = store.last_cycle()
         self._next_seq = store.next_seq()  # this processor is the store's only writer
@@ -212,8 +210,7 @@ class Processor:
         return tuple(str(n) for n in names)
 
     def close(self) -> None:
-        """Close the store (a second close, e.g. ``proc.store.close()``, does nothing) and
-        give BLAS its threads back."""
+        """Close the store (a second close does nothing); give BLAS its threads back."""
         self.store.close()
         blas, self._blas = self._blas, None
         if blas is not None:
@@ -300,11 +297,14 @@ class Processor:
                 self.plausible(stroke)
             except MessageError as err:
                 return self._reject(err, payload, topic, now)
+        ahead = self.sensors.active and self.sensors.before_step(stroke.part_id)
         try:
             c0 = time.thread_time()
             est = self.tracker.step(stroke.force_N, stroke.u)
             self.step_cpu_s += time.thread_time() - c0
-        except ValueError as exc:  # the tracker's contract: state untouched
+        except ValueError as exc:  # the tracker's contract: state untouched (but for the
+            if ahead:  # values fused into the step: undone)
+                self._rollback()
             return self._reject(MessageError("tracker_rejected", str(exc)[:300],
                                              stroke.part_id), payload, topic, now)
         except Exception as exc:  # unexpected: undo whatever the step did, reject the curve

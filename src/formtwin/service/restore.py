@@ -10,12 +10,13 @@ state it had (at a restart, and to undo a gated or failed step).
 
 from __future__ import annotations
 
+import json
 import logging
 from typing import Any
 
 import numpy as np
 
-from formtwin.service.sensors import fused_after, fused_sensors, issue, replay_fusions
+from formtwin.service.sensors import MEASUREMENTS_DDL, fused_sensors, issue
 from formtwin.service.store import Store
 
 log = logging.getLogger(__name__)
@@ -55,4 +56,26 @@ def replay(store: Store, tracker: Any) -> int:
     return n
 
 
-__all__ = ["replay"]
+def fused_after(store: Store, seq: int) -> dict[int, list[tuple[str, float, int, Any]]]:
+    """The fusions stored after product ``seq`` (``at_seq >= seq``), by the product seq
+    they follow, in their order: ``(sensor, value, product index, u)``."""
+    store.ensure_tables(MEASUREMENTS_DDL)
+    rows = store.query("SELECT at_seq, sensor, value, product, u FROM measurements WHERE "
+                       "status = 'fused' AND at_seq >= ? ORDER BY at_seq, id", (seq,))
+    out: dict[int, list[tuple[str, float, int, Any]]] = {}
+    for at, sensor, value, product, u in rows:
+        out.setdefault(int(at), []).append(
+            (str(sensor), float(value), int(product), None if u is None else json.loads(u)))
+    return out
+
+
+def replay_fusions(group: list[tuple[str, float, int, Any]], tracker: Any) -> None:
+    """Fuse a product's stored values again, in their order (a restart's replay); the next
+    product's values (fused into its step) last, right before that step, as they were."""
+    newest = int(tracker.n_steps) - 1 if group else 0
+    for sensor, value, index, u in sorted(group, key=lambda g: g[2] > newest):
+        tracker.fuse(index, sensor, value,
+                     u=None if u is None else np.asarray(u, dtype=np.float64))
+
+
+__all__ = ["fused_after", "replay", "replay_fusions"]

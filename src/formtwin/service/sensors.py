@@ -17,8 +17,11 @@ effect on the tracker:
   ``sensor_lag``): **fused** (:meth:`~formtwin.tracker.Tracker.fuse`), late and out of
   order alike; the next estimate lists it in ``measurements``;
 * the product is older: **too_late**, stored and flagged, not fused;
-* the product is not yet seen: **held**, and fused in the transaction of its stroke when
-  the curve arrives (listed by the estimate after it). At most :data:`HOLD_COUNT` values
+* the product is not yet seen: **held**, and fused when its curve arrives: a state
+  variable's (a strip gauge's thickness) into the product's step, before it
+  (:mod:`formtwin.tracker.ahead`; listed by the product's own estimate), where the tracker
+  allows it, else right after the step in its transaction (listed by the estimate after
+  it); stored as fused in the stroke's transaction. At most :data:`HOLD_COUNT` values
   are held (one more is rejected, ``hold_full``), each for at most :data:`HOLD_PRODUCTS`
   products (then it is stored as **expired** with a ``hold_expired`` notice on the errors
   topic). Both bounds count messages and products, never wall time, so a restarted
@@ -36,8 +39,8 @@ The answer, schema ``formtwin.measurement/1`` on the results topic: the message'
 that product (``predicted_deg`` and the camera-calibrated ``interval90_deg``).
 
 A restart restores the tracker from its checkpoint and replays the stored curves and, in
-their original order, the fusions stored after it (:func:`fused_after`), so the estimates
-continue bit for bit.
+their original order, the fusions stored after it (:func:`formtwin.service.restore.
+fused_after`), so the estimates continue bit for bit.
 """
 
 from __future__ import annotations
@@ -106,19 +109,6 @@ def fused_sensors(tracker: Any) -> tuple[Any, ...]:
     return tuple(getattr(tracker, "sensors", ()))
 
 
-def fused_after(store: Store, seq: int) -> dict[int, list[tuple[str, float, int, Any]]]:
-    """The fusions stored after product ``seq`` (``at_seq >= seq``), by the product seq
-    they follow, in their order: ``(sensor, value, product index, u)``."""
-    store.ensure_tables(MEASUREMENTS_DDL)
-    rows = store.query("SELECT at_seq, sensor, value, product, u FROM measurements WHERE "
-                       "status = 'fused' AND at_seq >= ? ORDER BY at_seq, id", (seq,))
-    out: dict[int, list[tuple[str, float, int, Any]]] = {}
-    for at, sensor, value, product, u in rows:
-        out.setdefault(int(at), []).append(
-            (str(sensor), float(value), int(product), None if u is None else json.loads(u)))
-    return out
-
-
 def refuse(store: Store, err: MessageError, payload: bytes, topic: str, now: float
            ) -> dict[str, Any]:
     """Record a rejected message (once per payload) and return its error message."""
@@ -165,6 +155,10 @@ class SensorDesk:
         self._since: list[dict[str, Any]] = self._fused_since(self.last_accepted)
         #: the held values :meth:`at_product` fused for the product being committed
         self._pending_since: list[dict[str, Any]] = []
+        #: held row id -> (sensor, value, log evidence) of the values :meth:`before_step`
+        #: fused into the current step, and their part id
+        self._ahead: dict[int, tuple[str, float, float]] = {}
+        self._ahead_part = ""
         #: the answers (``formtwin.measurement/1``) of the held values :meth:`at_product`
         #: decided for the product being committed (fused or rejected): the live page's
         self.held_answers: list[dict[str, Any]] = []
@@ -284,8 +278,34 @@ class SensorDesk:
 
     # ----------------------------------------------------------------- a product's commit
     def since_last(self) -> list[dict[str, Any]]:
-        """The values fused after the last accepted estimate (they went into the next)."""
-        return [dict(m) for m in self._since]
+        """The values fused after the last accepted estimate and those fused into the
+        current step (:meth:`before_step`): what went into the current estimate."""
+        return [dict(m) for m in self._since] + [
+            {"part_id": self._ahead_part, "sensor": n, "value": v}
+            for n, v, _ in self._ahead.values()]
+
+    def before_step(self, part_id: str) -> bool:
+        """Fuse into the coming step the values held for ``part_id`` that can enter it (a
+        state variable's, :mod:`formtwin.tracker.ahead`), in their order; a value the
+        tracker refuses stays held (:meth:`at_product` fuses it after the step or rejects
+        it). Returns whether any was fused (the tracker is then no longer as before)."""
+        self._ahead, self._ahead_part = {}, part_id
+        if not self._held:
+            return False
+        from formtwin.tracker.ahead import refusal
+        from formtwin.tracker.fusion import FusionError
+
+        rows = self.store.query("SELECT id, sensor, value FROM measurements WHERE status = "
+                                "'held' AND part_id = ? ORDER BY id", (part_id,))
+        for rid, sensor, value in rows:
+            if refusal(self.tracker, self.sensors[str(sensor)]) is None:
+                try:
+                    inc = float(self.tracker.fuse(int(self.tracker.n_steps), str(sensor),
+                                                  float(value)))
+                except FusionError:
+                    continue
+                self._ahead[int(rid)] = (str(sensor), float(value), inc)
+        return bool(self._ahead)
 
     def _fused_since(self, seq: int) -> list[dict[str, Any]]:
         """The stored values fused at or after product ``seq``, in their order."""
@@ -311,15 +331,21 @@ class SensorDesk:
         est = {"final": final}
         for rid, sensor, value, text in held:
             msg = dict(json.loads(text), index=index)
+            at = seq
             if self.sensors[str(sensor)].measures == FINAL:
                 msg.update({k: v for k, v in self._answer(
                     Reading(part_id, str(sensor), float(value)), index, est).items()
                     if k in ("predicted_deg", "interval90_deg")})
             try:
-                msg["log_evidence"] = self._fuse(str(sensor), float(value), index, u)
-                msg["status"] = "fused"
-                self._pending_since.append({"part_id": part_id, "sensor": str(sensor),
-                                            "value": float(value)})
+                if int(rid) in self._ahead:  # fused into the step: replayed before it
+                    msg["log_evidence"], msg["status"], at = self._ahead[int(rid)][2], \
+                        "fused", seq - 1
+                    msg["in_step"] = True
+                else:
+                    msg["log_evidence"] = self._fuse(str(sensor), float(value), index, u)
+                    msg["status"] = "fused"
+                    self._pending_since.append({"part_id": part_id, "sensor": str(sensor),
+                                                "value": float(value)})
             except MessageError as err:
                 msg["status"], msg["detail"] = "rejected", err.detail
                 notices.append(error_message(MessageError(
@@ -327,7 +353,7 @@ class SensorDesk:
                     part_id), "held", 0.0))
             cur.execute("UPDATE measurements SET status = ?, at_seq = ?, product = ?, u = ?, "
                         "message = ? WHERE id = ?",
-                        (msg["status"], seq, index, None if u is None else json.dumps(u),
+                        (msg["status"], at, index, None if u is None else json.dumps(u),
                          dumps(msg).decode(), rid))
             self.held_answers.append(msg)
         old = cur.execute("SELECT id, part_id, sensor, message FROM measurements WHERE "
@@ -346,7 +372,7 @@ class SensorDesk:
     def committed(self, seq: int) -> None:
         """Accepted product ``seq`` is in (with what :meth:`at_product` saw of it)."""
         self.last_accepted = seq
-        self._held = self._held_after
+        self._held, self._ahead = self._held_after, {}
         self._since, self._pending_since = self._pending_since, []
         if self._pending is not None:
             part_id, *known = self._pending
@@ -356,15 +382,9 @@ class SensorDesk:
                 del self.recent[next(iter(self.recent))]
 
 
-def replay_fusions(group: list[tuple[str, float, int, Any]], tracker: Any) -> None:
-    """Fuse a product's stored values again, in their order (a restart's replay)."""
-    for sensor, value, index, u in group:
-        tracker.fuse(index, sensor, value, u=_setting(u))
-
-
 def _setting(u: Any) -> Any:
     """A product's press setting as the tracker gets it: None (nominal) or float64."""
     return None if u is None else np.asarray(u, dtype=np.float64)
 
 __all__ = ["HOLD_COUNT", "HOLD_PRODUCTS", "MEASUREMENT_SCHEMA", "SENSOR_SCHEMA", "Reading",
-           "SensorDesk", "fused_after", "issue", "parse_reading", "replay_fusions"]
+           "SensorDesk", "issue", "parse_reading"]
