@@ -3,7 +3,6 @@ what scripts/readme_results.py makes of benchmarks/results/*.json."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
 import shutil
@@ -11,19 +10,14 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+from repo_scripts import load_script
 
 REPO = Path(__file__).resolve().parent.parent
 README = REPO / "README.md"
 
 
 def _script() -> ModuleType:
-    """scripts/readme_results.py as a module (scripts/ is not a package)."""
-    spec = importlib.util.spec_from_file_location("readme_results",
-                                                  REPO / "scripts" / "readme_results.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("readme_results")
 
 
 def test_readme_rows_are_generated_from_the_results_files() -> None:

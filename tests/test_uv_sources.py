@@ -3,7 +3,6 @@ Makefile builds the virtual environment with uv, which reads no pip configuratio
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import shlex
 import subprocess
@@ -11,16 +10,13 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
+from repo_scripts import load_script
+
 REPO = Path(__file__).resolve().parent.parent
 
 
 def _script() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("uv_sources",
-                                                  REPO / "scripts" / "uv_sources.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("uv_sources")
 
 
 def test_precedence_and_lists() -> None:
