@@ -8,6 +8,8 @@ study, the service and the command line. See ``docs/explanation/monitoring.md``.
 * :mod:`~formtwin.monitoring.glr`: the GLR chart for a level change of an AR quantity;
 * :mod:`~formtwin.monitoring.incontrol`: in-control AR models and health references;
 * :mod:`~formtwin.monitoring.monitor`: :class:`Monitor`, :class:`Alarm`;
+  :mod:`~formtwin.monitoring.config`: :class:`MonitorConfig`;
+  :mod:`~formtwin.monitoring.bank`: the monitor's per-product pass over arrays (Numba);
 * :mod:`~formtwin.monitoring.episodes`: alarm episodes (one per chart and variable from its
   first signal until the chart is quiet) and their clear-after;
 * :mod:`~formtwin.monitoring.calibrate`: a monitor from a simulated in-control run;

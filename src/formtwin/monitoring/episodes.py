@@ -206,7 +206,7 @@ def clear_after(monitor: Monitor, quantile: float = QUANTILE, runs: int = 4000,
     charts: dict[str, tuple[Ewma | Cusum | Glr, float]] = {}
     for n, (ewma, cusum, _) in monitor.charts.items():
         charts[f"{n}/ewma"] = (ewma, ewma.L * math.sqrt(ewma.lam / (2.0 - ewma.lam)))
-        if n in monitor.cusum:
+        if n in monitor.with_cusum:
             charts[f"{n}/cusum"] = (cusum, state_shift)
     charts.update({f"{n}/glr": (g, state_shift) for n, g in monitor.glr_charts.items()})
     charts.update({f"{n}/mismatch": (m, 2.0 * m.k) for n, m in monitor.mismatch.items()})

@@ -19,170 +19,33 @@ that. With ``health_per_line`` the health statistics' references are the line's 
 Phase-I values, frozen at its end (the filter's health depends on the line: with the
 deviation estimated its ESS does on ``theta_d``). A chart that signals restarts from zero.
 
-The state is a JSON-safe dict (:meth:`Monitor.state`); ``Monitor(config, state)`` continues
-exactly where the saved one stopped.
+The charts' states are arrays over the quantities, and a charted product is one pass over
+them (:mod:`~formtwin.monitoring.bank`: the scalar charts' float operations, so the same
+alarms and the same state bit for bit). The state is a JSON-safe dict
+(:meth:`Monitor.state`); ``Monitor(config, state)`` continues exactly where the saved one
+stopped.
 """
 
 from __future__ import annotations
 
-import json
+import copy
 import math
 from collections.abc import Collection, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
+from scipy.special import ndtri
 
 from formtwin.estimates import Estimate
-from formtwin.monitoring.charts import Alarm, Cusum, CusumState, Ewma, EwmaState
-from formtwin.monitoring.glr import Glr, GlrState
-from formtwin.monitoring.incontrol import InControl, Reference
+from formtwin.monitoring import bank
+from formtwin.monitoring.bank import NEVER, QUANTITY_CHARTS, FloatArray, padded, split
+from formtwin.monitoring.charts import Alarm
+from formtwin.monitoring.config import ANGLES, HEALTH, MonitorConfig, observe
 
-#: names of the demonstrator's predicted angles as monitored quantities (a spec's own are
-#: ``spec.output_names``, carried by every estimate as ``output_names``)
-ANGLES = ("angle_stage1", "angle_stage2")
-#: health statistics of a step that the mismatch chart can watch, with their bad side:
-#: the log-evidence increment, the ESS, and the absolute fit's log10 p-value
-#: (:mod:`formtwin.tracker.fit`; NaN where an estimate has none)
-HEALTH = {"loglik": "low", "ess": "low", "fit": "low"}
-
-
-@dataclass(frozen=True)
-class MonitorConfig:
-    """What to watch and how (immutable; JSON with :meth:`to_json`).
-
-    Attributes
-    ----------
-    quantities : name -> in-control model, for state variables and angles.
-    health : name (a key of :data:`HEALTH`) -> in-control reference (maps the statistic to
-        a normal score, large = worse fit).
-    health_models : name -> in-control AR model of that normal score (its level, often
-        set in Phase I: it depends on the machine parameters); the mismatch chart then
-        watches the model's residual. Missing: the score itself.
-    ewma, cusum : the charts (design: :class:`~formtwin.monitoring.calibrate.ChartDesign`):
-        the EWMA on every quantity, the CUSUM on those of ``cusum_on``.
-    cusum_on : the quantities with a CUSUM chart; ``None``: all. (The angles' level comes
-        from Phase I, whose error a CUSUM tuned for small shifts would take for a shift.)
-    shewhart : limit on ``|z|`` of a single product for the quantities with a CUSUM (the
-        combined Shewhart-CUSUM, Lucas 1982; Montgomery ch. 9.1.7): the jump of the
-        residual when a state mean steps is seen at once; ``None``: no such limit.
-    mismatch : the one-sided CUSUM on every health score.
-    glr : quantity -> GLR chart for a level change (:mod:`~formtwin.monitoring.glr`; its
-        signature follows from the quantity's AR model); empty: none.
-    warmup : products not charted at the start.
-    phase1 : products after the warm-up that estimate the means left ``None``.
-    health_per_line : the health references are the line's own Phase-I values (frozen at
-        its end; ``health``'s pooled samples give the orientation, and stand in if Phase I
-        has fewer than 20 finite values); the health models' means must be set (their
-        scores exist only after Phase I).
-    health_level : the health models' levels follow the line: once charting, each product
-        moves a level by this share of its score's deviation from it (clipped to +-3), an
-        EWMA whose time constant (1 / share products) is long against a mismatch's
-        detection and short against the filter's health transient (docs/explanation/monitoring.md);
-        not re-estimated from out-of-control data: a level pauses from its mismatch
-        chart's alarm until that chart has been quiet for one time constant, so a
-        mismatch that persists stays signalled; ``None``: the levels stay at the
-        calibration lines' (or Phase I's).
-    """
-
-    quantities: Mapping[str, InControl]
-    health: Mapping[str, Reference] = field(default_factory=dict)
-    health_models: Mapping[str, InControl] = field(default_factory=dict)
-    ewma: Ewma = Ewma()
-    cusum: Cusum = Cusum()
-    mismatch: Cusum = Cusum(sides="high")
-    warmup: int = 50
-    phase1: int = 100
-    cusum_on: tuple[str, ...] | None = None
-    shewhart: float | None = None
-    widen: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
-    glr: Mapping[str, Glr] = field(default_factory=dict)
-    health_per_line: bool = False
-    health_level: float | None = None
-
-    def __post_init__(self) -> None:
-        bad_w = {f"{n}/{c}": f for n, d in self.widen.items() for c, f in d.items()
-                 if not (math.isfinite(f) and f >= 1.0)}
-        if bad_w:
-            raise ValueError(f"limit factors {bad_w}: expected numbers >= 1")
-        if self.shewhart is not None and not self.shewhart > 0:
-            raise ValueError(f"shewhart limit = {self.shewhart}, expected > 0 or None")
-        if self.cusum_on is not None:
-            object.__setattr__(self, "cusum_on", tuple(self.cusum_on))
-            unknown = [n for n in self.cusum_on if n not in self.quantities]
-            if unknown:
-                raise ValueError(f"cusum_on names {unknown}, not charted quantities")
-        unknown_glr = [n for n in self.glr if n not in self.quantities]
-        if unknown_glr:
-            raise ValueError(f"GLR charts for {unknown_glr}, not charted quantities")
-        bad = [n for n in self.health if n not in HEALTH]
-        if bad:
-            raise ValueError(f"health statistics {bad} unknown; known: {', '.join(HEALTH)}")
-        if self.warmup < 0 or self.phase1 < 0:
-            raise ValueError(f"warmup = {self.warmup}, phase1 = {self.phase1}: expected >= 0")
-        extra = [n for n in self.health_models if n not in self.health]
-        if extra:
-            raise ValueError(f"health models for {extra} without a health reference")
-        needs_phase1 = [n for n, q in (*self.quantities.items(), *self.health_models.items())
-                        if q.mean is None]
-        if needs_phase1 and self.phase1 < 2:
-            raise ValueError(f"quantities {needs_phase1} have no in-control mean and "
-                             f"phase1 = {self.phase1}: expected phase1 >= 2")
-        if self.mismatch.sides != "high":
-            raise ValueError("the mismatch chart is one-sided: expected Cusum(sides='high')")
-        if self.health_per_line and any(q.mean is None for q in self.health_models.values()):
-            raise ValueError("health_per_line: the health models need their means (the "
-                             "scores exist only after Phase I)")
-        if self.health_level is not None and not 0.0 < self.health_level < 1.0:
-            raise ValueError(f"health_level = {self.health_level}: expected in (0, 1)")
-
-    def to_json(self) -> str:
-        return json.dumps({
-            "quantities": {n: q.to_dict() for n, q in self.quantities.items()},
-            "health": {n: {"sample": list(r.sample), "bad": r.bad}
-                       for n, r in self.health.items()},
-            "health_models": {n: q.to_dict() for n, q in self.health_models.items()},
-            "ewma": {"lam": self.ewma.lam, "L": self.ewma.L},
-            "cusum": {"k": self.cusum.k, "h": self.cusum.h},
-            "mismatch": {"k": self.mismatch.k, "h": self.mismatch.h},
-            "warmup": self.warmup, "phase1": self.phase1, "cusum_on": self.cusum_on,
-            "shewhart": self.shewhart,
-            "widen": {n: dict(d) for n, d in self.widen.items()},
-            "glr": {n: {"signature": list(g.signature), "h": g.h, "window": g.window,
-                        "clip": g.clip} for n, g in self.glr.items()},
-            "health_per_line": self.health_per_line, "health_level": self.health_level})
-
-    @classmethod
-    def from_json(cls, text: str) -> MonitorConfig:
-        d = json.loads(text)
-        return cls(quantities={n: InControl.from_dict(q) for n, q in d["quantities"].items()},
-                   health={n: Reference(tuple(r["sample"]), r["bad"])
-                           for n, r in d["health"].items()},
-                   health_models={n: InControl.from_dict(q)
-                                  for n, q in d.get("health_models", {}).items()},
-                   ewma=Ewma(**d["ewma"]), cusum=Cusum(**d["cusum"]),
-                   mismatch=Cusum(**d["mismatch"], sides="high"),
-                   warmup=int(d["warmup"]), phase1=int(d["phase1"]),
-                   cusum_on=None if d.get("cusum_on") is None else tuple(d["cusum_on"]),
-                   shewhart=None if d.get("shewhart") is None else float(d["shewhart"]),
-                   widen={n: {c: float(f) for c, f in w.items()}
-                          for n, w in d.get("widen", {}).items()},
-                   glr={n: Glr(tuple(g["signature"]), float(g["h"]), int(g["window"]),
-                               None if g.get("clip") is None else float(g["clip"]))
-                        for n, g in d.get("glr", {}).items()},
-                   health_per_line=bool(d.get("health_per_line", False)),
-                   health_level=d.get("health_level"))
-
-
-def observe(estimate: Estimate) -> dict[str, float]:
-    """The monitored values of one estimate: state posterior means, predicted angles and
-    the health statistics, by name."""
-    out = {n: float(v) for n, v in zip(estimate.names, estimate.mean, strict=True)}
-    out.update({n: float(v) for n, v in zip(estimate.output_names, estimate.angles_mean,
-                                            strict=True)})
-    out.update(loglik=float(estimate.loglik), ess=float(estimate.ess),
-               fit=math.nan if estimate.fit is None else float(estimate.fit.log10_p))
-    return out
+#: a side's code in :func:`~formtwin.monitoring.bank.chart_step`'s outputs -> its name
+_SIDES = {1: "high", -1: "low"}
 
 
 class Monitor:
@@ -195,6 +58,8 @@ class Monitor:
 
     Examples
     --------
+    >>> from formtwin.monitoring.charts import Cusum
+    >>> from formtwin.monitoring.incontrol import InControl
     >>> ic = {"thickness": InControl(mean=0.3, sigma=0.001)}
     >>> mon = Monitor(MonitorConfig(ic, warmup=0, phase1=0, cusum=Cusum(k=0.5, h=4.0)))
     >>> [a.chart for v in (0.3, 0.3, 0.305) for a in mon.update_values({"thickness": v})]
@@ -202,42 +67,148 @@ class Monitor:
     """
 
     def __init__(self, config: MonitorConfig, state: Mapping[str, Any] | None = None) -> None:
-        self.config = config
+        self.config = c = config
         self.n = 0  # products seen
         #: the chart statistics and limits of the last charted product, by quantity and
         #: chart (``{"thickness": {"ewma": (Z, limit), "cusum": (C, h)}, "ess":
         #: {"mismatch": (C, h)}}``, sigma units); empty before charting starts
         self.last: dict[str, dict[str, tuple[float, float]]] = {}
         #: every AR model by name: the quantities' and the health scores'
-        self.models = {**config.quantities, **config.health_models}
-        self.means = {n: q.mean for n, q in self.models.items()}
+        self.models = {**c.quantities, **c.health_models}
+        if len(self.models) != len(c.quantities) + len(c.health_models):
+            raise ValueError(f"health models {sorted(set(c.quantities) & set(c.health_models))}"
+                             " are named as charted quantities: expected other names")
         self.phase1_sums = {n: 0.0 for n, q in self.models.items() if q.mean is None}
-        self.history: dict[str, list[float]] = {n: [] for n in self.models}
-        self.ewma = {n: EwmaState() for n in config.quantities}
-        self.cusum = {n: CusumState() for n in config.quantities
-                      if config.cusum_on is None or n in config.cusum_on}
-        self.health = {n: CusumState() for n in config.health}
-        self.glr = {n: GlrState() for n in config.glr}
+        #: the quantities with a CUSUM chart
+        self.with_cusum = {n for n in c.quantities if c.cusum_on is None or n in c.cusum_on}
         #: products seen (:attr:`n`) at each health statistic's last mismatch alarm
         self.alarmed_at: dict[str, int] = {}
-        w = config.widen
+        w = c.widen
         #: each quantity's charts with its limits (the design's times its ``widen``)
-        self.charts = {n: (replace(config.ewma, L=config.ewma.L * w.get(n, {}).get("ewma", 1.0)),
-                           replace(config.cusum, h=config.cusum.h * w.get(n, {}).get("cusum", 1.0)),
-                           None if config.shewhart is None
-                           else config.shewhart * w.get(n, {}).get("shewhart", 1.0))
-                       for n in config.quantities}
+        self.charts = {n: (replace(c.ewma, L=c.ewma.L * w.get(n, {}).get("ewma", 1.0)),
+                           replace(c.cusum, h=c.cusum.h * w.get(n, {}).get("cusum", 1.0)),
+                           None if c.shewhart is None
+                           else c.shewhart * w.get(n, {}).get("shewhart", 1.0))
+                       for n in c.quantities}
         self.glr_charts = {n: replace(g, h=g.h * w.get(n, {}).get("glr", 1.0))
-                           for n, g in config.glr.items()}
-        self.mismatch = {n: replace(config.mismatch,
-                                    h=config.mismatch.h * w.get(n, {}).get("mismatch", 1.0))
-                         for n in config.health}
+                           for n, g in c.glr.items()}
+        self.mismatch = {n: replace(c.mismatch, h=c.mismatch.h * w.get(n, {}).get(
+            "mismatch", 1.0)) for n in c.health}
         #: the health statistics' Phase-I values on this line (``health_per_line``)
-        self.phase1_health: dict[str, list[float]] = {n: [] for n in config.health}
+        self.phase1_health: dict[str, list[float]] = {n: [] for n in c.health}
         #: the references in force: the config's pooled ones, or this line's after Phase I
-        self.references: dict[str, Reference] = dict(config.health)
+        self.references = dict(c.health)
+        self._arrays()
         if state is not None:
             self._load(state)
+
+    def _arrays(self) -> None:
+        """The charts' constants and fresh states as arrays (:mod:`~formtwin.monitoring.
+        bank`): models ``j`` (quantities, then health models), quantities ``q``, health
+        statistics ``r``; the states are views of two buffers (:meth:`save`)."""
+        c, models = self.config, list(self.models.values())
+        quantities, health, names = list(c.quantities), list(c.health), list(self.models)
+        nm, nq, nh = len(models), len(quantities), len(health)
+        g = [self.glr_charts.get(n) for n in quantities]
+        self._order = np.array([q.order for q in models], dtype=np.int64)
+        self._phi, _ = padded([q.phi for q in models])
+        self._sigma = np.array([q.sigma for q in models], dtype=np.float64)
+        self._quant, self._qlen = padded([q.quantiles for q in models])
+        self._zmax = np.array([q._zmax for q in models], dtype=np.float64)  # type: ignore[attr-defined]
+        self._elam = np.array([self.charts[n][0].lam for n in quantities], dtype=np.float64)
+        self._elim, self._elen = padded([tuple(bank.ewma_limits(e.lam, e.L))
+                                         for e, _, _ in self.charts.values()])
+        self._has_c = np.array([n in self.with_cusum for n in quantities], dtype=np.bool_)
+        self._ck = np.array([self.charts[n][1].k for n in quantities], dtype=np.float64)
+        self._ch = np.array([self.charts[n][1].h for n in quantities], dtype=np.float64)
+        self._shew = np.array([math.nan if s is None else s for _, _, s in self.charts.values()],
+                              dtype=np.float64)
+        self._has_g = np.array([x is not None for x in g], dtype=np.bool_)
+        self._gs, _ = padded([() if x is None else tuple(x._s) for x in g])  # type: ignore[attr-defined]
+        self._gd2, _ = padded([() if x is None else tuple(x._d2) for x in g])  # type: ignore[attr-defined]
+        self._gwin = np.array([1 if x is None else x.window for x in g], dtype=np.int64)
+        self._gh = np.array([math.nan if x is None else x.h for x in g], dtype=np.float64)
+        self._gclip = np.array([math.nan if x is None or x.clip is None else x.clip for x in g],
+                               dtype=np.float64)
+        #: each quantity's charts (columns of the kernel's outputs), in the report's order
+        self._columns = [(0, *((1,) if x is not None else ()),
+                          *((2,) if n in self.with_cusum else ()),
+                          *((3,) if n in self.with_cusum and s is not None else ()))
+                         for n, x, (_, _, s) in zip(quantities, g, self.charts.values(),
+                                                    strict=True)]
+        self._hmodel = np.array([names.index(n) if n in c.health_models else -1
+                                 for n in health], dtype=np.int64)
+        self._hk = np.array([self.mismatch[n].k for n in health], dtype=np.float64)
+        self._hh = np.array([self.mismatch[n].h for n in health], dtype=np.float64)
+        self._ref_of_model = np.array([health.index(n) for n in c.health_models], dtype=np.int64)
+        #: the values' names in the kernels' order: the quantities, then the health statistics
+        self._inputs = (*quantities, *health)
+        self._work = (np.empty(nh), np.empty(nm), np.empty(nm, np.bool_), np.empty(nm),
+                      np.empty(nm), np.empty(nm, np.bool_))  # u, y, use, f, direct, need
+        self._out = (np.empty((nq, 4)), np.empty((nq, 4)), np.empty((nq, 4), dtype=np.int64),
+                     np.empty(nh), np.empty(nh, dtype=np.int64), np.empty(nh, dtype=np.bool_))
+        #: the states' shapes: floats (means, histories, EWMA, CUSUM high and low, GLR
+        #: sums, mismatch high and low), ints (has mean, history length, EWMA i, GLR
+        #: length and i, alarmed at)
+        self._shapes: tuple[list[tuple[int, ...]], ...] = (
+            [(nm,), (nm, self._phi.shape[1]), (nq,), (nq,), (nq,), self._gs.shape, (nh,), (nh,)],
+            [(nm,), (nm,), (nq,), (nq,), (nq,), (nh,)])
+        self._views(np.zeros(sum(math.prod(x) for x in self._shapes[0])),
+                    np.zeros(sum(math.prod(x) for x in self._shapes[1]), dtype=np.int64))
+        self._mean[:] = [math.nan if q.mean is None else q.mean for q in models]
+        self._has_mean[:] = [q.mean is not None for q in models]
+        self._hist[:] = math.nan
+        self._alarmed[:] = NEVER
+        self._reference_arrays()
+
+    def _views(self, floats: FloatArray, ints: NDArray[np.int64]) -> None:
+        """The charts' states as views of the buffers ``floats`` and ``ints``."""
+        self._buffers = (floats, ints)
+        (self._mean, self._hist, self._ez, self._chi, self._clo, self._gsums, self._hhi,
+         self._hlo) = split(floats, self._shapes[0])
+        (self._has_mean, self._hlen, self._ei, self._glen, self._gi,
+         self._alarmed) = split(ints, self._shapes[1])
+
+    def _reference_arrays(self) -> None:
+        """The references in force as arrays (again after Phase I with ``health_per_line``)."""
+        refs = [self.references[n] for n in self.config.health]
+        self._rsample, self._rlen = padded([r.sample for r in refs])
+        self._rbad = np.array([r.bad == "low" for r in refs], dtype=np.bool_)
+
+    def save(self) -> tuple[Any, ...]:
+        """What :meth:`restore` needs to bring the monitor back to now (two buffer copies
+        and the small containers)."""
+        return (self.n, self.last, dict(self.phase1_sums), dict(self.alarmed_at),
+                {n: list(v) for n, v in self.phase1_health.items()}, self.references,
+                (self._rsample, self._rlen, self._rbad),
+                tuple(b.copy() for b in self._buffers))
+
+    def restore(self, saved: tuple[Any, ...]) -> None:
+        """Back to the moment of :meth:`save`."""
+        (self.n, self.last, self.phase1_sums, self.alarmed_at, self.phase1_health,
+         self.references, (self._rsample, self._rlen, self._rbad), buffers) = saved
+        for mine, theirs in zip(self._buffers, buffers, strict=True):
+            mine[:] = theirs
+
+    def copy(self) -> Monitor:
+        """An independent copy."""
+        out = copy.copy(self)
+        saved = self.save()
+        out._views(*saved[-1])
+        out.restore(saved)
+        return out
+
+    @property
+    def means(self) -> dict[str, float | None]:
+        """The in-control means in force by AR model (None: not yet set by Phase I)."""
+        return {n: float(m) if h else None for n, m, h in zip(
+            self.models, self._mean.tolist(), self._has_mean.tolist(), strict=True)}
+
+    @property
+    def history(self) -> dict[str, list[float]]:
+        """Each AR model's last ``order`` values, oldest first."""
+        return {n: self._hist[j, :k].tolist()
+                for j, (n, k) in enumerate(zip(self.models, self._hlen.tolist(), strict=True))}
 
     @property
     def charting(self) -> bool:
@@ -261,7 +232,15 @@ class Monitor:
         self.n += 1
         if self.n <= c.warmup:
             return ()
-        per_line = c.health_per_line and self.n <= c.warmup + c.phase1
+        if self.n <= c.warmup + c.phase1:
+            self._phase1(values)
+            return ()
+        return self._chart(values, idx)
+
+    def _phase1(self, values: Mapping[str, float]) -> None:
+        """A Phase-I product: its values summed for the means to estimate, remembered."""
+        c = self.config
+        per_line = c.health_per_line
         if per_line:  # this line's health references: its Phase-I values, raw
             for n, vals in self.phase1_health.items():
                 v = float(values[n])
@@ -270,125 +249,145 @@ class Monitor:
         else:  # health: normal scores
             values = {**values, **{n: ref.normal_score(float(values[n]))
                                    for n, ref in self.references.items()}}
-        if self.n <= c.warmup + c.phase1:
-            for n in self.phase1_sums:
-                self.phase1_sums[n] += float(values[n])
-            if self.n == c.warmup + c.phase1:
-                for n, total in self.phase1_sums.items():
-                    self.means[n] = total / c.phase1
-                if c.health_per_line:
-                    self._line_references()
-            self._remember(values, skip=c.health if per_line else ())
-            return ()
-        alarms: list[Alarm] = []
-        self.last = {}
-        for n, q in c.quantities.items():
-            y, hist, mean = float(values[n]), self.history[n], self.means[n]
-            if len(hist) < q.order or mean is None or not math.isfinite(y):
-                continue
-            z = q.score(y, hist, mean)
-            ewma, cusum, shewhart = self.charts[n]
-            self.ewma[n], s = ewma.update(self.ewma[n], z)
-            last = self.last.setdefault(n, {})
-            last["ewma"] = (s.statistic, s.limit)
-            if s.side:
-                alarms.append(Alarm(n, "ewma", idx, s.statistic, s.limit, s.side))
-            if n in self.glr:
-                self.glr[n], s = self.glr_charts[n].update(self.glr[n], z)
-                last["glr"] = (s.statistic, s.limit)
-                if s.side:
-                    alarms.append(Alarm(n, "glr", idx, s.statistic, s.limit, s.side))
-            if n not in self.cusum:
-                continue
-            self.cusum[n], s = cusum.update(self.cusum[n], z)
-            last["cusum"] = (s.statistic, s.limit)
-            if s.side:
-                alarms.append(Alarm(n, "cusum", idx, s.statistic, s.limit, s.side))
-            if shewhart is not None:
-                last["shewhart"] = (z, shewhart)
-                if abs(z) > shewhart:
-                    alarms.append(Alarm(n, "shewhart", idx, z, shewhart,
-                                        "high" if z > 0 else "low"))
-        for n in c.health:
-            z, hm = float(values[n]), c.health_models.get(n)
-            if hm is not None:
-                hist, mean = self.history[n], self.means[n]
-                if len(hist) < hm.order or mean is None:
-                    continue
-                z = hm.score(z, hist, mean)
-            self.health[n], s = self.mismatch[n].update(self.health[n], z)
-            self.last[n] = {"mismatch": (s.statistic, s.limit)}
-            if s.side:
-                alarms.append(Alarm(n, "mismatch", idx, s.statistic, s.limit, s.side))
-                self.alarmed_at[n] = self.n
-        self._remember(values)
-        self._follow(values)
-        return tuple(alarms)
+        for n in self.phase1_sums:
+            self.phase1_sums[n] += float(values[n])
+        if self.n == c.warmup + c.phase1:
+            names = list(self.models)
+            for n, total in self.phase1_sums.items():
+                j = names.index(n)
+                self._mean[j], self._has_mean[j] = total / c.phase1, True
+            if per_line:
+                self._line_references()
+        self._remember(values, skip=c.health if per_line else ())
 
-    def _follow(self, values: Mapping[str, float]) -> None:
-        """Move each health model's level towards this product's score (``health_level``),
-        except within 1 / ``health_level`` products of its mismatch chart's last alarm."""
-        lam = self.config.health_level
-        if lam is None:
-            return
-        for n in self.config.health_models:
-            if self.n - self.alarmed_at.get(n, -(10**9)) < round(1.0 / lam):
-                continue  # out of control: the level is not re-estimated from it
-            m, y = self.means[n], float(values[n])
-            if m is not None and math.isfinite(y):
-                self.means[n] = m + lam * min(max(y - m, -3.0), 3.0)
+    def _chart(self, values: Mapping[str, float], idx: int) -> tuple[Alarm, ...]:
+        """A charted product: the kernels' pass, then its alarms and :attr:`last`."""
+        c, nq = self.config, len(self.config.quantities)
+        v = np.array([values[n] for n in self._inputs], dtype=np.float64)
+        u, y, use, f, direct, need = self._work
+        bank.reference_probabilities(v, nq, self._rsample, self._rlen, self._rbad, u)
+        scores = ndtri(u)  # the health statistics' normal scores
+        bank.residual_probabilities(v, scores, self._ref_of_model, self._hist, self._hlen,
+                                    self._order, self._phi, self._mean, self._has_mean,
+                                    self._sigma, self._quant, self._qlen, self._zmax, y, use,
+                                    f, direct, need)
+        lam = c.health_level
+        stat, lim, side, h_stat, h_side, h_charted = self._out
+        bank.chart_step(ndtri(f), direct, need, use, scores, y, self._hist, self._hlen,
+                        self._order, self._mean, self._has_mean,
+                        self._elam, self._ez, self._ei, self._elim, self._elen,
+                        self._has_c, self._ck, self._ch, c.cusum.sides != "low",
+                        c.cusum.sides != "high", self._chi, self._clo, self._shew,
+                        self._has_g, self._gs, self._gd2, self._gwin, self._gh, self._gclip,
+                        self._gsums, self._glen, self._gi,
+                        self._hmodel, self._hk, self._hh, self._hhi, self._hlo, self._alarmed,
+                        self.n, 0.0 if lam is None else lam,
+                        0 if lam is None else round(1.0 / lam),
+                        stat, lim, side, h_stat, h_side, h_charted)
+        return self._report(idx, use[:nq].tolist(), stat.tolist(), lim.tolist(),
+                            side.tolist(), h_stat.tolist(), h_side.tolist(),
+                            h_charted.tolist())
+
+    def _report(self, idx: int, scored: list[bool], stat: list[list[float]],
+                lim: list[list[float]], side: list[list[int]], h_stat: list[float],
+                h_side: list[int], h_charted: list[bool]) -> tuple[Alarm, ...]:
+        """The alarms of a charted product and :attr:`last`, from the kernel's outputs."""
+        alarms: list[Alarm] = []
+        self.last = last = {}  # type: ignore[var-annotated]
+        for q, n in enumerate(self.config.quantities):
+            if not scored[q]:
+                continue
+            d = last[n] = {}
+            for k in self._columns[q]:
+                chart, s = QUANTITY_CHARTS[k], stat[q][k]
+                d[chart] = (s, lim[q][k])
+                if side[q][k]:
+                    alarms.append(Alarm(n, chart, idx, s, lim[q][k], _SIDES[side[q][k]]))
+        for r, n in enumerate(self.config.health):
+            if not h_charted[r]:
+                continue
+            last[n] = {"mismatch": (h_stat[r], float(self._hh[r]))}
+            if h_side[r]:
+                alarms.append(Alarm(n, "mismatch", idx, h_stat[r], float(self._hh[r]), "high"))
+                self.alarmed_at[n] = self.n
+        return tuple(alarms)
 
     def _line_references(self) -> None:
         """Freeze this line's health references from its Phase-I values (the pooled one
         where there are fewer than 20)."""
         self.references = {n: ref.of_line(self.phase1_health[n])
                            for n, ref in self.config.health.items()}
+        self._reference_arrays()
 
     def _remember(self, values: Mapping[str, float], skip: Collection[str] = ()) -> None:
         """Add each AR model's value to its history (those in ``skip`` not)."""
-        for n, q in self.models.items():
-            if n in skip:
-                continue
+        for j, (n, q) in enumerate(self.models.items()):
             y = float(values[n])
-            if q.order and math.isfinite(y):
-                self.history[n] = [*self.history[n], y][-q.order:]
+            if n in skip or not q.order or not math.isfinite(y):
+                continue
+            k = int(self._hlen[j])
+            if k < q.order:
+                self._hist[j, k] = y
+                self._hlen[j] = k + 1
+            else:
+                self._hist[j, :q.order] = [*self._hist[j, 1:q.order].tolist(), y]
 
     # ------------------------------------------------------------------ persistence
     def state(self) -> dict[str, Any]:
         """JSON-safe state (products seen, Phase-I sums and means, AR history, charts, the
         health statistics' Phase-I values and last mismatch alarms)."""
-        return {"n": self.n, "means": dict(self.means), "phase1_sums": dict(self.phase1_sums),
-                "history": {n: list(h) for n, h in self.history.items()},
-                "ewma": {n: [s.z, s.i] for n, s in self.ewma.items()},
-                "cusum": {n: [s.hi, s.lo] for n, s in self.cusum.items()},
-                "health": {n: [s.hi, s.lo] for n, s in self.health.items()},
-                "glr": {n: [s.sums.tolist(), s.i] for n, s in self.glr.items()},
+        c, quantities = self.config, list(self.config.quantities)
+        glr = {n: [self._gsums[q, :k].tolist(), i] for q, (n, k, i) in enumerate(zip(
+            quantities, self._glen.tolist(), self._gi.tolist(), strict=True)) if n in c.glr}
+        return {"n": self.n, "means": self.means, "phase1_sums": dict(self.phase1_sums),
+                "history": self.history,
+                "ewma": {n: [z, i] for n, z, i in zip(quantities, self._ez.tolist(),
+                                                      self._ei.tolist(), strict=True)},
+                "cusum": {n: [a, b] for n, a, b in zip(quantities, self._chi.tolist(),
+                                                       self._clo.tolist(), strict=True)
+                          if n in self.with_cusum},
+                "health": {n: [a, b] for n, a, b in zip(c.health, self._hhi.tolist(),
+                                                        self._hlo.tolist(), strict=True)},
+                "glr": {n: glr[n] for n in c.glr},
                 "phase1_health": {n: list(v) for n, v in self.phase1_health.items()},
                 "alarmed_at": dict(self.alarmed_at)}
 
     def _load(self, st: Mapping[str, Any]) -> None:
         names, health = set(self.models), set(self.config.health)
         if (set(st["history"]) != names or set(st["health"]) != health
-                or set(st["cusum"]) != set(self.cusum)):
+                or set(st["cusum"]) != self.with_cusum):
             raise ValueError(f"monitor state watches {sorted(st['history'])} and "
                              f"{sorted(st['health'])}, the config {sorted(names)} and "
                              f"{sorted(health)}")
-        self.n = int(st["n"])
-        self.means = {n: None if v is None else float(v) for n, v in st["means"].items()}
-        self.phase1_sums = {n: float(v) for n, v in st["phase1_sums"].items()}
-        self.history = {n: [float(v) for v in h] for n, h in st["history"].items()}
-        self.ewma = {n: EwmaState(float(z), int(i)) for n, (z, i) in st["ewma"].items()}
-        self.cusum = {n: CusumState(float(a), float(b)) for n, (a, b) in st["cusum"].items()}
-        self.health = {n: CusumState(float(a), float(b)) for n, (a, b) in st["health"].items()}
         glr = st.get("glr", {})
-        if set(glr) - set(self.glr):
+        if set(glr) - set(self.config.glr):
             raise ValueError(f"monitor state has GLR charts {sorted(glr)}, the config "
-                             f"{sorted(self.glr)}")
-        self.glr.update({n: GlrState(np.asarray(v, dtype=np.float64), int(i))
-                         for n, (v, i) in glr.items()})
+                             f"{sorted(self.config.glr)}")
+        self.n = int(st["n"])
+        models, quantities = list(self.models), list(self.config.quantities)
+        for n, v in st["means"].items():
+            j = models.index(n)
+            self._mean[j], self._has_mean[j] = (math.nan, False) if v is None else (float(v), True)
+        self.phase1_sums = {n: float(v) for n, v in st["phase1_sums"].items()}
+        for n, h in st["history"].items():
+            j = models.index(n)
+            self._hist[j, :len(h)], self._hlen[j] = [float(v) for v in h], len(h)
+        for n, (z, i) in st["ewma"].items():
+            q = quantities.index(n)
+            self._ez[q], self._ei[q] = float(z), int(i)
+        for n, (a, b) in st["cusum"].items():
+            q = quantities.index(n)
+            self._chi[q], self._clo[q] = float(a), float(b)
+        for r, n in enumerate(self.config.health):
+            self._hhi[r], self._hlo[r] = (float(v) for v in st["health"][n])
+        for n, (v, i) in glr.items():
+            q = quantities.index(n)
+            self._gsums[q, :len(v)], self._glen[q], self._gi[q] = v, len(v), int(i)
         self.phase1_health.update({n: [float(v) for v in vals] for n, vals in
                                    st.get("phase1_health", {}).items() if n in health})
         self.alarmed_at = {n: int(v) for n, v in st.get("alarmed_at", {}).items() if n in health}
+        for r, n in enumerate(self.config.health):
+            self._alarmed[r] = self.alarmed_at.get(n, NEVER)
         if self.config.health_per_line and self.charting:
             self._line_references()
 

@@ -40,7 +40,6 @@ sigmas, chart limits). So are the episodes' clear-after products (``meta`` key
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import logging
@@ -192,7 +191,7 @@ class ServiceMonitor:
             store.set_meta("alarm_clear_after", stored)
         self.clear_after: dict[str, int] = json.loads(stored)
         self.episodes = Episodes(self.clear_after)
-        self._saved: tuple[Monitor, dict[str, Any]] | None = None
+        self._saved: tuple[tuple[Any, ...], dict[str, Any]] | None = None
         seen: dict[tuple[str, str, int], Episode] = {}
         products: dict[int, tuple[str, float]] = {}
         for row in store.products(status="accepted"):  # rebuild the charts' state
@@ -239,7 +238,7 @@ class ServiceMonitor:
         ``"monitoring"`` entry: ``phase`` (warmup, phase1, charting), ``charts`` (quantity
         -> chart -> [statistic, limit], sigma units), ``alarms`` (the product's signals)
         and ``episodes`` (the changes it made). :meth:`rollback` undoes it."""
-        self._saved = (_snapshot(self.monitor), self.episodes.state())
+        self._saved = (self.monitor.save(), self.episodes.state())
         index = int(message.get("index", self.monitor.n))
         alarms = self.monitor.update_values(values_of(message, self.config), index)
         signals = _signals(message, alarms, index)
@@ -248,8 +247,9 @@ class ServiceMonitor:
         n = self.monitor.n  # this product's phase: its charts ran only when charting
         phase = ("warmup" if n <= c.warmup else "phase1" if n <= c.warmup + c.phase1
                  else "charting")
-        charts = {n: {k: [tables.num(v[0]), tables.num(v[1])] for k, v in d.items()}
-                  for n, d in self.monitor.last.items()}
+        fin = math.isfinite  # tables.num: NaN, inf -> None
+        charts = {n: {k: [a if fin(a) else None, b if fin(b) else None]
+                      for k, (a, b) in d.items()} for n, d in self.monitor.last.items()}
         out = [{**a.to_dict(), "statistic": tables.num(a.statistic),
                 "limit": tables.num(a.limit)}
                for a in alarms]
@@ -262,7 +262,7 @@ class ServiceMonitor:
     def rollback(self) -> None:
         """Undo the last :meth:`observe` (its product was not committed)."""
         if self._saved is not None:
-            self.monitor = self._saved[0]
+            self.monitor.restore(self._saved[0])
             self.episodes = Episodes(self.clear_after, self._saved[1])
             self._saved = None
 
@@ -351,19 +351,6 @@ def _change(ch: Change) -> dict[str, Any]:
         "variable", "chart", "side", "first", "last", "signals", "ratio", "statistic",
         "limit", "cleared")}}
 
-
-def _snapshot(monitor: Monitor) -> Monitor:
-    """A copy of ``monitor`` to go back to (:meth:`ServiceMonitor.rollback`), as it is
-    now: its containers copied, not the values in them (the charts' states and the AR
-    histories are replaced by an update, never changed in place; the Phase-I health
-    lists grow, so they are copied too). Per product it replaces a round trip through
-    :meth:`~formtwin.monitoring.Monitor.state` (~0.2 ms)."""
-    out = copy.copy(monitor)
-    for name in ("means", "phase1_sums", "history", "ewma", "cusum", "health", "glr",
-                 "alarmed_at", "last"):
-        setattr(out, name, dict(getattr(monitor, name)))
-    out.phase1_health = {n: list(v) for n, v in monitor.phase1_health.items()}
-    return out
 
 __all__ = ["HEALTH_CLEAR_AFTER", "MonitorSource", "ServiceMonitor", "monitor_config",
            "values_of"]
