@@ -245,9 +245,12 @@ class Store:
                  None if measured_angles is None else json.dumps(measured_angles),
                  _json(estimate)))
             seq = int(cur.lastrowid or 0)
-            if checkpoint is not None:
-                cur.execute("INSERT OR REPLACE INTO checkpoint(id, seq, data) "
-                            "VALUES (1, ?, ?)", (seq, checkpoint))
+            if checkpoint is not None:  # the row in place (a state of the same size
+                # overwrites its pages; REPLACE would free them and allocate new ones)
+                if not cur.execute("UPDATE checkpoint SET seq = ?, data = ? WHERE id = 1",
+                                   (seq, checkpoint)).rowcount:
+                    cur.execute("INSERT INTO checkpoint(id, seq, data) VALUES (1, ?, ?)",
+                                (seq, checkpoint))
             if within is not None:
                 within(cur, seq)
         return seq
