@@ -117,3 +117,26 @@ def test_the_update_is_the_einsum_formulation() -> None:
         eps = np.finfo(float).eps
         np.testing.assert_allclose(d.a, a_new, rtol=8 * eps, atol=0)
         np.testing.assert_allclose(d.C, C, rtol=64 * eps, atol=64 * eps * np.abs(C).max())
+
+
+def test_predict_is_the_mixture_formula_to_rounding() -> None:
+    """:meth:`AngleDiscrepancy.predict` (one pass, Numba) is the hypotheses' Student-t
+    mixture of the NumPy formula (forecast ``ref + a F``, ``F^T (C / delta) F + S``, the
+    variances ``Q n / max(n - 2, 1)``, the weights ``exp(logw)`` normalised) to rounding,
+    from the prior through 300 updates of a drifting, wrong model."""
+    rng = np.random.default_rng(5)
+    d = AngleDiscrepancy(noise_var=0.05)
+    for k in range(300):
+        angle = 88.0 + 0.5 * float(rng.standard_normal())
+        mean, var = d.predict(angle)
+        ref = angle if math.isnan(d.ref) else d.ref
+        F = np.array([1.0, angle - ref])
+        f = ref + d.a @ F
+        Q = np.einsum("i,hij,j->h", F, d.C / d._delta[:, None, None], F) + d.S
+        w = np.exp(d.logw - d.logw.max())
+        w /= w.sum()
+        v = Q * d.n / np.maximum(d.n - 2.0, 1.0)
+        m = float(w @ f)
+        assert mean == pytest.approx(m, rel=1e-13, abs=1e-13), k
+        assert var == pytest.approx(float(w @ (v + (f - m) ** 2)), rel=1e-11), k
+        d.update(angle, 0.3 + 1.01 * angle + 0.01 * k + 0.2 * float(rng.standard_normal()))

@@ -42,6 +42,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import gammaln
 
+from formtwin.tracker._fusion_kernels import mixture_forecast
+
 FloatArray = NDArray[np.float64]
 
 #: the hypotheses: (bias learned, slope learned, discount delta); the first is the model as
@@ -97,6 +99,9 @@ class AngleDiscrepancy:
             self.S = np.full(h, float(self.noise_var))
             self.n = np.full(h, PRIOR_DOF)
             self.logw = np.full(h, -math.log(h))
+        # the last update's gammaln((n + 1) / 2) with that n + 1 (replaced by an update,
+        # never changed in place): the next update's gammaln(n / 2)
+        self._gammaln_of: tuple[FloatArray | None, FloatArray] = (None, self.n)
 
     @property
     def _delta(self) -> FloatArray:
@@ -122,12 +127,13 @@ class AngleDiscrepancy:
     def predict(self, model_angle: float) -> tuple[float, float]:
         """The measured final angle predicted from the model's ``model_angle`` (degrees):
         mean and variance (degrees^2) of the hypotheses' mixture (each a Student-t with
-        ``n`` degrees of freedom, its variance ``Q n / (n - 2)``)."""
-        _, _, f, Q = self._forecast(float(model_angle))
-        w = self.weights()
-        var = Q * self.n / np.maximum(self.n - 2.0, 1.0)
-        mean = float(w @ f)
-        return mean, float(w @ (var + (f - mean) ** 2))
+        ``n`` degrees of freedom, its variance ``Q n / (n - 2)``), in one pass
+        (:func:`~formtwin.tracker._fusion_kernels.mixture_forecast`; the NumPy formula's
+        numbers to rounding)."""
+        x = float(model_angle)
+        ref = x if math.isnan(self.ref) else self.ref
+        mean, var = mixture_forecast(self.a, self.C, self.S, self.n, self.logw, _DELTA, ref, x)
+        return float(mean), float(var)
 
     def coefficients(self) -> tuple[float, float, float]:
         """``(ref, b0, b1)``, the coefficients averaged over the hypotheses: the measured
@@ -172,15 +178,20 @@ class AngleDiscrepancy:
             self.ref = float(model_angle)
         F, R, f, Q = self._forecast(float(model_angle))
         e, n = float(value) - f, self.n
-        ll = (gammaln((n + 1) / 2) - gammaln(n / 2) - 0.5 * np.log(n * math.pi * Q)
-              - (n + 1) / 2 * np.log1p(e * e / (n * Q)))
         n1 = n + 1.0
+        g_n, g_up = self._gammaln_of
+        if g_n is not n:  # gammaln(n / 2): the last update's gammaln((n + 1) / 2)
+            g_up = gammaln(n / 2)
+        g_next = gammaln(n1 / 2)  # = gammaln((n + 1) / 2): n + 1 is n1, bit for bit
+        ll = (g_next - g_up - 0.5 * np.log(n * math.pi * Q)
+              - (n + 1) / 2 * np.log1p(e * e / (n * Q)))
         S1 = self.S + self.S / n1 * (e * e / Q - 1.0)
         A = (R @ F) / Q[:, None]  # einsum("hij,j->hi"): the same two-term sums
         self.a = self.a + A * e[:, None]
         self.C = (S1 / self.S)[:, None, None] * (R - A[:, :, None] * A[:, None, :]
                                                  * Q[:, None, None])
         self.S, self.n = S1, n1
+        self._gammaln_of = (n1, g_next)
         total = self.logw + ll
         top = float(total.max())
         norm = top + math.log(float(np.exp(total - top).sum()))

@@ -49,6 +49,9 @@ class FinalAngles:
         self.angles: FloatArray | None = None
         #: (L + 1, n_controls) the settings of the columns (NaN: nominal)
         self.u: FloatArray = np.full((self.depth + 1, self.n_controls), np.nan)
+        #: :attr:`u` as lists of floats, by the array they came from (:attr:`u` is replaced
+        #: at every step, never changed in place)
+        self._u_rows: tuple[FloatArray | None, list[list[float]]] = (None, [])
 
     def _code(self, u: FloatArray | None) -> FloatArray:
         return np.full(self.n_controls, np.nan) if u is None else np.asarray(u, np.float64)
@@ -75,9 +78,13 @@ class FinalAngles:
         setting ``u``: the kept ones where known and taken at ``u``, else ``evaluate``
         (the model's final angle of input rows (m, n_in) -> (m,)) on the distinct rows of
         ``inputs`` (N, n_in) left."""
+        src, settings = self._u_rows
+        if src is not self.u:
+            settings = self.u.tolist()
+            self._u_rows = (self.u, settings)
         kept = None if self.angles is None or not 0 <= lag <= self.depth \
             or inputs.shape[0] != self.angles.shape[0] \
-            or not _same_setting(self.u[lag], u) else self.angles[:, lag]
+            or not _same_setting(settings[lag], u) else self.angles[:, lag]
         if kept is None:
             kept = np.full(inputs.shape[0], np.nan)
         todo = np.flatnonzero(np.isnan(kept))
@@ -89,7 +96,13 @@ class FinalAngles:
         return out
 
     def fill_own(self, own: FloatArray) -> None:
-        """Column 0 replaced by ``own`` (N,) (the angles the issued interval used)."""
+        """Column 0 replaced by ``own`` (N,) (the angles the issued interval used); nothing
+        to do when ``own`` is column 0 itself (:meth:`column` evaluated nothing)."""
+        a = self.angles
+        if a is not None and own.ndim == 1 and own.shape[0] == a.shape[0] \
+                and own.__array_interface__["data"][0] == a.__array_interface__["data"][0] \
+                and own.strides[0] == a.strides[0]:
+            return
         if self.angles is not None and self.angles.shape[0] == own.shape[0]:
             angles = self.angles.copy()
             angles[:, 0] = own
@@ -122,15 +135,19 @@ class FinalAngles:
         self.u = np.array(u, dtype=np.float64)
 
 
-def _same_setting(kept: FloatArray, u: FloatArray | None) -> bool:
-    """Whether the setting ``kept`` (n_controls,) of a column, NaN for nominal, is ``u``
-    (None: nominal): ``np.array_equal(kept, code(u), equal_nan=True)`` on Python floats,
-    without its ~20 us of argument handling per call."""
-    b = np.full(kept.shape, np.nan) if u is None else np.asarray(u, np.float64)
-    if b.shape != kept.shape:
+def _same_setting(kept: FloatArray | list[float], u: FloatArray | None) -> bool:
+    """Whether the setting ``kept`` (n_controls,) of a column (an array or its floats),
+    NaN for nominal, is ``u`` (None: nominal): ``np.array_equal(kept, code(u),
+    equal_nan=True)`` on Python floats, without its ~20 us of argument handling per
+    call."""
+    a = kept.tolist() if isinstance(kept, np.ndarray) else kept
+    if u is None:
+        return all(math.isnan(x) for x in a)
+    b = np.asarray(u, np.float64)
+    if b.shape != (len(a),):
         return False
     return all(x == y or (math.isnan(x) and math.isnan(y))
-               for x, y in zip(kept.tolist(), b.tolist(), strict=True))
+               for x, y in zip(a, b.tolist(), strict=True))
 
 
 __all__ = ["STATE_KEYS", "FinalAngles"]

@@ -36,9 +36,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from formtwin.filters.lagged import distinct_rows, lagged, reweight, shift
+from formtwin.filters.lagged import distinct_rows, lagged, shift
 from formtwin.spec import ProcessSpec
 from formtwin.spec.sensors import Sensor, line_sensors, output_column
+from formtwin.tracker._fusion_kernels import normal_reweight, weighted_moments
 from formtwin.tracker.ahead import fuse_ahead, refusal
 from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
 from formtwin.tracker.config import TrackerConfig
@@ -135,6 +136,14 @@ class SensorFusion:
     #: the spec's sensors this tracker fuses (:func:`used_sensors`), in the config's order
     sensors: tuple[Sensor, ...]
 
+    def _column(self, output: str) -> int:
+        """:func:`output_column` of the spec's ``output``, found once per tracker."""
+        found: dict[str, int] = self.__dict__.setdefault("_output_columns", {})
+        col = found.get(output)
+        if col is None:
+            col = found[output] = output_column(self.spec, output)
+        return col
+
     def fuse(self, product: int, sensor: str, value: float, u: Any = None,
              offset: float = 0.0) -> float:
         """Fuse sensor ``sensor``'s ``value`` (internal units: mm for thickness, degrees
@@ -190,7 +199,7 @@ class SensorFusion:
         if s.kind == "state":
             pred, var = x[:, self.spec.state.index[s.measures]], 0.0
         else:
-            col = output_column(self.spec, s.measures)
+            col = self._column(s.measures)
             if s.measures == FINAL and self.finals is not None:  # kept from the step
                 pred = self.finals.column(newest - int(product), uu, x,
                                           lambda r: self.ssm.predict_angles(r, uu)[:, col])
@@ -222,14 +231,16 @@ class SensorFusion:
         """Multiply the current weights by ``N(value; pred, sd^2)`` (pred (N,)); return the
         log evidence increment; :class:`FusionError` (weights untouched) if no particle
         gives a finite likelihood. The Normal's log density in SciPy's own operations
-        (``norm.logpdf``: the same numbers, without its ~0.1 ms of argument handling)."""
-        z = (value - pred) / sd
-        ll = -z**2 / 2.0 - _LOG_SQRT_2PI - np.log(np.float64(sd))
-        try:
-            self.filter.logw, inc = reweight(self.filter.logw, ll)
-        except ValueError as exc:
-            raise FusionError(f"fuse: {what} = {value:g}: {exc}") from None
-        return float(inc)
+        (``norm.logpdf``) and :func:`~formtwin.filters.lagged.reweight`'s, in one pass
+        (:func:`~formtwin.tracker._fusion_kernels.normal_reweight`): the same numbers."""
+        new, top, finite = normal_reweight(self.filter.logw, pred, value, sd, _LOG_SQRT_2PI,
+                                           np.log(np.float64(sd)))
+        if not finite:
+            raise FusionError(f"fuse: {what} = {value:g}: no particle gives the measurement "
+                              "a finite likelihood")
+        lse = top + math.log(float(np.sum(np.exp(new - top))))  # log_normalise's
+        self.filter.logw = new - lse
+        return float(lse)
 
     def posterior(self, u: Any = None) -> Posterior:
         """The current particles' weighted summary (after :meth:`fuse`, with what was
@@ -250,7 +261,7 @@ class SensorFusion:
         astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
         final, lo, hi = math.nan, math.nan, math.nan
         if self.finals is not None:
-            col = output_column(self.spec, FINAL)
+            col = self._column(FINAL)
             final, (lo, hi) = self._final_interval(float(am[col]), float(astd[col]), False)
         return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi), final)
 
@@ -269,14 +280,13 @@ class SensorFusion:
             raise RuntimeError("issue_final: no particles yet (call step first)")
         if self.finals is None:
             return math.nan, (math.nan, math.nan)
-        uu, col = validate_controls(u, self.spec), output_column(self.spec, FINAL)
+        uu, col = validate_controls(u, self.spec), self._column(FINAL)
         a = self.finals.column(0, uu, self.filter.x[:, :self.ssm.n_in],
                                lambda r: self.ssm.predict_angles(r, uu)[:, col])
         self.finals.fill_own(a)
-        w = self._weights()
-        am = float(w @ a)
+        am, cloud = weighted_moments(self.filter.logw, a)  # one pass (Numba)
         model_var = float(self.ssm.angle_error()[col])
-        var = max(float(w @ (a - am) ** 2), 0.0) + model_var
+        var = max(cloud, 0.0) + model_var
         return self._final_interval(am, math.sqrt(var), True, model_var)
 
     def _weights(self) -> FloatArray:
@@ -295,7 +305,7 @@ class SensorFusion:
         sd = math.sqrt(std**2 + camera.noise**2)
         if self.config.camera_discrepancy:
             if model_var is None:
-                model_var = float(self.ssm.angle_error()[output_column(self.spec, FINAL)])
+                model_var = float(self.ssm.angle_error()[self._column(FINAL)])
             noise = camera.noise**2 + model_var
             if record:
                 final, var = self.fused.learned(noise).issue(t, final)
