@@ -99,15 +99,20 @@ def test_the_mapping_is_the_coefficients_and_the_variance() -> None:
 
 
 def test_the_update_is_the_einsum_formulation() -> None:
-    """The covariance update written with ``R @ F`` and a broadcast outer product gives the
-    ``np.einsum`` formulation's numbers (the same two-term sums and products: equal to a
-    few ulp on any BLAS, bit for bit where the sums are done in the same order)."""
+    """The covariance update (one pass, Numba: the gain's two-term sums and the outer
+    product written out) gives the ``np.einsum`` formulation's numbers (the same two-term
+    sums and products: equal to a few ulp on any BLAS, bit for bit where the sums are done
+    in the same order)."""
     rng = np.random.default_rng(5)
     d = AngleDiscrepancy(noise_var=0.04)
     for _ in range(300):
         a = 88.0 + 0.3 * rng.standard_normal()
         y = 88.3 + 0.7 * (a - 88.0) + 0.2 * rng.standard_normal()
-        F, R, f, Q = d._forecast(a)
+        ref = a if math.isnan(d.ref) else d.ref  # the forecast, as the update makes it
+        F = np.array([1.0, a - ref])
+        R = d.C / d._delta[:, None, None]
+        f = ref + d.a @ F
+        Q = np.einsum("i,hij,j->h", F, R, F) + d.S
         e = y - f
         S1 = d.S + d.S / (d.n + 1.0) * (e * e / Q - 1.0)
         A = np.einsum("hij,j->hi", R, F) / Q[:, None]
@@ -140,3 +145,48 @@ def test_predict_is_the_mixture_formula_to_rounding() -> None:
         assert mean == pytest.approx(m, rel=1e-13, abs=1e-13), k
         assert var == pytest.approx(float(w @ (v + (f - m) ** 2)), rel=1e-11), k
         d.update(angle, 0.3 + 1.01 * angle + 0.01 * k + 0.2 * float(rng.standard_normal()))
+
+
+def _numpy_update(d: AngleDiscrepancy, model_angle: float, value: float) -> float:
+    """The update's NumPy formula (the discount-evolved covariance, the Student-t density,
+    the conjugate update and the weights), applied to ``d``."""
+    if math.isnan(d.ref):
+        d.ref = float(model_angle)
+    F = np.array([1.0, model_angle - d.ref])
+    R = d.C / d._delta[:, None, None]
+    f = d.ref + d.a @ F
+    Q = np.einsum("i,hij,j->h", F, R, F) + d.S
+    e, n = float(value) - f, d.n
+    ll = (gammaln((n + 1) / 2) - gammaln(n / 2) - 0.5 * np.log(n * math.pi * Q)
+          - (n + 1) / 2 * np.log1p(e * e / (n * Q)))
+    n1 = n + 1.0
+    S1 = d.S + d.S / n1 * (e * e / Q - 1.0)
+    A = np.einsum("hij,j->hi", R, F) / Q[:, None]
+    d.a = d.a + A * e[:, None]
+    d.C = (S1 / d.S)[:, None, None] * (R - A[:, :, None] * A[:, None, :] * Q[:, None, None])
+    d.S, d.n = S1, n1
+    total = d.logw + ll
+    top = float(total.max())
+    norm = top + math.log(float(np.exp(total - top).sum()))
+    d.logw = total - norm
+    return norm
+
+
+def test_update_is_the_numpy_formula_to_rounding() -> None:
+    """:meth:`AngleDiscrepancy.update` (one pass, Numba) is the NumPy formula to rounding,
+    one update at a time from the same state, through 300 updates of a drifting, wrong
+    model (the evidence, and every array of the state)."""
+    rng = np.random.default_rng(6)
+    d = AngleDiscrepancy(noise_var=0.05)
+    eps = np.finfo(float).eps
+    for k in range(300):
+        angle = 88.0 + 0.5 * float(rng.standard_normal())
+        value = 0.3 + 1.01 * angle + 0.01 * k + 0.2 * float(rng.standard_normal())
+        ref = AngleDiscrepancy(0.05)
+        ref.set_state(d.state())
+        want = _numpy_update(ref, angle, value)
+        got = d.update(angle, value)
+        assert got == pytest.approx(want, rel=1e3 * eps, abs=1e3 * eps), k
+        for x, y in ((d.a, ref.a), (d.C, ref.C), (d.S, ref.S), (d.n, ref.n), (d.logw, ref.logw)):
+            np.testing.assert_allclose(x, y, rtol=1e3 * eps, atol=1e3 * eps * np.abs(y).max())
+        d.set_state(ref.state())  # on from the reference's state: no drift between them

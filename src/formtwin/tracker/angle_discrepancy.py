@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import gammaln
 
-from formtwin.tracker._fusion_kernels import mixture_forecast
+from formtwin.tracker._fusion_kernels import discrepancy_update, mixture_forecast
 
 FloatArray = NDArray[np.float64]
 
@@ -53,9 +53,8 @@ HYPOTHESES: tuple[tuple[bool, bool, float], ...] = (
     (True, False, 1.0), (True, False, 0.999), (True, False, 0.99),
     (True, True, 1.0), (True, True, 0.999), (True, True, 0.99),
 )
-#: the hypotheses' discount factors (H,), and shaped to divide the covariances (H, 1, 1)
+#: the hypotheses' discount factors (H,)
 _DELTA = np.array([d for _, _, d in HYPOTHESES])
-_DELTA3 = _DELTA[:, None, None]
 #: prior std of the bias b0 (degrees) and of the slope b1 about 1
 PRIOR_SD = (1.0, 1.0)
 #: prior degrees of freedom of the variance V (its prior guess: the caller's noise_var)
@@ -106,17 +105,6 @@ class AngleDiscrepancy:
     @property
     def _delta(self) -> FloatArray:
         return _DELTA
-
-    def _forecast(self, model_angle: float) -> tuple[FloatArray, FloatArray, FloatArray,
-                                                      FloatArray]:
-        """Per hypothesis: the regressors F (2,), the evolved covariance R (H, 2, 2), the
-        predicted value f (H,) and its scale Q (H,)."""
-        ref = model_angle if math.isnan(self.ref) else self.ref
-        F = np.array([1.0, model_angle - ref])
-        R = self.C / _DELTA3
-        f = ref + self.a @ F
-        Q = np.einsum("i,hij,j->h", F, R, F) + self.S
-        return F, R, f, Q
 
     def weights(self) -> FloatArray:
         """Posterior probabilities (H,) of :data:`HYPOTHESES`."""
@@ -173,30 +161,24 @@ class AngleDiscrepancy:
     def update(self, model_angle: float, value: float) -> float:
         """Take the measured ``value`` (degrees) of a product whose model angle was
         ``model_angle``: every hypothesis' conjugate update and its weight times the
-        predictive density. Returns the log evidence of the value under the mixture."""
+        predictive density (a Student-t with ``n`` degrees of freedom), in one pass
+        (:func:`~formtwin.tracker._fusion_kernels.discrepancy_update`; the NumPy
+        formula's numbers to rounding). Returns the log evidence of the value under the
+        mixture."""
         if math.isnan(self.ref):
             self.ref = float(model_angle)
-        F, R, f, Q = self._forecast(float(model_angle))
-        e, n = float(value) - f, self.n
+        n = self.n
         n1 = n + 1.0
         g_n, g_up = self._gammaln_of
         if g_n is not n:  # gammaln(n / 2): the last update's gammaln((n + 1) / 2)
             g_up = gammaln(n / 2)
-        g_next = gammaln(n1 / 2)  # = gammaln((n + 1) / 2): n + 1 is n1, bit for bit
-        ll = (g_next - g_up - 0.5 * np.log(n * math.pi * Q)
-              - (n + 1) / 2 * np.log1p(e * e / (n * Q)))
-        S1 = self.S + self.S / n1 * (e * e / Q - 1.0)
-        A = (R @ F) / Q[:, None]  # einsum("hij,j->hi"): the same two-term sums
-        self.a = self.a + A * e[:, None]
-        self.C = (S1 / self.S)[:, None, None] * (R - A[:, :, None] * A[:, None, :]
-                                                 * Q[:, None, None])
-        self.S, self.n = S1, n1
+        g_next = gammaln(n1 / 2)
+        self.a, self.C, self.S, self.logw, norm = discrepancy_update(
+            self.a, self.C, self.S, n, n1, self.logw, _DELTA, self.ref, float(model_angle),
+            float(value), g_next - g_up)
+        self.n = n1
         self._gammaln_of = (n1, g_next)
-        total = self.logw + ll
-        top = float(total.max())
-        norm = top + math.log(float(np.exp(total - top).sum()))
-        self.logw = total - norm
-        return norm
+        return float(norm)
 
     def state(self) -> list[float]:
         """The state as one list of JSON numbers (:meth:`set_state` reads it back)."""
