@@ -9,7 +9,9 @@ compile it, the bending model's ~60 s of CPU among them. ``make test`` runs this
 beside the lint, so the tests load the kernels instead. The calls are those of the
 package's own code paths: one bending run at the centre of the design, tracker steps on
 the bundled metamodel with the deviation model (the metamodel's and the deviation's
-kernels, and the tracker's own: ``formtwin.tracker._kernels``), a GLR chart update.
+kernels, and the tracker's own: ``formtwin.tracker._kernels``), a GLR chart update, a
+monitor's charted product (``formtwin.monitoring.bank``) and the sensor fusion's kernels
+(``formtwin.tracker._fusion_kernels``).
 
 Usage: ``python scripts/compile_kernels.py`` (prints what it compiled and the time it took).
 """
@@ -104,6 +106,21 @@ def main() -> None:
     run_lengths(chart, 1.0, runs=4, horizon=3)  # the clear-after's kernel
     glr_statistics((1.0, 0.5), 20, np.zeros((2, 3)))  # the threshold's simulation
     print(f"GLR kernels: {time.perf_counter() - t2:.1f} s")
+
+    t3 = time.perf_counter()
+    from formtwin.monitoring.bank import load_kernels as chart_kernels
+    from formtwin.monitoring.charts import Cusum
+    from formtwin.monitoring.incontrol import InControl, Reference
+    from formtwin.monitoring.monitor import Monitor, MonitorConfig
+    from formtwin.tracker._fusion_kernels import load_kernels as fusion_kernels
+
+    ref = Reference(tuple(np.linspace(-2.0, 2.0, 21)))
+    chart_kernels(Monitor(MonitorConfig(
+        {"x": InControl(0.0, 1.0, (0.5,), tuple(np.linspace(-2.0, 2.0, 21)))},
+        {"ess": ref}, {"ess": InControl(0.0, 1.0)}, mismatch=Cusum(1.0, 5.0, "high"),
+        glr={"x": chart})))
+    fusion_kernels()
+    print(f"chart and sensor fusion kernels: {time.perf_counter() - t3:.1f} s")
 
 
 if __name__ == "__main__":

@@ -77,3 +77,20 @@ def test_weighted_moments_are_numpys_to_rounding(seed: int) -> None:
     # eps * 88^2 / var relative to it
     assert got[1] == pytest.approx(var, rel=500 * eps * 88.0**2 / var)
     assert all(math.isnan(v) for v in weighted_moments(np.array([0.0, np.nan]), a[:2]))
+
+
+def test_load_kernels_compiles_the_tracker_s_argument_types() -> None:
+    """:func:`load_kernels` (a service's start) compiles the kernels for contiguous and
+    strided (a kept column) arrays: the calls of a fusion add no signature."""
+    from formtwin.tracker import _fusion_kernels as k
+
+    k.load_kernels()
+    kernels = (k.normal_reweight, k.weighted_moments, k.mixture_forecast,
+               k.discrepancy_update)
+    before = [list(f.signatures) for f in kernels]
+    logw = np.full(8, -np.log(8.0))
+    kept = np.zeros((8, 3))[:, 1]
+    normal_reweight(logw, kept, 0.0, 1.0, _LOG_SQRT_2PI, 0.0)
+    normal_reweight(logw, kept + 1.0, 0.0, 1.0, _LOG_SQRT_2PI, 0.0)
+    weighted_moments(logw, kept)
+    assert [list(f.signatures) for f in kernels] == before

@@ -124,3 +124,19 @@ def test_ewma_limit_table_is_the_closed_form(lam: float, L: float) -> None:
     table = ewma_limits(lam, L)
     for i in [*range(1, table.size + 5), 10 * table.size + 3]:
         assert table[min(i, table.size) - 1] == ewma_limit(i, lam, L)
+
+
+def test_load_kernels_compiles_what_charting_calls_and_leaves_the_monitor() -> None:
+    """:func:`~formtwin.monitoring.bank.load_kernels` (a service's start) gives the kernels
+    the signatures of the monitor's charted products, on a copy: the monitor is as new."""
+    from formtwin.monitoring import bank
+
+    config = _config()
+    mon = Monitor(config)
+    bank.load_kernels(mon)
+    assert mon.n == 0 and json.dumps(mon.state()) == json.dumps(Monitor(config).state())
+    kernels = (bank.reference_probabilities, bank.residual_probabilities, bank.chart_step)
+    before = [list(k.signatures) for k in kernels]
+    for i, v in enumerate(_stream(60, seed=2)):
+        mon.update_values(v, i)
+    assert mon.charting and [list(k.signatures) for k in kernels] == before

@@ -52,10 +52,10 @@ from typing import Any
 
 import numpy as np
 
+from formtwin.monitoring.bank import load_kernels
 from formtwin.monitoring.calibrate import ChartDesign, calibrate, in_control_runs
 from formtwin.monitoring.charts import Alarm
 from formtwin.monitoring.episodes import Change, Episode, Episodes, clear_after
-from formtwin.monitoring.glr import load_kernel
 from formtwin.monitoring.monitor import ANGLES, Monitor, MonitorConfig
 from formtwin.service import alarm_tables as tables
 from formtwin.service import cache as _cache
@@ -183,8 +183,7 @@ class ServiceMonitor:
         self.store = store
         had_episodes = tables.ensure(store)
         self.monitor = Monitor(config)
-        if config.glr:  # at the start, not at the first charted product
-            load_kernel()
+        load_kernels(self.monitor)  # at the start, not at the first charted product
         stored = store.get_meta("alarm_clear_after")
         if stored is None:
             stored = self._clear_after(cache)

@@ -57,6 +57,7 @@ import numpy as np
 from formtwin.service.messages import MessageError, dumps, error_message
 from formtwin.service.readings import SENSOR_SCHEMA, Reading, parse_reading
 from formtwin.service.store import Store
+from formtwin.tracker._fusion_kernels import load_kernels
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +140,8 @@ class SensorDesk:
         self.tracker = tracker
         self.max_bytes = max_bytes
         self.sensors = {s.name: s for s in fused_sensors(tracker)}
+        if self.sensors:  # at the start, not at the first sensor message
+            load_kernels()
         self.lag = int(getattr(getattr(tracker, "ssm", None), "lag_depth", 0))
         row = store.query("SELECT COALESCE(MAX(seq), 0) FROM products WHERE status = "
                           "'accepted'")

@@ -162,4 +162,21 @@ def discrepancy_update(a, C, S, n, n1, logw, delta, ref, model_angle, value, g):
     return a1, c1, s1, lw, norm
 
 
-__all__ = ["discrepancy_update", "mixture_forecast", "normal_reweight", "weighted_moments"]
+def load_kernels() -> None:
+    """Load the kernels now (from Numba's cache, ~10 ms; compiled, seconds) for the
+    argument types the tracker passes (contiguous and strided columns), not at the first
+    camera value: a service calls it at its start, so that value's latency is like the
+    others'."""
+    w = np.zeros(2)
+    column = np.zeros((2, 2))[:, 0]
+    for pred in (w, column):
+        normal_reweight(w, pred, 0.0, 1.0, 0.0, 0.0)
+        weighted_moments(w, pred)
+    h = np.ones(1)
+    a, c = np.zeros((1, 2)), np.zeros((1, 2, 2))
+    mixture_forecast(a, c, h, h, h, h, 0.0, 0.0)
+    discrepancy_update(a, c, h, h, h, h, h, 0.0, 0.0, 0.0, h)
+
+
+__all__ = ["discrepancy_update", "load_kernels", "mixture_forecast", "normal_reweight",
+           "weighted_moments"]
