@@ -139,10 +139,9 @@ class SensorFusion:
     def _column(self, output: str) -> int:
         """:func:`output_column` of the spec's ``output``, found once per tracker."""
         found: dict[str, int] = self.__dict__.setdefault("_output_columns", {})
-        col = found.get(output)
-        if col is None:
-            col = found[output] = output_column(self.spec, output)
-        return col
+        if output not in found:
+            found[output] = output_column(self.spec, output)
+        return found[output]
 
     def fuse(self, product: int, sensor: str, value: float, u: Any = None,
              offset: float = 0.0) -> float:
@@ -230,10 +229,11 @@ class SensorFusion:
     def _reweight(self, pred: FloatArray, value: float, sd: float, what: str) -> float:
         """Multiply the current weights by ``N(value; pred, sd^2)`` (pred (N,)); return the
         log evidence increment; :class:`FusionError` (weights untouched) if no particle
-        gives a finite likelihood. The Normal's log density in SciPy's own operations
-        (``norm.logpdf``) and :func:`~formtwin.filters.lagged.reweight`'s, in one pass
-        (:func:`~formtwin.tracker._fusion_kernels.normal_reweight`): the same numbers."""
-        new, top, finite = normal_reweight(self.filter.logw, pred, value, sd, _LOG_SQRT_2PI,
+        gives a finite likelihood. ``norm.logpdf``'s and :func:`~formtwin.filters.lagged.
+        reweight`'s operations in one pass (:func:`~formtwin.tracker._fusion_kernels.
+        normal_reweight`): the same numbers."""
+        new, top, finite = normal_reweight(self.filter.logw, np.asarray(pred, np.float64),
+                                           float(value), float(sd), _LOG_SQRT_2PI,
                                            np.log(np.float64(sd)))
         if not finite:
             raise FusionError(f"fuse: {what} = {value:g}: no particle gives the measurement "
