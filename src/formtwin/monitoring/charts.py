@@ -13,9 +13,10 @@ Two-sided tabular CUSUM (Page 1954; Montgomery eq. 9.2-9.3), ``k`` and ``h`` in 
     signal when C+_i > h or C-_i > h
 
 A chart restarts after it signals (``Z``, ``C`` to 0 and ``i`` to 0), the usual practice once
-the cause has been looked for. Chart states are small immutable values (named tuples: a
-monitor makes ~25 of them per product), so a monitor's state is a plain record that can be
-saved and restored.
+the cause has been looked for. Chart states are small immutable values (named tuples), so
+a chart's state is a plain record that can be saved and restored; a
+:class:`~formtwin.monitoring.Monitor` keeps its charts' states in arrays and steps them
+with the same float operations (:mod:`~formtwin.monitoring.bank`).
 
 Run lengths: :func:`cusum_arl_siegmund` (Siegmund's approximation), :func:`ewma_arl`
 (Brook & Evans' Markov chain), and the inverses :func:`cusum_h` and :func:`ewma_L` that
