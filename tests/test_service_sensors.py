@@ -366,7 +366,8 @@ def test_a_failed_store_or_fusion_leaves_nothing_behind(
 
 def test_a_streams_sensor_values_and_their_places(tmp_path: Path) -> None:
     """make_stream draws each sensor as its quantity plus the sensor's noise; replay sends
-    a value after the stroke its delay puts it behind (the last stroke at the latest)."""
+    a value after the stroke its delay puts it behind (the last stroke at the latest), the
+    gauge's before its own stroke (it reads the strip before the press)."""
     from formtwin.service.sensors import Reading
     from formtwin.service.streams import interleave, read_readings
     from formtwin.spec import load_spec
@@ -387,10 +388,13 @@ def test_a_streams_sensor_values_and_their_places(tmp_path: Path) -> None:
     messages = interleave(strokes[10:20], read_readings(path), start=10)
     at = {(m.part_id, m.sensor): i for i, m in enumerate(messages) if isinstance(m, Reading)}
     pos = {s.part_id: i for i, s in enumerate(messages) if not isinstance(s, Reading)}
+    assert at[(strokes[10].part_id, "gauge")] == 0  # before the first stroke sent
     for s in strokes[10:19]:
-        assert pos[s.part_id] < at[(s.part_id, "gauge")] < pos[strokes[strokes.index(s) + 1]
-                                                                   .part_id]
-        assert at[(s.part_id, "camera")] > pos[strokes[strokes.index(s) + 1].part_id]
+        k = strokes.index(s)
+        if k > 10:
+            assert pos[strokes[k - 1].part_id] < at[(s.part_id, "gauge")] < pos[s.part_id]
+        assert at[(s.part_id, "camera")] > pos[strokes[k + 1].part_id]
+    assert (strokes[9].part_id, "gauge") not in at  # due before stroke 9: not sent
     assert (strokes[9].part_id, "camera") in at  # product 9's camera comes after stroke 10
     assert (strokes[19].part_id, "camera") not in at  # due after stroke 20: not sent
 

@@ -92,5 +92,6 @@ def test_sigkill_with_sensor_messages_loses_nothing_and_doubles_nothing(
         assert {k: have[k] for k in keep} == {k: w[k] for k in keep}, pid
     assert [tuple(r) for r in meas] == [tuple(r) for r in want_meas]
     assert {r[3] for r in meas} == {"fused"}
-    # all but the three sent after the last stroke (its gauge, the last two cameras)
-    assert sum(len(e["measurements"]) for e in estimates) == 2 * n - 3
+    # every gauge value (before its stroke: in its own estimate; the first product's after
+    # its step, in the next) and every camera value but the last two (after the last stroke)
+    assert sum(len(e["measurements"]) for e in estimates) == 2 * n - 2

@@ -43,7 +43,8 @@ def register(sub: Any) -> None:
                    help="with --synthetic: draw these of the spec's sensors (comma-separated, "
                    "e.g. gauge,camera) for every product; a stream file's sensor values "
                    "(sensor_<name>) are sent anyway, each after the stroke its delay puts "
-                   "it behind")
+                   "it behind (a state variable's without delay, a gauge's, before its "
+                   "own stroke)")
     p.add_argument("--no-sensors", action="store_true", help="do not send sensor messages")
     p.add_argument("--press", metavar="URL",
                    help="opc.tcp://HOST:PORT[/PATH]: instead of publishing to MQTT, be a "

@@ -190,7 +190,9 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
                   ) -> list[tuple[int, Reading]]:
     """The sensor values of an ``.npz`` stream (arrays ``sensor_<name> (n,)``, NaN: none)
     as ``(k, reading)``: sent after the ``k``-th stroke, ``k`` the product plus the
-    sensor's delay in ``spec`` (default the demonstrator's; the last stroke at the most)."""
+    sensor's delay in ``spec`` (default the demonstrator's; the last stroke at the most);
+    a state variable's value without delay (a strip gauge, upstream of the press) before
+    its product's stroke: ``k`` the product minus one (-1: before the first stroke)."""
     p = Path(path)
     if p.suffix.lower() != ".npz":
         return []
@@ -198,7 +200,8 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
         from formtwin.spec import load_spec
 
         spec = load_spec()
-    delays = {s.name: s.delay for s in line_sensors(spec)}
+    delays = {s.name: s.delay if s.delay or s.kind != "state" else -1
+              for s in line_sensors(spec)}
     out: list[tuple[int, Reading]] = []
     with np.load(p, allow_pickle=False) as z:
         n = int(z["curves"].shape[0])
@@ -216,11 +219,13 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
 def interleave(strokes: list[Stroke], readings: list[tuple[int, Reading]], start: int = 0
                ) -> list[Stroke | Reading]:
     """``strokes`` (the stream's from its ``start``-th) with each reading after the stroke
-    it is due after (:func:`read_readings`); readings due outside them are left out."""
+    it is due after (:func:`read_readings`; a reading of one of ``strokes`` due after
+    stroke ``start - 1``: before the first); readings due outside them are left out."""
     by: dict[int, list[Reading]] = {}
     for k, r in readings:
         by.setdefault(k - start, []).append(r)
-    out: list[Stroke | Reading] = []
+    sent = {s.part_id for s in strokes}
+    out: list[Stroke | Reading] = [r for r in by.get(-1, ()) if r.part_id in sent]
     for k, s in enumerate(strokes):
         out.append(s)
         out.extend(by.get(k, ()))
