@@ -150,7 +150,7 @@ def _replay_press(messages: list[Any], url: str, rate: float) -> int:
     import time
 
     from formtwin.service.opcua_press import SimulatedPress
-    from formtwin.service.sensors import Reading
+    from formtwin.service.readings import Reading
 
     sensors = tuple(sorted({m.sensor for m in messages if isinstance(m, Reading)}))
     with SimulatedPress.from_url(url, sensors) as press:

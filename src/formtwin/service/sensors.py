@@ -58,6 +58,8 @@ from formtwin.service.messages import MessageError, dumps, error_message
 from formtwin.service.readings import SENSOR_SCHEMA, Reading, parse_reading
 from formtwin.service.store import Store
 from formtwin.tracker._fusion_kernels import load_kernels
+from formtwin.tracker.ahead import refusal
+from formtwin.tracker.fusion import FusionError
 
 log = logging.getLogger(__name__)
 
@@ -240,8 +242,6 @@ class SensorDesk:
 
     def _fuse(self, sensor: str, value: float, index: int, u: Any) -> float:
         """Fuse into the tracker; a refusal becomes ``fusion_rejected`` (tracker untouched)."""
-        from formtwin.tracker.fusion import FusionError
-
         try:
             return float(self.tracker.fuse(index, sensor, value, u=_setting(u)))
         except FusionError as exc:
@@ -295,9 +295,6 @@ class SensorDesk:
         self._ahead, self._ahead_part = {}, part_id
         if not self._held:
             return False
-        from formtwin.tracker.ahead import refusal
-        from formtwin.tracker.fusion import FusionError
-
         rows = self.store.query("SELECT id, sensor, value FROM measurements WHERE status = "
                                 "'held' AND part_id = ? ORDER BY id", (part_id,))
         for rid, sensor, value in rows:

@@ -32,7 +32,7 @@ from formtwin.deviation import DeviationModel
 from formtwin.measurement import ProcessModel
 from formtwin.production import draw_production_run
 from formtwin.service.messages import Stroke, stroke_digest
-from formtwin.service.sensors import Reading
+from formtwin.service.readings import Reading
 from formtwin.spec import ProcessSpec
 from formtwin.spec.sensors import line_sensors, output_column, sensor_by_name
 

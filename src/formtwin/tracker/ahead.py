@@ -91,6 +91,8 @@ def fuse_ahead(tracker: SensorFusion, sensor: Sensor, value: float) -> float:
 
 def ahead_columns(tracker: SensorFusion) -> dict[int, tuple[float, float]]:
     """Column -> (value, noise variance) of the values kept for the next step."""
+    if not tracker.fused.ahead:  # the usual step: nothing to look up
+        return {}
     by_name = {s.name: s for s in tracker.sensors}
     return {tracker.spec.state.index[by_name[n].measures]: (v, by_name[n].noise ** 2)
             for n, v in tracker.fused.ahead.items()}
