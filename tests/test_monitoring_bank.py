@@ -119,6 +119,33 @@ def test_each_loads_the_others_state_and_a_copy_is_independent() -> None:
     assert twin.n == 200 and twin.state() == Monitor(config, saved).state()
 
 
+def test_copies_chart_in_threads_as_one_alone() -> None:
+    """Copies share no array that charting writes (states, work space): four copies
+    charting the same stream in four threads at once raise the alarms of one monitor
+    charting it alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    config, stream = _config(), _stream(400, seed=5)
+    alone, first = Monitor(config), Monitor(config)
+    for i, v in enumerate(stream[:150]):
+        alone.update_values(v, i)
+        first.update_values(v, i)
+    expected = [alone.update_values(v, i) for i, v in enumerate(stream[150:], 150)]
+    copies = [first.copy() for _ in range(4)]
+    written = [a for t in (first._work, first._out, first._buffers) for a in t]
+    for c in copies:  # what charting writes: the states' buffers and the work space
+        mine = [a for t in (c._work, c._out, c._buffers) for a in t]
+        assert not any(np.shares_memory(a, b) for a in mine for b in written)
+
+    def chart(mon: Monitor) -> list[tuple[object, ...]]:
+        return [mon.update_values(v, i) for i, v in enumerate(stream[150:], 150)]
+
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(chart, copies))
+    assert sum(len(a) for a in expected) > 5
+    assert all(r == expected for r in results)
+
+
 @pytest.mark.parametrize(("lam", "L"), [(0.2, 2.6), (0.05, 3.0), (1.0, 3.0), (0.5, 2.0)])
 def test_ewma_limit_table_is_the_closed_form(lam: float, L: float) -> None:
     table = ewma_limits(lam, L)

@@ -191,11 +191,13 @@ class Monitor:
             mine[:] = theirs
 
     def copy(self) -> Monitor:
-        """An independent copy."""
+        """An independent copy: its own states and its own work arrays, so that a copy
+        may chart in another thread."""
         out = copy.copy(self)
         saved = self.save()
         out._views(*saved[-1])
         out.restore(saved)
+        out._work, out._out = copy.deepcopy(self._work), copy.deepcopy(self._out)
         return out
 
     @property
