@@ -3,7 +3,10 @@
 The study, the service, the command line and the examples build their trackers here, so
 the measurement model (``K_MC`` from ``config.n_mc`` Monte-Carlo curves about ``config.mu``,
 the residual covariance of a calibrated metamodel when ``config.likelihood`` is
-``"calibrated"``, likelihood ``config.nu``) is made the same way everywhere.
+``"calibrated"``, likelihood ``config.nu``) is made the same way everywhere: with one BLAS
+thread, as the steps run, so that a tracker's numbers do not depend on how many threads
+the environment gives BLAS (a multi-threaded product of the Monte-Carlo curves sums in
+another order).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import logging
 
 import numpy as np
 
+from formtwin._threads import single_blas_thread
 from formtwin.measurement import MeasurementModel, ProcessModel
 from formtwin.tracker.config import TrackerConfig
 from formtwin.tracker.core import Tracker
@@ -39,10 +43,11 @@ def build_measurement(model: ProcessModel, config: TrackerConfig,
         if extra is None and hasattr(model, "residuals"):
             log.warning("calibrated likelihood: the metamodel has no residual statistics "
                         "(refit it with `formtwin metamodel fit`); using K_res = 0")
-    return MeasurementModel.from_monte_carlo(model, mu=mu, n=config.n_mc, rng=rng,
-                                             nu=config.nu, fraction=config.fraction,
-                                             sensor_noise=config.sensor_noise,
-                                             extra_cov=extra)
+    with single_blas_thread():
+        return MeasurementModel.from_monte_carlo(model, mu=mu, n=config.n_mc, rng=rng,
+                                                 nu=config.nu, fraction=config.fraction,
+                                                 sensor_noise=config.sensor_noise,
+                                                 extra_cov=extra)
 
 
 def build_tracker(model: ProcessModel, config: TrackerConfig | None = None,
@@ -54,6 +59,7 @@ def build_tracker(model: ProcessModel, config: TrackerConfig | None = None,
     config's).
     """
     config = TrackerConfig() if config is None else config
-    if measurement is None:
-        measurement = build_measurement(model, config)
-    return Tracker(model, measurement, config)
+    with single_blas_thread():
+        if measurement is None:
+            measurement = build_measurement(model, config)
+        return Tracker(model, measurement, config)
