@@ -212,10 +212,13 @@ class _Check:
 
 def register(sub: Any) -> None:
     """Add the ``serve`` command to the subparsers ``sub``."""
-    p = sub.add_parser("serve", help="track live strokes from MQTT; store, publish, live page",
-                       description="Subscribe to force-curve strokes (QoS 1), run one tracker "
-                       "step per product, commit product + estimate + checkpoint to SQLite, "
-                       "publish the estimate, acknowledge. Safe to kill and restart.")
+    p = sub.add_parser("serve", help="track live strokes from MQTT or OPC UA; store, publish, "
+                       "live page",
+                       description="Subscribe to force-curve strokes (MQTT QoS 1, or a "
+                       "press's OPC UA server with --source) and to the line's sensor values, "
+                       "run one tracker step per product, commit product + estimate + "
+                       "checkpoint to SQLite, publish the estimate, acknowledge. Safe to kill "
+                       "and restart.")
     model = p.add_mutually_exclusive_group(required=True)
     model.add_argument("--metamodel", help="metamodel file (formtwin.metamodel)")
     model.add_argument("--analytic", action="store_true",
