@@ -30,6 +30,18 @@ def model(spec: ProcessSpec) -> AnalyticModel:
 
 
 @pytest.fixture(scope="session", autouse=True)
+def one_blas_thread() -> Iterator[None]:
+    """Every test runs with one BLAS thread, as ``make test`` (``OMP_NUM_THREADS=1``), the
+    tracker's run, the study's workers and the service do: a bare ``pytest`` then gives the
+    same numbers (with two threads OpenBLAS may sum a product in another order, and the
+    bit-for-bit tests compare runs made apart)."""
+    from formtwin._threads import single_blas_thread
+
+    with single_blas_thread():
+        yield
+
+
+@pytest.fixture(scope="session", autouse=True)
 def service_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """The services the tests start keep their chart calibrations and measurement models in
     one folder of this test session (``serve --cache``'s default, ``$FORMTWIN_CACHE``), not

@@ -69,18 +69,21 @@ def test_single_blas_thread_nests_and_restores() -> None:
     assert blas_threads() == before
 
 
-def test_a_tracker_is_built_alike_whatever_threads_blas_has() -> None:
+def test_a_tracker_is_built_alike_whatever_threads_blas_has(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """The measurement model (``K_MC``: a product of 10 000 Monte-Carlo curves) is made with
     one BLAS thread inside :func:`~formtwin.tracker.build_measurement`: the same numbers,
     bit for bit, whether the caller's BLAS has one thread or two (a multi-threaded product
     sums in another order)."""
     from threadpoolctl import threadpool_limits
 
+    from formtwin._threads import _SingleThread
     from formtwin.defaults import bundled_metamodel
     from formtwin.metamodel import Metamodel
     from formtwin.tracker import TrackerConfig, build_measurement
 
     model = Metamodel.load(bundled_metamodel("bending"))
+    monkeypatch.setattr(_SingleThread, "depth", 0)  # no outer limit (the session holds one)
     made = []
     for threads in (1, 2):
         with threadpool_limits(limits=threads, user_api="blas"):
