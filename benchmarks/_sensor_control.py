@@ -1,5 +1,5 @@
-"""The sensor benchmark's figures of control and of the default study's state intervals
-(issue 34), called by ``bench_sensors.py`` and runnable alone (then merged into
+"""The sensor benchmark's figures of control and of the default study's state intervals,
+called by ``bench_sensors.py`` and runnable alone (then merged into
 ``benchmarks/results/bench_sensors.json``, its other figures kept).
 
 1. ``ff_vs_ewma_within_curve`` (target <= 0.80) and ``ff_vs_ewma_within_gauge`` (<= 0.65):
@@ -52,7 +52,7 @@ from formtwin.study.control import ControlStudySettings
 from formtwin.study.control_sensors import SensorControlSettings, run_sensor_control
 from formtwin.study.run import StudySettings, run_study
 
-#: the series of ``state_coverage90_min`` (the issue's: model right or g(MM) modelled, mu
+#: the series of ``state_coverage90_min`` (the target's: model right or g(MM) modelled, mu
 #: known or assumed, physics data)
 COVERAGE_SERIES = (1, 3, 4, 5)
 
@@ -68,7 +68,7 @@ def control_figures(smoke: bool = False, out: Path = CACHE / "control", datasets
     physics = physics_model("bending", metamodel.spec)
     base = ControlStudySettings(products=150 if smoke else 1000, datasets=2 if smoke else datasets,
                                 burn_in=30 if smoke else 100, workers=2)
-    # the issue's camera (0.2 deg); the earlier controller at the weights its tuning chose
+    # the camera of 0.2 deg; the earlier controller at the weights its tuning chose
     # there (bench_sensors.json of 2026-11-28, 2 datasets: lam 0.02-0.05, rho 0)
     s = run_sensor_control(metamodel, physics, SensorControlSettings(
         base=base, camera_noises=(0.2,), grid=((0.02, 0.0),)), out)

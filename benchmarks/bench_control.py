@@ -1,4 +1,4 @@
-"""Benchmark: the closed-loop control study of the final angle (issue 13).
+"""Benchmark: the closed-loop control study of the final angle.
 
 Run ``python benchmarks/bench_control.py`` (heavy: 3 physics
 runs per product, 1000 products x 5 datasets and a tuning one, cached per physics model

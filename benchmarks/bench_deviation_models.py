@@ -1,4 +1,4 @@
-"""Benchmark: deviation models chosen by evidence on series-6 data (issue 11, item 4).
+"""Benchmark: deviation models chosen by evidence on series-6 data.
 
 Series 6 (data ``g(FE)``: physics-model curves distorted by the paper's 4+4-knot ``g`` with
 the realisation's theta_d; filter ``g(MM)`` estimating theta_d, mu assumed mid-range,

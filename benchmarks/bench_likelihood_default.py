@@ -1,5 +1,5 @@
 """Benchmark: the default likelihood, with or without ``learn_residuals``, each with its
-own interval calibration (issue 34, item 7).
+own interval calibration.
 
 Two parts, on the embedded default (bundled metamodel with its 5-fold held-out residual
 statistics, N = 500):

@@ -1,4 +1,4 @@
-"""Benchmark: estimates that stay honest under model error (issue 11).
+"""Benchmark: estimates that stay honest under model error.
 
 On the embedded default (bundled physics DOE, its metamodel with the statistics of its
 5-fold held-out residuals), N = 500, in the study folder ``--out`` (default
@@ -26,7 +26,7 @@ identical data for both likelihoods):
   reported too, ``coverage_states_angles``);
 * ``s8_vs_s6``: state nRMSE of series 8 (learned mu) / series 6 (assumed mu).
 
-Targets (issue 11): s5 <= 0.7, s6 <= 0.8, s1 <= 1.05, min_skill >= 0, 0.80 <= coverage90_min,
+Targets: s5 <= 0.7, s6 <= 0.8, s1 <= 1.05, min_skill >= 0, 0.80 <= coverage90_min,
 coverage90_max <= 0.97, s8_vs_s6 <= 0.85, study_s <= 600.
 """
 
@@ -181,7 +181,7 @@ def main() -> None:
     skill = {s: _mean(full.skill[s - 1], axis=(0, 1)) for s in (1, 3, 4, 5, 6)}
     cov = {s: _mean(full.coverage[s - 1], axis=(0, 1)) for s in (1, 3, 4, 5, 6)}
     cov_sel = np.concatenate([np.r_[c[:nx], c[n_aug:n_aug + 2]] for s, c in cov.items()
-                              if s != 4])  # the issue's series 1, 3, 5, 6
+                              if s != 4])  # the targets' series 1, 3, 5, 6
     paper_cov = {s: _mean(paper.paper["coverage"][s - 1], axis=(0, 1)) for s in (1, 5, 6)}
     figures: dict[str, Any] = {
         "s1_state_ratio": round(state(paper, 1) / state(paper, 1, True), 4),

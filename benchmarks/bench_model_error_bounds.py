@@ -1,6 +1,6 @@
 """Benchmark: how far any statement of the metamodel's error can take the physics series.
 
-Issue 11 asks the default likelihood for a state error of at most 0.7 (series 5) and 0.8
+The targets of the default likelihood are a state error of at most 0.7 (series 5) and 0.8
 (series 6) of the paper's on physics data. This script measures, on the data of
 ``bench_model_error`` (the study folder ``--out``, seed 0, 5 datasets x 1000 products; made
 here if missing), what the same filter (N = 500, the study's seeds, the paper's
@@ -65,7 +65,7 @@ from formtwin.tracker.discrepancy import residual_covariance
 
 VARIANTS = ("learned", "kres_x1", "kres_x8", "other_lines", "own_residuals", "line_oracle",
             "no_error")
-#: issue 11's targets on the state nRMSE ratio to the paper's likelihood
+#: ``bench_model_error``'s targets on the state nRMSE ratio to the paper's likelihood
 TARGETS = {1: 1.05, 5: 0.7, 6: 0.8}
 
 

@@ -19,7 +19,7 @@ sensor object (``SimulatedPress.write_sensor``, mapped by ``[opcua.sensors]``).
 
 ``products_per_s`` of a source: products divided by the time from the first stroke sent to
 the last estimate received on the results topic (MQTT in both cases). ``opcua_over_mqtt`` is
-the ratio of the two (target >= 0.8, issue 35); ``serve_cpu_ms_per_product`` the serve
+the ratio of the two (target >= 0.8); ``serve_cpu_ms_per_product`` the serve
 process's CPU time per product during the full-speed phase, which other jobs on the machine
 disturb less than wall time (``opcua_over_mqtt_cpu`` = MQTT's CPU per product over OPC UA's).
 

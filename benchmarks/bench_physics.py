@@ -5,17 +5,17 @@ One full two-stage run at the centre of Table 1, then 50 random points of the ru
 
 * ``median_s_per_run`` (wall clock, random points), ``converged_fraction``, ``compile_s``
   (first run in a fresh process with an empty Numba cache), ``cache_load_s`` (first run in
-  a fresh process with the cache filled); targets (issues 3, 12): median <= 0.2 s,
+  a fresh process with the cache filled); targets: median <= 0.2 s,
   converged fraction >= 0.99;
 * ``final_angle_range_yield_deg``, ``final_angle_range_thickness_deg``: the final angle's
-  change from the input's minimum to its maximum, the others at the centre (issue 12:
+  change from the input's minimum to its maximum, the others at the centre (targets
   >= 1.5 and >= 0.5 deg);
 * ``angle2_gain_deg_per_mm``: d final angle / d u at the centre (central difference over
   +-50 um);
 * ``angle2_noise_ratio``: the std of the final angle over 20 runs at the centre with every
   input perturbed by 1e-6 of its range (numerical noise), over the std of the final angle in
   a production run (40 products of :func:`~formtwin.production.draw_production_run`, seed
-  7, nominal u) (issue 12: <= 0.05); ``angle2_sweep_scatter_deg``: the largest std about a
+  7, nominal u) (target <= 0.05); ``angle2_sweep_scatter_deg``: the largest std about a
   quadratic trend of the final angle in 9-point sweeps of yield stress and thickness
   (noise from the adaptive steps and contact events).
 

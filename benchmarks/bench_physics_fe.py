@@ -1,4 +1,4 @@
-"""Cross-check of the beam model against the plane-strain CalculiX model (issue 12).
+"""Cross-check of the beam model against the plane-strain CalculiX model.
 
 Points: the centre of Table 1, each main input (yield stress, thickness, punch end
 distance, tool-flap friction) at its minimum and maximum with the others at the centre
@@ -12,7 +12,7 @@ Figures: ``peak_rel_err_max``, ``plateau_rel_err_max`` (plateau = mean force ove
 angle 1) and ``sensitivity_sign_agreement_final`` (angle 2): the fraction of input effects
 (max minus min) with the same sign in both models, counting only effects larger than
 CalculiX's own mesh error; the mesh errors; ccx version, meshes, seconds per FE run.
-Targets (issue 12): peak <= 0.05, plateau <= 0.03, angle 1 <= 0.5 deg, agreement 1.0.
+Targets: peak <= 0.05, plateau <= 0.03, angle 1 <= 0.5 deg, agreement 1.0.
 
 With ``--lock FILE`` (or ``FORMTWIN_HEAVY_LOCK``) every ccx run takes that lock by itself,
 so other heavy jobs on the machine take turns (no lock by default);
@@ -279,7 +279,7 @@ def _write_reference(path: str, rows: dict[str, dict[str, Any]], fe: CalculixMod
     ref = {k: {"fe": v["fine"], "mesh_error": _mesh_error(v)} for k, v in
            list(rows.items())[:9]}
     Path(path).write_text(json.dumps({
-        "what": "CalculiX plane-strain reference of formtwin's flap bending (issue 12); fe = "
+        "what": "CalculiX plane-strain reference of formtwin's flap bending; fe = "
                 "the finer mesh, mesh_error = |fine - coarse|; plateau = mean force -40..-20 "
                 "ms; peak time by a parabola through the maximum; angles in deg, forces N",
         "fe_model": fe.version, "ccx_version": ccx_version(),

@@ -1,4 +1,4 @@
-"""What limits the series-1 final-angle nRMSE: a linear-Gaussian analysis (issue 12).
+"""What limits the series-1 final-angle nRMSE: a linear-Gaussian analysis.
 
 Series 1 of the study is metamodel data tracked with the metamodel (mu known), so its error
 is identifiability, not model error. For each of the study's realisations (``--seed``,

@@ -1,4 +1,4 @@
-"""Benchmark: every sensor the line has (issue 34): the strip gauge, the camera's late and
+"""Benchmark: every sensor the line has: the strip gauge, the camera's late and
 noisy final angle, and the camera-calibrated interval of the final angle.
 
 On the embedded default (bundled physics DOE, its metamodel), N = 500, the study's seeds,
@@ -23,7 +23,7 @@ study does):
   cloud's std with what the step's estimate adds to it, the calibrated floors and the
   assumed mu's term, as the report's other tables), ``state_coverage90_cloud`` (the
   particles' own, no floors);
-* ``s1_final_nrmse_gauge``: series 1 with the 0.5 um gauge (issue target <= 0.45), its
+* ``s1_final_nrmse_gauge``: series 1 with the 0.5 um gauge (target <= 0.45), its
   value entering its product's step (:mod:`formtwin.tracker.ahead`);
   ``s1_final_nrmse_gauge_after_step``: the same fused after the step instead (plain SIR's
   way), at N = 500 and, as the Monte-Carlo reference, N = 2000;

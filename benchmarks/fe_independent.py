@@ -1,4 +1,4 @@
-"""Independent CalculiX check of the pinch rule (issue 12; ``bench_physics_fe --independent N``).
+"""Independent CalculiX check of the pinch rule (``bench_physics_fe --independent N``).
 
 Bending-2.4's pinch rule (``Discretisation.pinch_reach``) was set on the 25 points that
 ``bench_physics_fe.py`` scores it on. This check takes points it never saw: Latin-hypercube

@@ -14,7 +14,7 @@ Usage (after ``python benchmarks/bench_model_error.py``, which leaves the option
 
 prints the coverage of the 90 % intervals (7 states, 2 angles; repetition 0, mean over the
 datasets) per series of the default's runs, the option's as stored (the shipped floors) and
-the option's under ``CAL.json``, and the range over series 1, 3, 5, 6 (issue 11's
+the option's under ``CAL.json``, and the range over series 1, 3, 5, 6 (``bench_model_error``'s
 ``coverage90_min/max``).
 """
 

@@ -285,7 +285,7 @@ def _stored_ids(store: Path) -> list[str]:
 
 def test_fresh_serve_after_check_stores_only_its_own_topic(
         mosquitto: Mosquitto, tmp_path: Path) -> None:  # noqa: F811
-    """The issue's sequence: `serve --check` on a test topic with the default client id,
+    """A check, then the service: `serve --check` on a test topic with the default client id,
     more strokes on that topic after it ended, an old persistent session of the default id
     still subscribed to a third topic with strokes queued; then a fresh `serve` with the
     default client id on the line's topic stores exactly the line's strokes."""

@@ -144,7 +144,7 @@ def simulate_in_control(model: ProcessModel, measurement: MeasurementModel,
     ``noise``: the curves get measurement noise as the likelihood assumes it (see
     :func:`measurement_noise`). Without it every curve fits better and the posterior means
     spread less than on real curves: charts calibrated that way alarm on ~20 % of the
-    products of a real in-control stream (measured by the service, notes of issue 14).
+    products of a real in-control stream (measured by the service).
     """
     return [est for _, est in in_control_runs(model, measurement, config, n, runs, seed, noise)]
 

@@ -90,7 +90,7 @@ class ControlStudySettings:
 
     Attributes
     ----------
-    products, datasets : products per dataset, datasets (issue: 1000 x 5; each is scored
+    products, datasets : products per dataset, datasets (the benchmark's: 1000 x 5; each is scored
         with the weights chosen on the others, so at least 2).
     burn_in : first products of each dataset not scored (the filter's convergence).
     tracker : tracker settings (deviation estimated, mu mid-range: series 6).

@@ -25,7 +25,7 @@ Per dataset, camera noise and set, three feedforwards:
 * ``fused`` (at the spec's camera noise only): the same with the camera's values also fused
   into the particles (:meth:`~formtwin.tracker.Tracker.fuse`, one tracker pass of its own:
   the posterior then depends on the settings chosen): the feedforward on the fused
-  posterior of issue item 6;
+  posterior;
 * the earlier controller (:class:`~formtwin.control.Combined`, the weight learned on the
   line) with each ``(lam, rho)`` of :data:`GRID`, an EWMA trim of the raw camera values.
 
