@@ -35,6 +35,16 @@ PATTERNS: list[tuple[str, re.Pattern[str]]] = [
     ("an absolute path of a development machine", re.compile(r"(?<![\w.])/(?:work|root)/")),
     ("a clock time as history",
      re.compile(r"(?<![\dT:])[0-2]\d:[0-5]\d ?(?:-|–) ?[0-2]\d:[0-5]\d(?: ?UTC)?(?![\d:])")),
+    # the verb ("issues the final angle's interval", "the issued interval") and a
+    # physical branch ("the unloading branch", "a stick branch `mu*5`") are product words
+    ("an item of the project's tracker (name the target, version or figure)",
+     re.compile(r"\biss[u]es? ?-?[0-9]|\b(?:the|this) iss[u]e\b|\biss[u]e(?:'s|s'| items?\b"
+                r"| targets?\b| asks\b)|\(iss[u]e\b", re.IGNORECASE)),
+    ("a rewrite of the development history", re.compile(r"\breba[s]", re.IGNORECASE)),
+    ("a development line of the code (name the version or the variant)",
+     re.compile(r"\b(?:on|from|developed on) (?:the |a )?bran[c]h\b|\bthe bran[c]h's"
+                r"|\bbran[c]h `[\w.]+-", re.IGNORECASE)),
+    ("a commit hash as history", re.compile(r"\b(?:commit|main) [0-9a-f]{7,40}\b")),
 ]
 
 

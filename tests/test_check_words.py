@@ -27,6 +27,21 @@ BAD = [
     "patch in /" + "work/notes/p18.patch",
     "config at /" + "root/.cache/x",
     "timed " + "04:16" + "-04:26 UTC",
+    "| target (iss" + "ue 12) | 0.05 |",
+    "targets (iss" + "ues 3, 12): median <= 0.2 s",
+    "Iss" + "ue 11 asks the default likelihood for 0.7",
+    "no iss" + "ue-11 target changes state with it",
+    "the stage-1 peak error beyond the iss" + "ue's 0.05",
+    "less sensitive than the iss" + "ue asks for",
+    "the fused posterior of iss" + "ue item 6",
+    "datasets (iss" + "ue: 1000 x 5)",
+    "the code after the re" + "base onto 0.1.0.dev12",
+    "measured before a re" + "base,",
+    "On the bra" + "nch `physics-2.3-fast` (not adopted)",
+    "the bra" + "nch's code gives the numbers bit for bit",
+    "developed on bra" + "nch `physics-2.4`",
+    "bench_monitoring.py --seed 2027, commit " + "5c70ea1",
+    "on main " + "224b66f they did not",
 ]
 GOOD = [
     "measured on 0.1.0.dev12 (2026-11-24), bending-2.4: 0.090 s per run",
@@ -35,6 +50,13 @@ GOOD = [
     "python benchmarks/bench_physics.py writes benchmarks/results/bench_physics.json",
     "the session of the MQTT broker (clean_session=False)",
     "the tmp_path fixture; relative paths such as docs/notes/index.md",
+    "the service issues the final angle's interval; the issued interval; Tracker.issue_final()",
+    "issue(tracker, stroke.u) and disc.issue(k, angle)",
+    "the unloading branch, computed where it applies; the loading branch",
+    "after the reversal first a stick branch `mu*5 - penalty*L*d`, then `-mu * 5`",
+    "the target `final_angle_range_yield_deg >= 1.5` (bending-2.4, 0.1.0.dev12)",
+    "a variant `physics-2.3-fast` (not adopted); the base of the die; commit_product",
+    "pseudo-data digest MM 974ee9707d9a26d8, fit e2f0c2803c935af9",
 ]
 
 
