@@ -176,7 +176,7 @@ def test_rejections_have_their_reasons_and_leave_the_tracker_untouched(
         "missing_field": dumps({k: v for k, v in good.items() if k != "value"}),
         "unknown_schema": dumps({**good, "schema": "formtwin.sensor/2"}),
         "oversized": b"{" + b" " * 70_000 + b"}",
-        "fusion_rejected": reading(ids[0], "gauge", 1.0e200),  # no particle explains it
+        "fusion_rejected": reading(ids[0], "gauge", 300.0),  # um, not mm: out of range
     }
     outs = {r: proc.handle_sensor(p) for r, p in bad.items()}
     for reason, o in outs.items():
@@ -187,6 +187,11 @@ def test_rejections_have_their_reasons_and_leave_the_tracker_untouched(
     assert proc.handle_sensor(bad["unknown_sensor"]).kind == "rejected"  # counted once
     assert proc.store.counts()["rejected"] == len(bad)
     assert len(rows(proc)) == 1
+    # refused whatever the particles: a value for a product not yet seen is not held
+    o = proc.handle_sensor(reading("not-yet-seen", "gauge", 300.0))
+    assert o.kind == "rejected" and o.message["reason"] == "fusion_rejected"
+    assert "outside thickness's range in the spec" in o.message["detail"]
+    assert len(rows(proc)) == 1 and proc.tracker.state_bytes() == state
     proc.close()
 
 

@@ -78,7 +78,8 @@ REASONS: dict[str, str] = {
                              "another value",
     "hold_full": "sensor value for a product not yet seen, and the hold is full",
     "hold_expired": "held sensor value whose product did not come in time (a notice)",
-    "fusion_rejected": "the tracker refused the sensor value (e.g. no particle explains it)",
+    "fusion_rejected": "the tracker refused the sensor value (outside the spec's range of "
+                       "its state variable, or no particle explains it)",
     "product_gated": "sensor value of a product gated as an outlier (not in the tracker)",
 }
 

@@ -57,6 +57,7 @@ import numpy as np
 from formtwin.service.messages import MessageError, dumps, error_message
 from formtwin.service.readings import SENSOR_SCHEMA, Reading, parse_reading
 from formtwin.service.store import Store
+from formtwin.spec.sensors import value_refusal
 from formtwin.tracker._fusion_kernels import load_kernels
 from formtwin.tracker.ahead import refusal
 from formtwin.tracker.fusion import FusionError
@@ -198,6 +199,10 @@ class SensorDesk:
                 "duplicate_measurement", f"{r.sensor} of part {r.part_id!r} already stored "
                 f"with value {float(old[0][0])!r}, now {r.value!r}", r.part_id),
                 payload, topic, now)
+        bad = value_refusal(self.tracker.spec, self.sensors[r.sensor], r.value)
+        if bad is not None:  # refused whatever the particles: not held either
+            return "rejected", refuse(self.store, MessageError(
+                "fusion_rejected", f"fuse: {r.sensor} {bad}", r.part_id), payload, topic, now)
         known = self._product(r.part_id)
         if known is None:
             return self._hold(r, payload, topic, now, last_seq)

@@ -29,6 +29,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from formtwin.spec.model import UNITS, Group, SpecError
 from formtwin.spec.reader import KEYS
 
@@ -177,5 +179,38 @@ def sensor_by_name(sensors: Sequence[Sensor], name: str) -> Sensor:
                    f"{', '.join(s.name for s in sensors) or 'none'}")
 
 
-__all__ = ["ANGLE_UNITS", "OUTPUTS", "Sensor", "line_sensors", "output_column", "output_names",
-           "parse_sensors", "sensor_by_name"]
+#: how far (in the sensor's noise sd) a state variable's value may lie outside the spec's
+#: bounds of it and still be fused
+RANGE_MARGIN = 5.0
+
+
+def value_refusal(spec: ProcessSpec, sensor: Sensor, value: Any, offset: Any = 0.0
+                  ) -> str | None:
+    """Why ``sensor``'s ``value`` (with a known ``offset``) cannot be fused whatever the
+    particles (None: it can): not a finite number, or a state variable's value outside the
+    spec's bounds of it by more than :data:`RANGE_MARGIN` noise sd (a glitch or a unit
+    mixed up: the model covers no such product, and the particles would be pulled to the
+    box's edge).
+
+    >>> from formtwin.spec import load_spec
+    >>> spec = load_spec()
+    >>> value_refusal(spec, spec.sensor("gauge"), 0.3) is None
+    True
+    >>> value_refusal(spec, spec.sensor("gauge"), 300.0)  # um, not mm
+    "value 300 mm: outside thickness's range in the spec, [0.295, 0.305] mm"
+    """
+    for name, v in (("value", value), ("offset", offset)):
+        if isinstance(v, bool) or not isinstance(v, int | float | np.number) \
+                or not math.isfinite(float(v)):
+            return f"{name} = {v!r}, expected a finite number"
+    if sensor.kind == "state":
+        var = spec.state[sensor.measures]
+        margin = RANGE_MARGIN * sensor.noise
+        if not var.lo - margin <= float(value) <= var.hi + margin:
+            return (f"value {float(value):g} {var.internal_unit}: outside {var.name}'s range "
+                    f"in the spec, [{var.lo:g}, {var.hi:g}] {var.internal_unit}")
+    return None
+
+
+__all__ = ["ANGLE_UNITS", "OUTPUTS", "RANGE_MARGIN", "Sensor", "line_sensors", "output_column",
+           "output_names", "parse_sensors", "sensor_by_name", "value_refusal"]

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from formtwin.filters.lagged import distinct_rows, lagged, shift
 from formtwin.spec import ProcessSpec
-from formtwin.spec.sensors import Sensor, line_sensors, output_column
+from formtwin.spec.sensors import Sensor, line_sensors, output_column, value_refusal
 from formtwin.tracker._fusion_kernels import normal_reweight, weighted_moments
 from formtwin.tracker.ahead import fuse_ahead, refusal
 from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
@@ -165,10 +165,9 @@ class SensorFusion:
             raise FusionError(f"fuse: sensor {sensor!r} is not fused by this tracker "
                               f"(config.sensors: {', '.join(used) or 'none'})")
         s = used[sensor]
-        for name, v in (("value", value), ("offset", offset)):
-            if isinstance(v, bool) or not isinstance(v, int | float | np.number) \
-                    or not math.isfinite(float(v)):
-                raise FusionError(f"fuse: {sensor} {name} = {v!r}, expected a finite number")
+        bad = value_refusal(self.spec, s, value, offset)
+        if bad is not None:
+            raise FusionError(f"fuse: {sensor} {bad}")
         newest, depth = self.filter.t - 1, self.ssm.lag_depth
         if isinstance(product, bool) or not isinstance(product, int | np.integer):
             raise FusionError(f"fuse: product = {product!r}, expected a whole number")
