@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -29,13 +30,20 @@ def register(sub: Any) -> None:
                     "angle<k>_mean/_std in its [[output]] order, ESS, and the absolute goodness "
                     "of fit: health ok/degraded/no_fit, fit_distance2, fit_quantile). The "
                     "force sensor's std defaults to the spec's [curve] noise_sd (0 without "
-                    "it: then any real sensor's noise reads as a model mismatch).")
+                    "it: then any real sensor's noise reads as a model mismatch). With "
+                    "--sensors, the file's values of those sensors (npz arrays or CSV columns "
+                    "sensor_<name>, internal units) are fused when the line knew them: a "
+                    "state variable's without delay before its product's step, the others "
+                    "after the step of the product <delay> later; with a camera of the final "
+                    "angle the issued final_predicted_deg and its calibrated 90 % interval "
+                    "are written too.")
     p.add_argument("--metamodel", required=True,
                    help="metamodel file, or 'analytic' for the closed-form stand-in")
     p.add_argument("--curves", required=True, type=Path,
                    help="curves (n, n_t) in N: .npz (key 'curves'), .csv (one curve a row: "
                         "bare numbers, or the stream layout part_id, cycle, f0 .. f<n_t-1>, "
-                        "angle<k> of replay; docs/reference/csv.md), a DOE dataset .h5 "
+                        "angle<k>, sensor_<name> of replay; docs/reference/csv.md), a DOE "
+                        "dataset .h5 "
                         "(formtwin.dataset) or a "
                         "NetCDF file with a variable 'curves' (study realisations: --source)")
     p.add_argument("--out", required=True, type=Path,
@@ -195,12 +203,32 @@ def write_table(columns: dict[str, NDArray[Any]], path: Path) -> None:
             w.writerow(row)
 
 
+def sensor_values(path: Path, tracker: Any, ok: NDArray[np.bool_]
+                  ) -> dict[str, NDArray[np.float64]]:
+    """The values in the curves' file (``sensor_<name>`` arrays or columns) of the sensors
+    ``tracker`` fuses, at the rows ``ok`` it tracks; a note for the file's other sensors
+    and for a fused sensor without values."""
+    from formtwin.service.streams import read_sensor_values
+
+    found = read_sensor_values(path)
+    fused = [s.name for s in tracker.sensors]
+    other = sorted(set(found) - set(fused))
+    if other:
+        print(f"{path}: values of {', '.join(other)} not fused (not in --sensors)")
+    for name in fused:
+        if name not in found:
+            print(f"{path}: no values of sensor {name} (array or column sensor_{name})")
+        elif found[name].shape != ok.shape:
+            raise ValueError(f"{path}: sensor_{name} has {found[name].shape[0]} values, "
+                             f"expected {ok.shape[0]}: one per curve")
+    return {name: found[name][ok] for name in fused if name in found}
+
+
 def _track(args: argparse.Namespace) -> int:
-    from formtwin._threads import single_blas_thread
     from formtwin.defaults import load_model
     from formtwin.estimates import HEALTH
     from formtwin.measurement import MeasurementModel
-    from formtwin.tracker import build_tracker, validate_controls
+    from formtwin.tracker import build_tracker, track_recorded, validate_controls
 
     model = load_model(args.metamodel)
     spec = model.spec
@@ -223,13 +251,22 @@ def _track(args: argparse.Namespace) -> int:
     config = tracker_config(args, spec_defaults(spec))
     measurement = MeasurementModel.load(args.measurement) if args.measurement else None
     tracker = build_tracker(model, config, measurement)
-    with single_blas_thread():
-        est = tracker.run(curves[ok], progress=True, u=None if u is None else u[ok])
+    values = sensor_values(args.curves, tracker, ok)
+    rec = track_recorded(tracker, curves[ok], values, None if u is None else u[ok],
+                         progress=sys.stderr.isatty())
+    est = rec.estimates
     cols = est.columns()
     cols["index"] = np.flatnonzero(ok)  # row number in the input file
     if u is not None:  # the setting each product's angles were predicted at
         cols.update({f"u_{v.name}": u[ok, j] for j, v in enumerate(spec.controls)})
+    if rec.final is not None:  # the camera's final angle, as the service issues it
+        cols.update(final_predicted_deg=rec.final[:, 0], final_interval90_lo_deg=rec.final[:, 1],
+                    final_interval90_hi_deg=rec.final[:, 2])
     write_table(cols, args.out)
+    if values:
+        print("sensor values fused: " + ", ".join(f"{k} {v}" for k, v in rec.fused.items())
+              + (f"; {len(rec.refused)} refused, the first: {rec.refused[0]}" if rec.refused
+                 else ""))
     if args.checkpoint:
         tracker.checkpoint(args.checkpoint)
     print(f"tracked {len(est)} products ({int(est.collapsed.sum())} collapsed, "

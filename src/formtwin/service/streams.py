@@ -11,6 +11,11 @@ A stream is a sequence of :class:`~formtwin.service.messages.Stroke`. It is read
 * ``.csv``: one product per row, columns ``part_id, cycle, f0 .. f{n_t-1}`` and optionally
   ``angle1 .. angleK`` (the spec's K outputs, in their ``[[output]]`` order).
 
+The sensor values of a stream (:func:`read_sensor_values`): the arrays ``sensor_<name>``
+of an ``.npz`` or the columns ``sensor_<name>`` of a ``.csv``, one per product, NaN or an
+empty cell where a product has none; ``formtwin replay`` sends them as sensor messages
+when the line would (:func:`read_readings`), ``formtwin track`` fuses them.
+
 :func:`make_stream` writes a synthetic stream from a process model (default the analytic
 stand-in; the line's state means ``mu`` drawn in the spec's ``[mu_min, mu_max]``, state
 evolving by eq. 4-5, constant machine parameters and deviation, Gaussian sensor noise) for
@@ -186,15 +191,46 @@ def read_stream(path: str | Path, source: str = "gFE") -> list[Stroke]:
     raise ValueError(f"{p}: unknown stream format {suffix!r} (expected .npz, .nc or .csv)")
 
 
+def read_sensor_values(path: str | Path) -> dict[str, FloatArray]:
+    """The sensor values of a stream file by sensor name, each (n,) in the measured
+    quantity's internal unit (NaN: none): the arrays ``sensor_<name>`` of an ``.npz``, the
+    columns ``sensor_<name>`` of a ``.csv`` (an empty cell: none); none in other files.
+    ``ValueError`` naming the row and column of a value that is not a number."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".npz":
+        with np.load(p, allow_pickle=False) as z:
+            return {k[len("sensor_"):]: np.asarray(z[k], dtype=np.float64)
+                    for k in sorted(z.files) if k.startswith("sensor_")}
+    if suffix != ".csv":
+        return {}
+    with open(p, newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    out: dict[str, FloatArray] = {}
+    for col in sorted(c for c in (rows[0] if rows else {}) if c and c.startswith("sensor_")):
+        vals = np.full(len(rows), np.nan)
+        for i, r in enumerate(rows):
+            cell = (r.get(col) or "").strip()
+            if cell:
+                try:
+                    vals[i] = float(cell)
+                except ValueError:
+                    raise ValueError(f"{p}: row {i + 2}, column {col}: {cell!r} is not a "
+                                     "number") from None
+        out[col[len("sensor_"):]] = vals
+    return out
+
+
 def read_readings(path: str | Path, spec: ProcessSpec | None = None
                   ) -> list[tuple[int, Reading]]:
-    """The sensor values of an ``.npz`` stream (arrays ``sensor_<name> (n,)``, NaN: none)
-    as ``(k, reading)``: sent after the ``k``-th stroke, ``k`` the product plus the
-    sensor's delay in ``spec`` (default the demonstrator's; the last stroke at the most);
-    a state variable's value without delay (a strip gauge, upstream of the press) before
-    its product's stroke: ``k`` the product minus one (-1: before the first stroke)."""
+    """The sensor values of a stream (:func:`read_sensor_values`) as ``(k, reading)``:
+    sent after the ``k``-th stroke, ``k`` the product plus the sensor's delay in ``spec``
+    (default the demonstrator's; the last stroke at the most); a state variable's value
+    without delay (a strip gauge, upstream of the press) before its product's stroke:
+    ``k`` the product minus one (-1: before the first stroke)."""
     p = Path(path)
-    if p.suffix.lower() != ".npz":
+    values = read_sensor_values(p)
+    if not values:
         return []
     if spec is None:
         from formtwin.spec import load_spec
@@ -202,16 +238,13 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
         spec = load_spec()
     delays = {s.name: s.delay if s.delay or s.kind != "state" else -1
               for s in line_sensors(spec)}
+    strokes = read_stream(p)
+    n, ids = len(strokes), [s.part_id for s in strokes]
     out: list[tuple[int, Reading]] = []
-    with np.load(p, allow_pickle=False) as z:
-        n = int(z["curves"].shape[0])
-        ids = [str(s) for s in z["part_ids"]] if "part_ids" in z else _defaults(n, p.stem)[0]
-        for key in sorted(k for k in z.files if k.startswith("sensor_")):
-            name = key[len("sensor_"):]
-            for i, v in enumerate(np.asarray(z[key], dtype=np.float64)):
-                if np.isfinite(v):
-                    out.append((min(i + delays.get(name, 0), n - 1),
-                                Reading(ids[i], name, float(v))))
+    for name, vals in values.items():
+        for i, v in enumerate(vals[:n]):
+            if np.isfinite(v):
+                out.append((min(i + delays.get(name, 0), n - 1), Reading(ids[i], name, float(v))))
     out.sort(key=lambda t: t[0])  # stable: by product within a position
     return out
 

@@ -7,6 +7,8 @@
 * :mod:`~formtwin.tracker.fit`: the absolute goodness of fit and health of an estimate;
 * :mod:`~formtwin.tracker.fusion`: sensor values besides the curve, fused late and in any
   order (:meth:`Tracker.fuse`);
+* :mod:`~formtwin.tracker.recorded`: :func:`track_recorded`, a recorded run with its
+  sensor values, each fused when the line knew it;
 * :mod:`~formtwin.tracker.state`: the state as bytes or checkpoint file, bit for bit;
 * :mod:`~formtwin.tracker.build`: :func:`build_tracker`, the one assembly path.
 """
@@ -17,11 +19,12 @@ from formtwin.tracker.config import COMPARE, LIKELIHOODS, TrackerConfig
 from formtwin.tracker.core import Tracker
 from formtwin.tracker.fit import FitRule
 from formtwin.tracker.fusion import FusionError, Posterior
+from formtwin.tracker.recorded import Recorded, track_recorded
 from formtwin.tracker.ssm import CHUNK, BendingSSM
 from formtwin.tracker.state import TrackerState
 from formtwin.tracker.validate import validate_controls, validate_curve
 
 __all__ = ["BendingSSM", "CHUNK", "COMPARE", "HEALTH", "LIKELIHOODS", "Estimate", "Estimates",
-           "Fit", "FitRule", "FusionError", "Posterior", "Tracker",
+           "Fit", "FitRule", "FusionError", "Posterior", "Recorded", "Tracker",
            "TrackerConfig", "TrackerState", "build_measurement", "build_tracker",
-           "validate_controls", "validate_curve"]
+           "track_recorded", "validate_controls", "validate_curve"]
