@@ -312,3 +312,17 @@ def doc_commands(doc: Path, mark: str) -> list[str]:
     text = doc.read_text(encoding="utf-8")
     block = text.split(mark, 1)[1].split("```sh\n", 1)[1].split("```", 1)[0]
     return [line for line in block.splitlines() if line.strip()]
+
+
+def read_opcua_results(url: str, paths: list[str]) -> dict[str, Any]:
+    """The values of the ``Formtwin/<path>`` nodes of formtwin's OPC UA results server at
+    ``url`` (``serve --opcua-results``), as a client reads them."""
+    from asyncua.sync import Client
+
+    from formtwin.service.opcua_results import NAMESPACE
+
+    with Client(url, timeout=10) as client:
+        ns = client.get_namespace_index(NAMESPACE)
+        root = client.nodes.objects.get_child([f"{ns}:Formtwin"])
+        return {p: root.get_child([f"{ns}:{part}" for part in p.split("/")]).read_value()
+                for p in paths}

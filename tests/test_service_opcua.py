@@ -23,6 +23,7 @@ from service_fixtures import (
     free_port,
     log_has,
     mosquitto,  # noqa: F401 - fixture
+    read_opcua_results,
     serve_cmd,
     start_serve,
     wait_for,
@@ -117,9 +118,10 @@ def test_serve_from_opcua_with_a_server_restart(mosquitto: Mosquitto,  # noqa: F
     mapping = tmp_path / "press.toml"  # the defaults, reconnecting within a second
     mapping.write_text("[opcua]\nreconnect_min_s = 0.2\nreconnect_max_s = 1.0\n",
                        encoding="utf-8")
+    out_url = f"opc.tcp://127.0.0.1:{free_port()}/formtwin"  # the estimates as OPC UA too
     proc = start_serve(serve_cmd(mosquitto, store, "--source", press.url, "--opcua-map",
                                  str(mapping), "--topic", TOPIC, "--connect-timeout", "30",
-                                 *FAST), log)
+                                 "--opcua-results", out_url, *FAST), log)
     try:
         wait_serving(proc, log)
         def answered(s: object) -> bool:
@@ -152,6 +154,12 @@ def test_serve_from_opcua_with_a_server_restart(mosquitto: Mosquitto,  # noqa: F
         ref.close()
         assert [m["mean"] for m in want] == [r["mean"] for r in first]
         assert [m["std"] for m in want] == [r["std"] for r in first]
+        # the service's own OPC UA server holds the last product's estimate
+        names = list(first[-1]["mean"])  # type: ignore[arg-type]
+        got = read_opcua_results(out_url, ["PartId", "Seq", *[f"Estimate/{n}/Mean" for n in names]])
+        assert got["PartId"] == strokes[-1].part_id and got["Seq"] == first[-1]["seq"]
+        assert [got[f"Estimate/{n}/Mean"] for n in names] == \
+            [first[-1]["mean"][n] for n in names]  # type: ignore[index]
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
     finally:

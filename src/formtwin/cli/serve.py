@@ -17,7 +17,7 @@ from formtwin.cli.options import (
     spec_defaults,
     tracker_config,
 )
-from formtwin.cli.source import add_source_options, make_service, opcua_source
+from formtwin.cli.source import add_source_options, make_service, opcua_results, opcua_source
 from formtwin.service.plausibility import CLIP_SAMPLES
 
 DEFAULT_TOPIC = "plant/line1/press1/stroke"
@@ -312,7 +312,7 @@ def _serve(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    page = monitor = None
+    page = monitor = results = None
     check = None if args.check is None else _Check(proc, args.check, stop)
     if check is not None:
         check.noise = noise_note(settings.tracker, model_spec(args))
@@ -353,6 +353,7 @@ def _serve(args: argparse.Namespace) -> int:
                 add_alarm_routes(page.app, monitor, feed, token, on_ack=service.publish_alarm)
             url = page.start()
             print(f"live page: {url}" + (f"?token={token}" if token else ""), flush=True)
+        results = opcua_results(args, proc)
         if check is not None:
             check.listener, proc.on_outcome = proc.on_outcome, check
         # the ~10^5 objects of the model, the libraries and the page live as long as the
@@ -378,6 +379,8 @@ def _serve(args: argparse.Namespace) -> int:
     finally:
         if page is not None:
             page.stop()
+        if results is not None:
+            results.stop()
         proc.close()
     return 0
 

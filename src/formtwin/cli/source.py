@@ -15,6 +15,10 @@ def add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--opcua-map", metavar="TOML",
                    help="OPC UA node mapping, section [opcua] (docs/reference/opcua.md; "
                    "default: the OPC 40503-1 based names)")
+    p.add_argument("--opcua-results", metavar="URL",
+                   help="opc.tcp://HOST:PORT[/PATH]: also serve each product's estimate, "
+                   "final angle and suggested setting as OPC UA variables of formtwin's own "
+                   "server there (docs/reference/opcua.md), for the line's PLC or SCADA")
 
 
 def opcua_source(args: argparse.Namespace) -> Any:
@@ -45,3 +49,19 @@ def make_service(args: argparse.Namespace, proc: Any, broker: Any, topics: Any,
     from formtwin.service.opcua import OpcUaService
 
     return OpcUaService(proc, source, broker, topics, client_id=client_id)
+
+
+def opcua_results(args: argparse.Namespace, proc: Any) -> Any:
+    """The started OPC UA results server of ``--opcua-results``, listening to ``proc``'s
+    outcomes after its other listener, or None without the option."""
+    if not args.opcua_results:
+        return None
+    from formtwin.cli.options import model_spec
+    from formtwin.service.opcua_results import ResultsServer
+
+    spec = getattr(proc.tracker, "spec", None) or model_spec(args)
+    results = ResultsServer(args.opcua_results, tuple(proc.tracker_names()),
+                            tuple(o.name for o in spec.outputs)).start()
+    results.listener, proc.on_outcome = proc.on_outcome, results.on_outcome
+    print(f"estimates also as OPC UA variables: {args.opcua_results}", flush=True)
+    return results
