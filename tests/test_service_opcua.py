@@ -343,3 +343,54 @@ def test_sensor_nodes_are_fused_as_sensor_messages(mosquitto: Mosquitto,  # noqa
     assert [g.get("mean") for g in got] == [w.message.get("mean") for w in want]
     ref.close()
     proc.close()
+
+
+def test_a_press_that_encrypts_and_asks_for_a_user(tmp_path: Path) -> None:
+    """A press accepting only Basic256Sha256 SignAndEncrypt and one user: the source with
+    the mapping's certificate, user and password file subscribes and assembles a stroke;
+    with a wrong password or without security it does not, and says why."""
+    from formtwin.service.opcua_press import self_signed
+
+    certs = {}
+    for who, uri in (("press", "urn:freeopcua:python:server"), ("client", "urn:formtwin:client")):
+        certs[who] = (str(tmp_path / f"{who}_cert.der"), str(tmp_path / f"{who}_key.pem"))
+        self_signed(certs[who][1], certs[who][0], uri, server=who == "press")
+    (tmp_path / "pw.txt").write_text("s3cret\n", encoding="utf-8")
+    (tmp_path / "bad.txt").write_text("wrong\n", encoding="utf-8")
+    conf = tmp_path / "press.toml"
+
+    def mapping(**keys: str) -> OpcUaMapping:
+        conf.write_text("[opcua]\nreconnect_min_s = 0.2\nreconnect_max_s = 0.5\n"
+                        + "".join(f'{k} = "{v}"\n' for k, v in keys.items()), encoding="utf-8")
+        return OpcUaMapping.from_toml(conf)
+
+    secure = {"security": "Basic256Sha256,SignAndEncrypt,client_cert.der,client_key.pem",
+              "user": "press"}
+    stroke = read_stream(make_stream(tmp_path / "s.npz", 1, seed=2))[0]
+    with SimulatedPress(free_port(), certificate=certs["press"],
+                        users={"press": "s3cret"}) as press:
+        source = OpcUaSource(press.url, mapping(**secure, password_file="pw.txt"))
+        source.start()
+        try:
+            wait_for(source.connected.is_set, 30, f"the secure session ({source.last_error})")
+            press.write(stroke)
+            sensor, payload = source.strokes.get(timeout=10)
+            assert not sensor and json.loads(payload)["part_id"] == stroke.part_id
+        finally:
+            source.stop()
+        for keys, why in (({**secure, "password_file": "bad.txt"}, "BadUserAccessDenied"),
+                          ({}, "No matching endpoints")):
+            source = OpcUaSource(press.url, mapping(**keys))
+            source.start()
+            try:
+                wait_for(lambda s=source: s.last_error is not None, 30, "the refusal")
+                assert why in str(source.last_error) and not source.connected.is_set()
+            finally:
+                source.stop()
+    with pytest.raises(ValueError, match="security mode 'Encrypt'"):
+        OpcUaMapping(security=f"Basic256Sha256,Encrypt,{certs['client'][0]},"
+                              f"{certs['client'][1]}")
+    with pytest.raises(ValueError, match="no such file"):
+        OpcUaMapping(security="Basic256Sha256,SignAndEncrypt,nope.der,nope.pem")
+    with pytest.raises(ValueError, match="password_file needs a user"):
+        OpcUaMapping(password_file=str(tmp_path / "pw.txt"))

@@ -201,6 +201,13 @@ class OpcUaSource:
             lost.set()
 
         client.connection_lost_callback = on_lost
+        m = self.mapping
+        if m.security:  # sign or encrypt with this client's certificate
+            client.application_uri = m.application_uri
+            await client.set_security_string(m.security)
+        if m.user:
+            client.set_user(m.user)
+            client.set_password(m.password())
         await client.connect()
         try:
             nodes = await _resolve(client, self.mapping)

@@ -47,6 +47,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import tomllib
 from collections import deque
 from dataclasses import dataclass, field, fields
@@ -103,6 +104,16 @@ class OpcUaMapping:
         interval the service can take without loss).
     reconnect_min_s, reconnect_max_s : float
         First and largest wait between connection attempts, s (doubling in between).
+    security : str
+        ``POLICY,MODE,CERTIFICATE,PRIVATE_KEY[,SERVER_CERTIFICATE]`` for a press that signs
+        or encrypts (asyncua's security string: a policy of :data:`POLICIES`, ``Sign`` or
+        ``SignAndEncrypt``, this client's certificate (DER or PEM; its subject alternative
+        name holds ``application_uri``) and private key); ``''``: none.
+    user, password_file : str
+        A user name for the press's user authentication and the file holding its
+        password (else ``$FORMTWIN_OPCUA_PASSWORD``); ``''``: anonymous.
+    application_uri : str
+        This client's application URI (in its certificate).
     """
 
     namespace: str = "urn:formtwin:press"
@@ -113,6 +124,10 @@ class OpcUaMapping:
     queue_size: int = 1000
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 10.0
+    security: str = ""
+    user: str = ""
+    password_file: str = ""
+    application_uri: str = "urn:formtwin:client"
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.nodes) - set(NODES))
@@ -144,6 +159,7 @@ class OpcUaMapping:
         if self.reconnect_max_s < self.reconnect_min_s:
             raise ValueError(f"[opcua] reconnect_max_s = {self.reconnect_max_s} < "
                              f"reconnect_min_s = {self.reconnect_min_s}")
+        _check_security(self)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> OpcUaMapping:
@@ -158,7 +174,19 @@ class OpcUaMapping:
         if unknown:
             raise ValueError(f"{path}: [opcua] {unknown[0]!r}: unknown key, expected one of "
                              f"{', '.join(sorted(known))}")
+        base = Path(path).parent  # files named in the section: relative to it
+        if section.get("password_file"):
+            section["password_file"] = str(base / section["password_file"])
+        if section.get("security"):
+            parts = [p.strip() for p in str(section["security"]).split(",")]
+            section["security"] = ",".join(parts[:2] + [str(base / f) for f in parts[2:]])
         return cls(**section)
+
+    def password(self) -> str:
+        """The user's password: the file's first line, else ``$FORMTWIN_OPCUA_PASSWORD``."""
+        if self.password_file:
+            return Path(self.password_file).read_text(encoding="utf-8").splitlines()[0]
+        return os.environ.get("FORMTWIN_OPCUA_PASSWORD", "")
 
     def active(self) -> dict[str, str]:
         """The configured nodes (optional ones set to ``''`` left out), and each sensor's
@@ -168,6 +196,35 @@ class OpcUaMapping:
             out[f"sensor:{name}:part_id"] = f"{path}/PartId"
             out[f"sensor:{name}:value"] = f"{path}/AnalogSignal"
         return out
+
+
+#: the security policies a press may ask for (asyncua's names)
+POLICIES = ("Basic256Sha256", "Aes128Sha256RsaOaep", "Aes256Sha256RsaPss")
+
+
+def _check_security(m: OpcUaMapping) -> None:
+    """``ValueError`` naming the key of a security setting that cannot work."""
+    for name in ("security", "user", "password_file", "application_uri"):
+        if not isinstance(getattr(m, name), str):
+            raise ValueError(f"[opcua] {name} = {getattr(m, name)!r}: expected a string")
+    if m.security:
+        parts = [p.strip() for p in m.security.split(",")]
+        if len(parts) not in (4, 5):
+            raise ValueError(f"[opcua] security = {m.security!r}: expected POLICY,MODE,"
+                             "CERTIFICATE,PRIVATE_KEY[,SERVER_CERTIFICATE]")
+        if parts[0] not in POLICIES:
+            raise ValueError(f"[opcua] security policy {parts[0]!r}: expected one of "
+                             f"{', '.join(POLICIES)}")
+        if parts[1] not in ("Sign", "SignAndEncrypt"):
+            raise ValueError(f"[opcua] security mode {parts[1]!r}: expected Sign or "
+                             "SignAndEncrypt")
+        for f in parts[2:]:
+            if not Path(f).is_file():
+                raise ValueError(f"[opcua] security: no such file {f!r}")
+    if m.password_file and not m.user:
+        raise ValueError("[opcua] password_file needs a user")
+    if m.password_file and not Path(m.password_file).is_file():
+        raise ValueError(f"[opcua] password_file: no such file {m.password_file!r}")
 
 
 def _jsonable(value: Any) -> Any:

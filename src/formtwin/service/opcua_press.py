@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import threading
 from datetime import UTC
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -38,6 +39,34 @@ async def _cancel_pending() -> None:
     await asyncio.gather(*tasks, return_exceptions=True)
 
 
+def self_signed(key: str, certificate: str, uri: str, server: bool = False) -> None:
+    """Write a private key (PEM) and a self-signed certificate (DER) for application ``uri``
+    (a server's or a client's), e.g. for a press that encrypts, in tests and trials."""
+    import socket
+
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    usage = [ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH]
+    asyncio.run(setup_self_signed_certificate(
+        Path(key), Path(certificate), uri, socket.gethostname(), usage,
+        {"countryName": "NL", "organizationName": "formtwin"}))
+
+
+def _user_manager(users: dict[str, str]) -> Any:
+    """An asyncua user manager accepting the user name -> password pairs ``users`` only."""
+    from asyncua.crypto.permission_rules import User, UserRole
+    from asyncua.server.user_managers import UserManager
+
+    class Users(UserManager):
+        def get_user(self, iserver: Any, username: str | None = None,
+                     password: str | None = None, certificate: Any = None) -> User | None:
+            ok = username is not None and users.get(username) == password
+            return User(role=UserRole.User) if ok else None
+
+    return Users()
+
+
 class SimulatedPress:
     """An asyncua server on ``host:port`` holding the last stroke (in a thread of its own).
 
@@ -52,10 +81,17 @@ class SimulatedPress:
     sensors : tuple of str
         Sensor objects to serve (browse names below ``Press``), written by
         :meth:`write_sensor`.
+    certificate : (str, str), optional
+        The server's certificate and private key files: then it accepts only
+        Basic256Sha256 SignAndEncrypt connections (:func:`self_signed` makes a pair).
+    users : dict, optional
+        User name -> password: then it accepts only these users (no anonymous session).
     """
 
     def __init__(self, port: int, host: str = "127.0.0.1", path: str = "/formtwin/press",
-                 sensors: tuple[str, ...] = ()) -> None:
+                 sensors: tuple[str, ...] = (), certificate: tuple[str, str] | None = None,
+                 users: dict[str, str] | None = None) -> None:
+        self.certificate, self.users = certificate, users
         self.sensors = tuple(sensors)
         self.host, self.port = host, port
         self.url = f"opc.tcp://{host}:{port}{path}"
@@ -114,10 +150,17 @@ class SimulatedPress:
         from asyncua import ua
         from asyncua.server.server import Server
 
-        server = Server()
+        server = Server(user_manager=None if self.users is None else
+                        _user_manager(self.users))
         await server.init()
         server.set_endpoint(self.url)
         server.set_server_name("formtwin simulated press")
+        if self.certificate is not None:
+            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+            await server.load_certificate(self.certificate[0])
+            await server.load_private_key(self.certificate[1])
+        if self.users is not None:
+            server.set_identity_tokens([ua.UserNameIdentityToken])
         ns = await server.register_namespace(NAMESPACE)
         press = await server.nodes.objects.add_object(ns, "Press")
         info = await press.add_object(ns, "PartInformation")
