@@ -6,6 +6,7 @@ serve and replay through a private mosquitto included."""
 from __future__ import annotations
 
 import csv
+import json
 import os
 import shlex
 import sqlite3
@@ -215,6 +216,26 @@ def test_howto_chain_runs_as_documented(mosquitto: Mosquitto, tmp_path: Path) ->
     assert "angle2_mean" not in est[0]
     ok = sum(r["health"] == "ok" for r in est)
     assert ok >= 60, f"only {ok} of 80 curves fit with the spec's sensor noise"
+    # the spec's own sensors: the bound of each set, and both fused from the line's file
+    bound = json.loads((ab / "sensors" / "sensors.json").read_text(encoding="utf-8"))
+    assert bound["output"] == "bend_angle"
+    assert {"curve", "gauge_2um", "camera_0.1deg", "all"} <= set(bound["bound"])
+    b = {k: v["states"]["sheet_thickness"] for k, v in bound["bound"].items()}
+    assert b["gauge_2um"] < 0.5 * b["curve"]
+    fused = list(csv.DictReader(open(ab / "estimates_sensors.csv", encoding="utf-8")))
+    assert len(fused) == 80 and "gauge 80, camera 80" in outputs["track"]
+
+    line = list(csv.DictReader(open(ab / "line.csv", encoding="utf-8")))
+    gauge = np.array([float(r["sensor_gauge"]) for r in line])
+
+    def off(rows: list[dict[str, str]]) -> float:  # rms distance from the gauge's values
+        mean = np.array([float(r["mean_sheet_thickness"]) for r in rows])
+        return float(np.sqrt(np.mean((mean[10:] - gauge[10:]) ** 2)))
+
+    assert off(fused) < 0.3 * off(est)  # the thickness follows the 2 um gauge
+    lo, hi = (np.array([float(r[f"final_interval90_{k}_deg"]) for r in fused[1:]])
+              for k in ("lo", "hi"))
+    assert np.all(lo < hi) and np.all(hi - lo < 2.0)
     # the study on the example's own FE dataset: finite numbers, no paper, no bending model
     nrmse = list(csv.DictReader(open(ab / "study" / "nrmse.csv", encoding="utf-8")))
     assert {r["series"] for r in nrmse} == {"5", "6"}
@@ -227,6 +248,11 @@ def test_howto_chain_runs_as_documented(mosquitto: Mosquitto, tmp_path: Path) ->
     # served: one row per product, the example's names, its single output
     rows = list(csv.DictReader(open(ab / "line_estimates.csv", encoding="utf-8")))
     assert len(rows) == 80 and rows[0]["part_id"] == "AB-00001"
+    with sqlite3.connect(ab / "line.sqlite") as db:  # the sensors' values fused, none refused
+        fused_rows = db.execute("SELECT COUNT(*) FROM measurements WHERE status = 'fused'"
+                                ).fetchone()[0]
+        refused = db.execute("SELECT COUNT(*) FROM rejections").fetchone()[0]
+    assert fused_rows >= 150 and refused == 0
     assert "mean_tool_stiffness" in rows[0] and "angle1_measured" in rows[0]
     assert "angle2_mean" not in rows[0]
     assert abs(float(rows[0]["angle1_measured"]) - float(rows[0]["angle1_mean"])) < 2.0

@@ -129,6 +129,11 @@ def test_csv_stream_carries_sensor_columns(tmp_path: Path) -> None:
     due = [(k, r.part_id, r.sensor) for k, r in read_readings(path, spec)]
     assert due == [(-1, "p1", "gauge"), (1, "p3", "gauge"), (2, "p2", "camera"),
                    (2, "p3", "camera")]
+    other = tmp_path / "other.csv"  # a sensor the spec does not declare: its delay unknown
+    other.write_text(path.read_text(encoding="utf-8").replace("sensor_camera", "sensor_thermo"),
+                     encoding="utf-8")
+    with pytest.raises(ValueError, match="sensor_thermo: not a sensor of spec"):
+        read_readings(other, spec)
     rows[1][-1] = "abc"
     path.write_text("\n".join(",".join(r) for r in [head, *rows]) + "\n", encoding="utf-8")
     with pytest.raises(ValueError, match=r"row 3, column sensor_camera: 'abc' is not a number"):

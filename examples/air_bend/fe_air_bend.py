@@ -121,14 +121,31 @@ def production(n: int, seed: int, spec: ProcessSpec | None = None
     return X, curves, angles
 
 
-def write_line(path: Path, curves: FloatArray, angles: FloatArray) -> None:
+def sensor_values(X: FloatArray, angles: FloatArray, seed: int,
+                  spec: ProcessSpec | None = None) -> dict[str, FloatArray]:
+    """Each ``[[sensor]]`` of the spec's value of every product (n,): the measured state
+    variable or output plus the sensor's Gaussian noise, internal units."""
+    spec = spec or load_spec(SPEC)
+    rng = np.random.default_rng([seed, 1])
+    out = {}
+    for s in spec.sensors:
+        true = X[:, spec.state.index[s.measures]] if s.kind == "state" else angles
+        out[s.name] = true + s.noise * rng.standard_normal(true.shape[0])
+    return out
+
+
+def write_line(path: Path, curves: FloatArray, angles: FloatArray,
+               sensors: dict[str, FloatArray] | None = None) -> None:
     """The curve-CSV layout of ``formtwin track`` and ``formtwin replay``: ``part_id, cycle,
-    f0 .. f{n_t-1}, angle1``."""
+    f0 .. f{n_t-1}, angle1`` and a ``sensor_<name>`` column per sensor."""
+    sensors = sensors or {}
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        w.writerow(["part_id", "cycle", *(f"f{j}" for j in range(curves.shape[1])), "angle1"])
+        w.writerow(["part_id", "cycle", *(f"f{j}" for j in range(curves.shape[1])), "angle1",
+                    *(f"sensor_{n}" for n in sensors)])
         for i, (c, a) in enumerate(zip(curves, angles, strict=True)):
-            w.writerow([f"AB-{i + 1:05d}", i + 1, *(f"{v:.6g}" for v in c), f"{a:.6g}"])
+            w.writerow([f"AB-{i + 1:05d}", i + 1, *(f"{v:.6g}" for v in c), f"{a:.6g}",
+                        *(f"{v[i]:.7g}" for v in sensors.values())])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -146,8 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.cmd == "fe":
         print(f"{args.out}: {run_fe(args.design, args.out)} FE runs")
     else:
-        _, curves, angles = production(args.n, args.seed)
-        write_line(args.out, curves, angles)
+        X, curves, angles = production(args.n, args.seed)
+        write_line(args.out, curves, angles, sensor_values(X, angles, args.seed))
         print(f"{args.out}: {args.n} products")
     return 0
 

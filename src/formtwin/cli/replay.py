@@ -46,6 +46,9 @@ def register(sub: Any) -> None:
                    "it behind (a state variable's without delay, a gauge's, before its "
                    "own stroke)")
     p.add_argument("--no-sensors", action="store_true", help="do not send sensor messages")
+    p.add_argument("--spec", metavar="TOML",
+                   help="the process spec whose [[sensor]] delays place a stream file's "
+                   "sensor values (default: the bundled demonstrator's)")
     p.add_argument("--press", metavar="URL",
                    help="opc.tcp://HOST:PORT[/PATH]: instead of publishing to MQTT, be a "
                    "simulated OPC UA press there (docs/reference/opcua.md): wait for "
@@ -100,6 +103,7 @@ def _replay(args: argparse.Namespace) -> int:
 
     from formtwin.service.mqtt import Topics, publish_strokes
     from formtwin.service.streams import interleave, make_stream, read_readings, read_stream
+    from formtwin.spec import load_spec
 
     if args.synthetic is not None:
         model, what = synthetic_model(args.metamodel, args.analytic, args.draw_from)
@@ -120,7 +124,8 @@ def _replay(args: argparse.Namespace) -> int:
     strokes = strokes[args.start:end]
     if args.no_angles:
         strokes = [dataclasses.replace(s, angles_deg=None) for s in strokes]
-    readings = [] if args.no_sensors else read_readings(path)
+    spec = load_spec(args.spec) if args.spec else None
+    readings = [] if args.no_sensors else read_readings(path, spec)
     if args.rate < 0:
         raise ValueError(f"--rate {args.rate}: expected >= 0")
     messages = interleave(strokes, readings, args.start)

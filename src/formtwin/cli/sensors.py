@@ -71,10 +71,10 @@ def run(args: argparse.Namespace) -> int:
             b = set_bound(lin, sensor_rows(lin, chosen, spec.state.names, noise))
             final[name].append(b.final)
             states[name].append(b.states.tolist())
-    names = spec.state.names
-    head = f"{'sensor set':<22}{'final angle':>12}  " + "".join(f"{n[:10]:>11}" for n in names)
+    names, output = spec.state.names, spec.output_names[-1]  # the last: the final output
+    head = f"{'sensor set':<22}{output[:12]:>12}  " + "".join(f"{n[:10]:>11}" for n in names)
     print(f"bound over {args.realisations} lines (seed {args.seed}): posterior std over "
-          "the in-run std (final angle) and over sigma (states)")
+          f"the in-run std ({output}) and over sigma (states)")
     print(head)
     print("-" * len(head))
     table = {}
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"assumptions: {ASSUMPTIONS}")
     out.mkdir(parents=True, exist_ok=True)
     (out / "sensors.json").write_text(json.dumps(
-        {"bound": table, "assumptions": ASSUMPTIONS, "seed": args.seed,
+        {"bound": table, "output": output, "assumptions": ASSUMPTIONS, "seed": args.seed,
          "realisations": args.realisations}, indent=2) + "\n", encoding="utf-8")
     print(f"-> {out / 'sensors.json'}")
     return 0

@@ -57,7 +57,7 @@ import numpy as np
 from formtwin.service.messages import MessageError, dumps, error_message
 from formtwin.service.readings import SENSOR_SCHEMA, Reading, parse_reading
 from formtwin.service.store import Store
-from formtwin.spec.sensors import value_refusal
+from formtwin.spec.sensors import final_output, value_refusal
 from formtwin.tracker._fusion_kernels import load_kernels
 from formtwin.tracker.ahead import refusal
 from formtwin.tracker.fusion import FusionError
@@ -72,8 +72,6 @@ HOLD_COUNT = 64
 #: a held value whose curve has not come after this many more products is expired
 HOLD_PRODUCTS = 32
 
-#: the model output a camera measures (the final angle)
-FINAL = "angle_stage2"
 #: accepted products whose step index, setting and final-angle prediction a
 #: :class:`SensorDesk` keeps in memory (older ones are read from the store)
 RECENT = 64
@@ -100,7 +98,7 @@ def issue(tracker: Any, u: Any) -> dict[str, Any] | None:
     after its step (and again in the same place by a replay: it records the interval its
     camera value will score): ``{"predicted_deg", "interval90_deg"}``, or None when no
     sensor of the final angle is fused."""
-    if not any(s.measures == FINAL for s in fused_sensors(tracker)):
+    if not any(s.measures == final_output(tracker.spec) for s in fused_sensors(tracker)):
         return None
     final, (lo, hi) = tracker.issue_final(u)
     ok = all(math.isfinite(v) for v in (final, lo, hi))
@@ -258,7 +256,8 @@ class SensorDesk:
                                "sensor": r.sensor, "value": r.value, "index": index}
         if r.timestamp is not None:
             msg["timestamp"] = r.timestamp
-        if self.sensors[r.sensor].measures == FINAL and estimate is not None:
+        if self.sensors[r.sensor].measures == final_output(self.tracker.spec) \
+                and estimate is not None:
             final = estimate.get("final") or {}
             msg["predicted_deg"] = final.get("predicted_deg")
             msg["interval90_deg"] = final.get("interval90_deg")
@@ -337,7 +336,7 @@ class SensorDesk:
         for rid, sensor, value, text in held:
             msg = dict(json.loads(text), index=index)
             at = seq
-            if self.sensors[str(sensor)].measures == FINAL:
+            if self.sensors[str(sensor)].measures == final_output(self.tracker.spec):
                 msg.update({k: v for k, v in self._answer(
                     Reading(part_id, str(sensor), float(value)), index, est).items()
                     if k in ("predicted_deg", "interval90_deg")})

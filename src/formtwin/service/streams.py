@@ -238,13 +238,17 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
         spec = load_spec()
     delays = {s.name: s.delay if s.delay or s.kind != "state" else -1
               for s in line_sensors(spec)}
+    unknown = sorted(set(values) - set(delays))
+    if unknown:
+        raise ValueError(f"{p}: sensor_{unknown[0]}: not a sensor of spec {spec.name!r} "
+                         f"(its sensors: {', '.join(delays) or 'none'}; --spec)")
     strokes = read_stream(p)
     n, ids = len(strokes), [s.part_id for s in strokes]
     out: list[tuple[int, Reading]] = []
     for name, vals in values.items():
         for i, v in enumerate(vals[:n]):
             if np.isfinite(v):
-                out.append((min(i + delays.get(name, 0), n - 1), Reading(ids[i], name, float(v))))
+                out.append((min(i + delays[name], n - 1), Reading(ids[i], name, float(v))))
     out.sort(key=lambda t: t[0])  # stable: by product within a position
     return out
 

@@ -76,6 +76,12 @@ def output_names(spec: ProcessSpec | None = None) -> tuple[str, ...]:
     return OUTPUTS if spec is None else spec.output_names
 
 
+def final_output(spec: ProcessSpec | None = None) -> str:
+    """The output a camera's values calibrate and teach the discrepancy of: the spec's last
+    (the demonstrator's final angle ``angle_stage2``)."""
+    return output_names(spec)[-1]
+
+
 def output_column(spec: ProcessSpec | None, name: str) -> int:
     """Column of output ``name`` in the model's output (angle) array; ``KeyError``
     naming the known outputs."""
@@ -212,5 +218,5 @@ def value_refusal(spec: ProcessSpec, sensor: Sensor, value: Any, offset: Any = 0
     return None
 
 
-__all__ = ["ANGLE_UNITS", "OUTPUTS", "RANGE_MARGIN", "Sensor", "line_sensors", "output_column",
-           "output_names", "parse_sensors", "sensor_by_name", "value_refusal"]
+__all__ = ["ANGLE_UNITS", "OUTPUTS", "RANGE_MARGIN", "Sensor", "final_output", "line_sensors",
+           "output_column", "output_names", "parse_sensors", "sensor_by_name", "value_refusal"]

@@ -35,7 +35,6 @@ from numpy.typing import NDArray
 from formtwin.measurement import ProcessModel
 from formtwin.monitoring.bound import curve_jacobian
 from formtwin.spec import Sensor
-from formtwin.spec.sensors import output_column
 from formtwin.tracker import TrackerConfig, build_measurement
 
 FloatArray = NDArray[np.float64]
@@ -113,14 +112,25 @@ def final_bound(J: FloatArray, R: FloatArray, g: FloatArray, rho: FloatArray,
 @dataclass(frozen=True)
 class Linearised:
     """The process linearised about a line's ``mu`` and ``theta``: curve Jacobian ``J``
-    (n_t, n_x), output gradients ``G`` (n_outputs, n_x) (degrees per internal unit), the
-    likelihood covariance ``R`` (n_t, n_t), and the state's ``rho``, ``sigma`` (n_x,)."""
+    (n_t, n_x), output gradients ``G`` (n_outputs, n_x) (output unit per internal unit), the
+    likelihood covariance ``R`` (n_t, n_t), the state's ``rho``, ``sigma`` (n_x,), and the
+    spec's output names (the rows of ``G``; the last: the final output)."""
 
     J: FloatArray
     G: FloatArray
     R: FloatArray
     rho: FloatArray
     sigma: FloatArray
+    outputs: tuple[str, ...] = ("angle_stage1", "angle_stage2")
+
+    def gradient(self, output: str | None = None) -> FloatArray:
+        """``G``'s row of ``output`` (None: the last output); ``KeyError`` naming the
+        outputs."""
+        name = self.outputs[-1] if output is None else output
+        if name not in self.outputs:
+            raise KeyError(f"no model output {name!r}; known: {', '.join(self.outputs)}")
+        row: FloatArray = self.G[self.outputs.index(name)]
+        return row
 
 
 def linearise(model: ProcessModel, mu: FloatArray, theta: FloatArray, seed: int = 0,
@@ -139,7 +149,8 @@ def linearise(model: ProcessModel, mu: FloatArray, theta: FloatArray, seed: int 
     G = (diff / (2.0 * h[:, None])).T
     config = TrackerConfig(mu=tuple(float(v) for v in mu), likelihood="paper", n_mc=n_mc)
     R = build_measurement(model, config, np.random.default_rng([seed, 7919, 1])).covariance()
-    return Linearised(J, G, np.asarray(R, dtype=np.float64), rho, sigma)
+    return Linearised(J, G, np.asarray(R, dtype=np.float64), rho, sigma,
+                      tuple(model.spec.output_names))
 
 
 def sensor_rows(lin: Linearised, sensors: Sequence[Sensor], spec_names: Sequence[str],
@@ -152,17 +163,17 @@ def sensor_rows(lin: Linearised, sensors: Sequence[Sensor], spec_names: Sequence
             h = np.zeros(lin.sigma.size)
             h[list(spec_names).index(s.measures)] = 1.0
         else:
-            h = lin.G[output_column(None, s.measures)]
+            h = lin.gradient(s.measures)
         sd = (noise or {}).get(s.name, s.noise)
         out.append(SensorRow(h, float(sd) ** 2 + 1e-30, s.delay))
     return out
 
 
-def set_bound(lin: Linearised, rows: Sequence[SensorRow], output: str = "angle_stage2"
+def set_bound(lin: Linearised, rows: Sequence[SensorRow], output: str | None = None
               ) -> Bound:
-    """:func:`final_bound` of the linearised line with ``rows``, for ``output``'s error."""
-    g = lin.G[output_column(None, output)]
-    return final_bound(lin.J, lin.R, g, lin.rho, lin.sigma, rows)
+    """:func:`final_bound` of the linearised line with ``rows``, for ``output``'s error
+    (None: the spec's last output, the demonstrator's final angle)."""
+    return final_bound(lin.J, lin.R, lin.gradient(output), lin.rho, lin.sigma, rows)
 
 
 __all__ = ["Bound", "Linearised", "SensorRow", "final_bound", "linearise", "sensor_rows",

@@ -33,14 +33,14 @@ from formtwin.estimates import Estimate, Estimates
 from formtwin.filters import SIR, Step, make_filter
 from formtwin.filters.resampling import systematic
 from formtwin.measurement import MeasurementModel, ProcessModel
-from formtwin.spec.sensors import output_column
+from formtwin.spec.sensors import final_output, output_column
 from formtwin.tracker import state as _state
 from formtwin.tracker._kernels import angle_moments, cloud_moments, select_heaviest
 from formtwin.tracker.ahead import ahead_columns
 from formtwin.tracker.config import SCALES, TrackerConfig
 from formtwin.tracker.final_angles import FinalAngles
 from formtwin.tracker.fit import FitRule, assess
-from formtwin.tracker.fusion import FINAL, FusedLog, SensorFusion, used_sensors
+from formtwin.tracker.fusion import FusedLog, SensorFusion, used_sensors
 from formtwin.tracker.intervals import Floors
 from formtwin.tracker.sandwich import STATE_KEYS, Sandwich
 from formtwin.tracker.ssm import BendingSSM
@@ -133,7 +133,7 @@ class Tracker(SensorFusion):
         self.sensors = used_sensors(self.spec, self.config)
         #: with a camera: the particles' final angles and their ancestors', from the step
         self.finals = FinalAngles(self.ssm.lag_depth, len(self.spec.controls)) \
-            if any(s.measures == FINAL for s in self.sensors) else None
+            if any(s.measures == final_output(self.spec) for s in self.sensors) else None
         self._config_dict: dict[str, Any] | None = None
         self._fingerprint: str | None = None
 
@@ -294,7 +294,7 @@ class Tracker(SensorFusion):
         n = s.x.shape[0]
         own = np.full(n, np.nan)
         if rows is not None:
-            own[rows] = angles[:, output_column(self.spec, FINAL)]
+            own[rows] = angles[:, output_column(self.spec, final_output(self.spec))]
         start, width = self.ssm.lag_start, self.ssm.n_in
         same = parents is not None and parents.shape[0] == n and self.ssm.lag_depth > 0 \
             and np.array_equal(s.x[:, start:start + width], parents[:, :width])

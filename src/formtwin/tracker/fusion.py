@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from formtwin.filters.lagged import distinct_rows, lagged, shift
 from formtwin.spec import ProcessSpec
-from formtwin.spec.sensors import Sensor, line_sensors, output_column, value_refusal
+from formtwin.spec.sensors import Sensor, final_output, line_sensors, output_column, value_refusal
 from formtwin.tracker._fusion_kernels import normal_reweight, weighted_moments
 from formtwin.tracker.ahead import fuse_ahead, refusal
 from formtwin.tracker.angle_discrepancy import AngleDiscrepancy
@@ -57,8 +57,6 @@ FloatArray = NDArray[np.float64]
 #: log sqrt(2 pi), as ``scipy.stats.norm`` has it
 _LOG_SQRT_2PI = np.log(np.sqrt(2 * np.pi))
 
-#: the model output whose interval the fused camera values calibrate (the final angle)
-FINAL = "angle_stage2"
 
 
 class FusionError(ValueError):
@@ -198,7 +196,7 @@ class SensorFusion:
             pred, var = x[:, self.spec.state.index[s.measures]], 0.0
         else:
             col = self._column(s.measures)
-            if s.measures == FINAL and self.finals is not None:  # kept from the step
+            if s.measures == final_output(self.spec) and self.finals is not None:
                 pred = self.finals.column(newest - int(product), uu, x,
                                           lambda r: self.ssm.predict_angles(r, uu)[:, col])
             else:
@@ -208,7 +206,7 @@ class SensorFusion:
         if not sd > 0:
             raise FusionError(f"fuse: {sensor} has noise 0 and the model no error: the "
                               "likelihood is degenerate (give the sensor a noise)")
-        learn = s.measures == FINAL and self.config.camera_discrepancy
+        learn = s.measures == final_output(self.spec) and self.config.camera_discrepancy
         if learn:  # the model's angle as the camera sees it: the learned discrepancy
             d = self.fused.learned(sd**2)
             if math.isfinite(d.ref):
@@ -219,7 +217,7 @@ class SensorFusion:
                              f"{sensor} of product {product}")
         self.fused.done = {d for d in self.fused.done if d[0] >= newest - depth}
         self.fused.done.add((int(product), sensor))
-        if s.measures == FINAL:  # how good was the prediction issued for it
+        if s.measures == final_output(self.spec):  # how good was the prediction issued
             self.fused.conformal.update(int(product), float(value))
             if learn:
                 self.fused.learned(sd**2).update_product(int(product), float(value))
@@ -260,7 +258,7 @@ class SensorFusion:
         astd = np.sqrt(np.maximum(w @ (a - am) ** 2, 0.0) + self.ssm.angle_error())
         final, lo, hi = math.nan, math.nan, math.nan
         if self.finals is not None:
-            col = self._column(FINAL)
+            col = self._column(final_output(self.spec))
             final, (lo, hi) = self._final_interval(float(am[col]), float(astd[col]), False)
         return Posterior(mean, std, am, astd, float(1.0 / np.sum(w * w)), (lo, hi), final)
 
@@ -279,7 +277,7 @@ class SensorFusion:
             raise RuntimeError("issue_final: no particles yet (call step first)")
         if self.finals is None:
             return math.nan, (math.nan, math.nan)
-        uu, col = validate_controls(u, self.spec), self._column(FINAL)
+        uu, col = validate_controls(u, self.spec), self._column(final_output(self.spec))
         a = self.finals.column(0, uu, self.filter.x[:, :self.ssm.n_in],
                                lambda r: self.ssm.predict_angles(r, uu)[:, col])
         self.finals.fill_own(a)
@@ -299,12 +297,12 @@ class SensorFusion:
         and its ``std`` (degrees); ``record``: remember them for the product's camera
         value (:meth:`issue_final`), else a report. ``model_var``: the metamodel's final
         angle error variance (degrees^2) when the caller has it."""
-        camera = next(s for s in self.sensors if s.measures == FINAL)
+        camera = next(s for s in self.sensors if s.measures == final_output(self.spec))
         t = self.filter.t - 1
         sd = math.sqrt(std**2 + camera.noise**2)
         if self.config.camera_discrepancy:
             if model_var is None:
-                model_var = float(self.ssm.angle_error()[self._column(FINAL)])
+                model_var = float(self.ssm.angle_error()[self._column(final_output(self.spec))])
             noise = camera.noise**2 + model_var
             if record:
                 final, var = self.fused.learned(noise).issue(t, final)
