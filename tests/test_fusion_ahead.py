@@ -193,3 +193,33 @@ def test_only_the_next_products_state_variable() -> None:
         with pytest.raises(FusionError, match="not yet seen"):
             tr.fuse(*args)  # type: ignore[arg-type]
     assert tr.state_bytes() == before
+
+
+def test_value_ahead_enters_the_intervals_assumed_mu_term() -> None:
+    """With mu assumed, the reported std adds the estimate's error from the mu offset
+    (tracker/sandwich.py: the linearised filter's sensitivity ``G_mu``). A gauge value in
+    the step is a measurement of thickness in that linearised step too: thickness's term
+    falls to a few percent (it follows the gauge, not the assumed mu), yield stress's,
+    which the gauge does not see, stays."""
+    curves, gauge = _line(40)
+    terms = {}
+    for tag in ("curve", "gauge"):
+        tr = _tracker()
+        assert tr.sandwich is not None and tr.sandwich.mu_half.size
+        got = []
+        update = tr.sandwich.update
+
+        def keep(*a: Any, update: Any = update, got: list[Any] = got) -> Any:
+            var, avar = update(*a)
+            got.append(var.copy())
+            return var, avar
+
+        tr.sandwich.update = keep  # type: ignore[method-assign]
+        for k in range(40):
+            if tag == "gauge" and k > 0:
+                tr.fuse(k, "gauge", float(gauge[k]))
+            tr.step(curves[k])
+        terms[tag] = np.median(np.array(got)[10:], axis=0)
+    j = analytic_model().spec.state.index["thickness"]
+    assert terms["gauge"][j] < 0.05 * terms["curve"][j]
+    assert 0.8 < terms["gauge"][0] / terms["curve"][0] < 1.25  # yield stress

@@ -211,15 +211,20 @@ class Sandwich:
             self._refresh(mean, np.sqrt(np.maximum(np.diag(P), 0.0)), y, u)
         assert self.J is not None and self.Ja is not None
         if self._j_finite and finite:
+            info, s_inv_j = self._information()
+            if self.ssm.ahead:  # a state variable's value in this step: its information too
+                info = info.copy()
+                for j, (_, r2) in self.ssm.ahead.items():
+                    info[j, j] += 1.0 / r2
             if self.k_half.size:  # the gain K too: one LAPACK solve for both terms
-                M, K = _gains(self.P, *self._information(), self.F, self.Q)
+                M, K = _gains(self.P, info, s_inv_j, self.F, self.Q)
                 assert K is not None
                 self.G = _next_G(M, K, self.F, self.G)
                 if self.mu_half.size:
                     self.G_mu = _next_G_mu(M, self.F, self.G_mu, self._drive)
             elif self.mu_half.size:  # G_mu alone: one kernel solves for it
-                self.G_mu, ok = mu_gain_step(self.P, self._information()[0], self.F,
-                                             self.Q, self.G_mu, self._drive)
+                self.G_mu, ok = mu_gain_step(self.P, info, self.F, self.Q, self.G_mu,
+                                             self._drive)
                 if not ok:  # singular in floating point: NumPy's error, as before
                     raise np.linalg.LinAlgError("Singular matrix")
             self.P = P
