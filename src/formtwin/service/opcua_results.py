@@ -19,7 +19,8 @@ product); a rejected or gated message sets ``LastError``. The address space (nam
         LastAlarm String (the alarm message, JSON), LastError String (reason: detail)
 
 The service's thread only queues each product's values (no waiting); one task of the
-server's event loop writes them in order.
+server's event loop writes them in order (0.3-0.6 ms of CPU per product for the demonstrator's
+18 variables and 2 outputs). The server has no security (mode None, anonymous clients).
 """
 
 from __future__ import annotations
@@ -144,6 +145,8 @@ class ResultsServer:
         await server.init()
         server.set_endpoint(self.url)
         server.set_server_name("formtwin estimates")
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])  # read-only, anonymous
+        server.set_identity_tokens([ua.AnonymousIdentityToken])
         ns = await server.register_namespace(NAMESPACE)
         root = await server.nodes.objects.add_object(ns, "Formtwin")
         folders: dict[str, Any] = {"": root}
