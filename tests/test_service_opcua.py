@@ -278,6 +278,15 @@ def test_source_options_are_checked_before_the_start(tmp_path: Path) -> None:
         opcua_source(Namespace(source="opc.tcp://press:4840", opcua_map=str(f)))
     src = opcua_source(Namespace(source="opc.tcp://press:4840", opcua_map=None))
     assert src.mapping == OpcUaMapping() and src.url == "opc.tcp://press:4840"
+    from formtwin.cli.source import opcua_results
+
+    none = Namespace(opcua_results=None, opcua_results_security=None, opcua_results_users=None)
+    assert opcua_results(none, None) is None
+    with pytest.raises(ValueError, match="need --opcua-results URL"):
+        opcua_results(Namespace(**{**vars(none), "opcua_results_users": "u.txt"}), None)
+    with pytest.raises(ValueError, match="expected CERT,KEY"):
+        opcua_results(Namespace(**{**vars(none), "opcua_results": "opc.tcp://h:4841",
+                                   "opcua_results_security": "cert.der"}), None)
 
 
 def test_sensor_nodes_are_fused_as_sensor_messages(mosquitto: Mosquitto,  # noqa: F811

@@ -4,6 +4,7 @@ server reads equals the outcome's message, an error sets LastError, bad URLs are
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -79,3 +80,58 @@ def test_bad_url_and_taken_port_are_named() -> None:
             ResultsServer(url, NAMES, OUTPUTS).start()
     finally:
         server.stop()
+
+
+def test_a_secured_server_reads_only_to_its_users(tmp_path: Path) -> None:
+    """With a certificate and users: a client that signs, encrypts and logs in reads the
+    product; one with a wrong password or without security is refused."""
+    import asyncio
+
+    from asyncua import Client
+
+    from formtwin.service.opcua_press import self_signed
+    from formtwin.service.opcua_results import NAMESPACE, read_users
+
+    certs = {}
+    for who, uri in (("server", "urn:freeopcua:python:server"),
+                     ("client", "urn:formtwin:client")):
+        certs[who] = (str(tmp_path / f"{who}_cert.der"), str(tmp_path / f"{who}_key.pem"))
+        self_signed(certs[who][1], certs[who][0], uri, server=who == "server")
+    users = tmp_path / "users.txt"
+    users.write_text("# who may read\nplc:s3cret\n", encoding="utf-8")
+    assert read_users(users) == {"plc": "s3cret"}
+    url = f"opc.tcp://127.0.0.1:{free_port()}/formtwin"
+    server = ResultsServer(url, NAMES, OUTPUTS, certs["server"], read_users(users)).start()
+
+    async def read_part(password: str | None) -> Any:
+        client = Client(url, timeout=10)
+        if password is not None:
+            client.application_uri = "urn:formtwin:client"
+            await client.set_security_string(
+                f"Basic256Sha256,SignAndEncrypt,{certs['client'][0]},{certs['client'][1]}")
+            client.set_user("plc")
+            client.set_password(password)
+        async with client:
+            ns = await client.get_namespace_index(NAMESPACE)
+            node = await client.nodes.objects.get_child([f"{ns}:Formtwin", f"{ns}:PartId"])
+            return await node.read_value()
+
+    try:
+        server.on_outcome(Outcome("accepted", _message("P-9", 9, 0.3)))
+        import time
+
+        deadline = time.monotonic() + 10
+        while server.written < 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert asyncio.run(read_part("s3cret")) == "P-9"
+        for password, why in (("wrong", "BadUserAccessDenied"), (None, "No matching endpoints")):
+            with pytest.raises(Exception, match=why):
+                asyncio.run(read_part(password))
+    finally:
+        server.stop()
+    bad = tmp_path / "bad.txt"
+    bad.write_text("plc s3cret\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="line 1: expected user:password"):
+        read_users(bad)
+    with pytest.raises(ValueError, match="no such file"):
+        ResultsServer(url, NAMES, OUTPUTS, ("nope.der", "nope.pem"))

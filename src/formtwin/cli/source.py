@@ -19,6 +19,12 @@ def add_source_options(p: argparse.ArgumentParser) -> None:
                    help="opc.tcp://HOST:PORT[/PATH]: also serve each product's estimate, "
                    "final angle and suggested setting as OPC UA variables of formtwin's own "
                    "server there (docs/reference/opcua.md), for the line's PLC or SCADA")
+    p.add_argument("--opcua-results-security", metavar="CERT,KEY",
+                   help="the results server's certificate and private key files: then only "
+                   "Basic256Sha256 SignAndEncrypt sessions (default: security mode None)")
+    p.add_argument("--opcua-results-users", metavar="FILE",
+                   help="file of user:password lines: then only these users may read the "
+                   "results (default: anonymous)")
 
 
 def opcua_source(args: argparse.Namespace) -> Any:
@@ -55,13 +61,23 @@ def opcua_results(args: argparse.Namespace, proc: Any) -> Any:
     """The started OPC UA results server of ``--opcua-results``, listening to ``proc``'s
     outcomes after its other listener, or None without the option."""
     if not args.opcua_results:
+        if args.opcua_results_security or args.opcua_results_users:
+            raise ValueError("--opcua-results-security/-users need --opcua-results URL")
         return None
     from formtwin.cli.options import model_spec
-    from formtwin.service.opcua_results import ResultsServer
+    from formtwin.service.opcua_results import ResultsServer, read_users
 
+    cert = None
+    if args.opcua_results_security:
+        parts = [f.strip() for f in args.opcua_results_security.split(",")]
+        if len(parts) != 2:
+            raise ValueError(f"--opcua-results-security {args.opcua_results_security!r}: "
+                             "expected CERT,KEY")
+        cert = (parts[0], parts[1])
+    users = read_users(args.opcua_results_users) if args.opcua_results_users else None
     spec = getattr(proc.tracker, "spec", None) or model_spec(args)
     results = ResultsServer(args.opcua_results, tuple(proc.tracker_names()),
-                            tuple(o.name for o in spec.outputs)).start()
+                            tuple(o.name for o in spec.outputs), cert, users).start()
     results.listener, proc.on_outcome = proc.on_outcome, results.on_outcome
     print(f"estimates also as OPC UA variables: {args.opcua_results}", flush=True)
     return results

@@ -27,6 +27,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from formtwin.service.messages import Stroke
+from formtwin.service.opcua_results import user_manager
 
 NAMESPACE = "urn:formtwin:press"
 
@@ -51,20 +52,6 @@ def self_signed(key: str, certificate: str, uri: str, server: bool = False) -> N
     asyncio.run(setup_self_signed_certificate(
         Path(key), Path(certificate), uri, socket.gethostname(), usage,
         {"countryName": "NL", "organizationName": "formtwin"}))
-
-
-def _user_manager(users: dict[str, str]) -> Any:
-    """An asyncua user manager accepting the user name -> password pairs ``users`` only."""
-    from asyncua.crypto.permission_rules import User, UserRole
-    from asyncua.server.user_managers import UserManager
-
-    class Users(UserManager):
-        def get_user(self, iserver: Any, username: str | None = None,
-                     password: str | None = None, certificate: Any = None) -> User | None:
-            ok = username is not None and users.get(username) == password
-            return User(role=UserRole.User) if ok else None
-
-    return Users()
 
 
 class SimulatedPress:
@@ -151,7 +138,7 @@ class SimulatedPress:
         from asyncua.server.server import Server
 
         server = Server(user_manager=None if self.users is None else
-                        _user_manager(self.users))
+                        user_manager(self.users))
         await server.init()
         server.set_endpoint(self.url)
         server.set_server_name("formtwin simulated press")

@@ -20,7 +20,8 @@ product); a rejected or gated message sets ``LastError``. The address space (nam
 
 The service's thread only queues each product's values (no waiting); one task of the
 server's event loop writes them in order (0.3-0.6 ms of CPU per product for the demonstrator's
-18 variables and 2 outputs). The server has no security (mode None, anonymous clients).
+18 variables and 2 outputs). Security: none (mode None, anonymous clients), or with a
+certificate only signed and encrypted sessions, with users only those users.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import logging
 import math
 import threading
 from datetime import UTC
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -45,12 +47,22 @@ class ResultsServer:
     """An asyncua server at ``url`` (``opc.tcp://HOST:PORT[/PATH]``) holding the last
     product's estimate of a service with augmented variables ``names`` and outputs
     ``outputs`` (names), in a thread of its own. :meth:`on_outcome` is the processor's
-    listener; ``listener`` (another one, e.g. the live page's) is called first."""
+    listener; ``listener`` (another one, e.g. the live page's) is called first.
 
-    def __init__(self, url: str, names: tuple[str, ...], outputs: tuple[str, ...]) -> None:
+    ``certificate`` (certificate and private key files): only Basic256Sha256
+    SignAndEncrypt sessions; ``users`` (name -> password): only these users. Neither:
+    security mode None, anonymous clients."""
+
+    def __init__(self, url: str, names: tuple[str, ...], outputs: tuple[str, ...],
+                 certificate: tuple[str, str] | None = None,
+                 users: dict[str, str] | None = None) -> None:
         parts = urlsplit(url)
         if parts.scheme != "opc.tcp" or not parts.hostname or not parts.port:
             raise ValueError(f"--opcua-results {url!r}: expected opc.tcp://HOST:PORT[/PATH]")
+        for f in certificate or ():
+            if not Path(f).is_file():
+                raise ValueError(f"--opcua-results-security: no such file {f!r}")
+        self.certificate, self.users = certificate, users
         self.url, self.names, self.outputs = url, tuple(names), tuple(outputs)
         self.listener: Any = None
         self.written = 0  #: products written (for tests and the status line)
@@ -141,12 +153,18 @@ class ResultsServer:
         from asyncua import ua
         from asyncua.server.server import Server
 
-        server = Server()
+        server = Server(user_manager=None if self.users is None else user_manager(self.users))
         await server.init()
         server.set_endpoint(self.url)
         server.set_server_name("formtwin estimates")
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])  # read-only, anonymous
-        server.set_identity_tokens([ua.AnonymousIdentityToken])
+        if self.certificate is None:
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        else:
+            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+            await server.load_certificate(self.certificate[0])
+            await server.load_private_key(self.certificate[1])
+        server.set_identity_tokens([ua.AnonymousIdentityToken] if self.users is None
+                                   else [ua.UserNameIdentityToken])
         ns = await server.register_namespace(NAMESPACE)
         root = await server.nodes.objects.add_object(ns, "Formtwin")
         folders: dict[str, Any] = {"": root}
@@ -216,9 +234,37 @@ class ResultsServer:
         await asyncio.gather(*tasks, return_exceptions=True)
 
 
+def user_manager(users: dict[str, str]) -> Any:
+    """An asyncua user manager accepting the user name -> password pairs ``users`` only."""
+    from asyncua.crypto.permission_rules import User, UserRole
+    from asyncua.server.user_managers import UserManager
+
+    class Users(UserManager):
+        def get_user(self, iserver: Any, username: str | None = None,
+                     password: str | None = None, certificate: Any = None) -> User | None:
+            ok = username is not None and users.get(username) == password
+            return User(role=UserRole.User) if ok else None
+
+    return Users()
+
+
+def read_users(path: str | Path) -> dict[str, str]:
+    """``user:password`` lines of a file (blank lines and ``#`` comments skipped);
+    ``ValueError`` naming a line that is not one."""
+    users: dict[str, str] = {}
+    for i, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        name, sep, password = line.partition(":")
+        if not sep or not name.strip() or not password:
+            raise ValueError(f"{path}: line {i}: expected user:password")
+        users[name.strip()] = password
+    return users
+
+
 def _num(v: Any) -> float:
     """A message's number as a Double (null: NaN)."""
     return math.nan if v is None else float(v)
 
 
-__all__ = ["NAMESPACE", "ResultsServer"]
+__all__ = ["NAMESPACE", "ResultsServer", "read_users", "user_manager"]
