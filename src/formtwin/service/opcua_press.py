@@ -20,24 +20,15 @@ empty one on the same port, as a press restarting its OPC UA server would.
 from __future__ import annotations
 
 import asyncio
-import threading
 from datetime import UTC
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 from formtwin.service.messages import Stroke
-from formtwin.service.opcua_results import user_manager
+from formtwin.service.opcua_server import LoopThread, make_server
 
 NAMESPACE = "urn:formtwin:press"
-
-
-async def _cancel_pending() -> None:
-    """Cancel the server's leftover tasks (session timeouts) before the loop stops."""
-    tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
-    for t in tasks:
-        t.cancel()
-    await asyncio.gather(*tasks, return_exceptions=True)
 
 
 def self_signed(key: str, certificate: str, uri: str, server: bool = False) -> None:
@@ -82,19 +73,14 @@ class SimulatedPress:
         self.sensors = tuple(sensors)
         self.host, self.port = host, port
         self.url = f"opc.tcp://{host}:{port}{path}"
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
+        self._loop = LoopThread("formtwin-sim-press")
         self._server: Any = None
         self._nodes: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> SimulatedPress:
         """Start the event loop thread (once) and the server; return self."""
-        if self._loop is None:
-            self._loop = asyncio.new_event_loop()
-            self._thread = threading.Thread(target=self._loop.run_forever, daemon=True,
-                                            name="formtwin-sim-press")
-            self._thread.start()
+        self._loop.start()
         self._call(self._start())
         return self
 
@@ -115,13 +101,7 @@ class SimulatedPress:
     def close(self) -> None:
         """Stop the server and the thread."""
         self.stop()
-        if self._loop is not None:
-            self._call(_cancel_pending())
-            self._loop.call_soon_threadsafe(self._loop.stop)
-            if self._thread is not None:
-                self._thread.join(10.0)
-            self._loop.close()
-            self._loop = None
+        self._loop.close()
 
     def __enter__(self) -> SimulatedPress:
         return self.start()
@@ -130,24 +110,13 @@ class SimulatedPress:
         self.close()
 
     def _call(self, coro: Any, timeout: float = 30.0) -> Any:
-        assert self._loop is not None
-        return asyncio.run_coroutine_threadsafe(coro, self._loop).result(timeout)
+        return self._loop.call(coro, timeout)
 
     async def _start(self) -> None:
         from asyncua import ua
-        from asyncua.server.server import Server
 
-        server = Server(user_manager=None if self.users is None else
-                        user_manager(self.users))
-        await server.init()
-        server.set_endpoint(self.url)
-        server.set_server_name("formtwin simulated press")
-        if self.certificate is not None:
-            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
-            await server.load_certificate(self.certificate[0])
-            await server.load_private_key(self.certificate[1])
-        if self.users is not None:
-            server.set_identity_tokens([ua.UserNameIdentityToken])
+        server = await make_server(self.url, "formtwin simulated press", self.certificate,
+                                   self.users)
         ns = await server.register_namespace(NAMESPACE)
         press = await server.nodes.objects.add_object(ns, "Press")
         info = await press.add_object(ns, "PartInformation")

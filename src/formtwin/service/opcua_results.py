@@ -30,12 +30,12 @@ import asyncio
 import json
 import logging
 import math
-import threading
 from datetime import UTC
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+from formtwin.service.opcua_server import LoopThread, make_server
 from formtwin.service.processor import Outcome
 
 log = logging.getLogger(__name__)
@@ -66,8 +66,7 @@ class ResultsServer:
         self.url, self.names, self.outputs = url, tuple(names), tuple(outputs)
         self.listener: Any = None
         self.written = 0  #: products written (for tests and the status line)
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
+        self._loop = LoopThread("formtwin-opcua-results")
         self._server: Any = None
         self._queue: asyncio.Queue[list[tuple[str, Any, str]]] | None = None
         self._writer: asyncio.Task[None] | None = None
@@ -75,12 +74,9 @@ class ResultsServer:
 
     def start(self) -> ResultsServer:
         """Start the server in its thread; return self (``OSError`` if the port is taken)."""
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, daemon=True,
-                                        name="formtwin-opcua-results")
-        self._thread.start()
+        self._loop.start()
         try:
-            asyncio.run_coroutine_threadsafe(self._start(), self._loop).result(30.0)
+            self._loop.call(self._start())
         except Exception:
             self.stop()
             raise
@@ -88,23 +84,17 @@ class ResultsServer:
 
     def stop(self) -> None:
         """Write what is queued, stop the server and its thread."""
-        loop = self._loop
-        if loop is None:
-            return
-        asyncio.run_coroutine_threadsafe(self._stop(), loop).result(30.0)
-        loop.call_soon_threadsafe(loop.stop)
-        if self._thread is not None:
-            self._thread.join(10.0)
-        loop.close()
-        self._loop = None
+        if self._loop.loop is not None:
+            self._loop.call(self._stop())
+            self._loop.close()
 
     def on_outcome(self, out: Outcome) -> None:
         """Queue the outcome's values for the server (called by the processor)."""
         if self.listener is not None:
             self.listener(out)
         values = self.values(out)
-        if values and self._loop is not None and self._queue is not None:
-            self._loop.call_soon_threadsafe(self._queue.put_nowait, values)
+        if values and self._loop.loop is not None and self._queue is not None:
+            self._loop.post(self._queue.put_nowait, values)
 
     def values(self, out: Outcome) -> list[tuple[str, Any, str]]:
         """``(node key, value, OPC UA type)`` of an outcome, in the order they are written."""
@@ -151,20 +141,8 @@ class ResultsServer:
     # ------------------------------------------------------------------ the loop's side
     async def _start(self) -> None:
         from asyncua import ua
-        from asyncua.server.server import Server
 
-        server = Server(user_manager=None if self.users is None else user_manager(self.users))
-        await server.init()
-        server.set_endpoint(self.url)
-        server.set_server_name("formtwin estimates")
-        if self.certificate is None:
-            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
-        else:
-            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
-            await server.load_certificate(self.certificate[0])
-            await server.load_private_key(self.certificate[1])
-        server.set_identity_tokens([ua.AnonymousIdentityToken] if self.users is None
-                                   else [ua.UserNameIdentityToken])
+        server = await make_server(self.url, "formtwin estimates", self.certificate, self.users)
         ns = await server.register_namespace(NAMESPACE)
         root = await server.nodes.objects.add_object(ns, "Formtwin")
         folders: dict[str, Any] = {"": root}
@@ -228,24 +206,6 @@ class ResultsServer:
         if self._server is not None:
             await self._server.stop()
             self._server = None
-        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
-        for t in tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-
-
-def user_manager(users: dict[str, str]) -> Any:
-    """An asyncua user manager accepting the user name -> password pairs ``users`` only."""
-    from asyncua.crypto.permission_rules import User, UserRole
-    from asyncua.server.user_managers import UserManager
-
-    class Users(UserManager):
-        def get_user(self, iserver: Any, username: str | None = None,
-                     password: str | None = None, certificate: Any = None) -> User | None:
-            ok = username is not None and users.get(username) == password
-            return User(role=UserRole.User) if ok else None
-
-    return Users()
 
 
 def read_users(path: str | Path) -> dict[str, str]:
@@ -267,4 +227,4 @@ def _num(v: Any) -> float:
     return math.nan if v is None else float(v)
 
 
-__all__ = ["NAMESPACE", "ResultsServer", "read_users", "user_manager"]
+__all__ = ["NAMESPACE", "ResultsServer", "read_users"]

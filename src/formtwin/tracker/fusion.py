@@ -192,11 +192,12 @@ class SensorFusion:
             self.fused.done.add((int(product), sensor))
             return inc
         x = self.ssm.lagged_inputs(self.filter.x, newest - int(product))
+        camera = s.measures == final_output(self.spec)  # the output it calibrates
         if s.kind == "state":
             pred, var = x[:, self.spec.state.index[s.measures]], 0.0
         else:
             col = self._column(s.measures)
-            if s.measures == final_output(self.spec) and self.finals is not None:
+            if camera and self.finals is not None:
                 pred = self.finals.column(newest - int(product), uu, x,
                                           lambda r: self.ssm.predict_angles(r, uu)[:, col])
             else:
@@ -206,7 +207,7 @@ class SensorFusion:
         if not sd > 0:
             raise FusionError(f"fuse: {sensor} has noise 0 and the model no error: the "
                               "likelihood is degenerate (give the sensor a noise)")
-        learn = s.measures == final_output(self.spec) and self.config.camera_discrepancy
+        learn = camera and self.config.camera_discrepancy
         if learn:  # the model's angle as the camera sees it: the learned discrepancy
             d = self.fused.learned(sd**2)
             if math.isfinite(d.ref):
@@ -217,7 +218,7 @@ class SensorFusion:
                              f"{sensor} of product {product}")
         self.fused.done = {d for d in self.fused.done if d[0] >= newest - depth}
         self.fused.done.add((int(product), sensor))
-        if s.measures == final_output(self.spec):  # how good was the prediction issued
+        if camera:  # how good was the prediction issued for it
             self.fused.conformal.update(int(product), float(value))
             if learn:
                 self.fused.learned(sd**2).update_product(int(product), float(value))
