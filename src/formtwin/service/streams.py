@@ -196,14 +196,25 @@ def read_sensor_values(path: str | Path) -> dict[str, FloatArray]:
     quantity's internal unit (NaN: none): the arrays ``sensor_<name>`` of an ``.npz``, the
     columns ``sensor_<name>`` of a ``.csv`` (an empty cell: none); none in other files.
     ``ValueError`` naming the row and column of a value that is not a number."""
-    p = Path(path)
+    return _sensor_table(Path(path))[1]
+
+
+def _sensor_table(p: Path) -> tuple[list[str], dict[str, FloatArray]]:
+    """The products' part ids (as :func:`read_stream` gives them) and
+    :func:`read_sensor_values`, in one read of the file (no ids without sensor values)."""
     suffix = p.suffix.lower()
     if suffix == ".npz":
         with np.load(p, allow_pickle=False) as z:
-            return {k[len("sensor_"):]: np.asarray(z[k], dtype=np.float64)
-                    for k in sorted(z.files) if k.startswith("sensor_")}
+            values = {k[len("sensor_"):]: np.asarray(z[k], dtype=np.float64)
+                      for k in sorted(z.files) if k.startswith("sensor_")}
+            if not values:
+                return [], {}
+            n = int(z["curves"].shape[0])
+            ids = [str(v) for v in z["part_ids"]] if "part_ids" in z \
+                else _defaults(n, p.stem)[0]
+        return ids, values
     if suffix != ".csv":
-        return {}
+        return [], {}
     with open(p, newline="", encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
     out: dict[str, FloatArray] = {}
@@ -218,7 +229,8 @@ def read_sensor_values(path: str | Path) -> dict[str, FloatArray]:
                     raise ValueError(f"{p}: row {i + 2}, column {col}: {cell!r} is not a "
                                      "number") from None
         out[col[len("sensor_"):]] = vals
-    return out
+    d_ids = _defaults(len(rows), p.stem)[0]
+    return [r.get("part_id") or d_ids[i] for i, r in enumerate(rows)], out
 
 
 def read_readings(path: str | Path, spec: ProcessSpec | None = None
@@ -229,7 +241,7 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
     without delay (a strip gauge, upstream of the press) before its product's stroke:
     ``k`` the product minus one (-1: before the first stroke)."""
     p = Path(path)
-    values = read_sensor_values(p)
+    ids, values = _sensor_table(p)
     if not values:
         return []
     if spec is None:
@@ -242,8 +254,7 @@ def read_readings(path: str | Path, spec: ProcessSpec | None = None
     if unknown:
         raise ValueError(f"{p}: sensor_{unknown[0]}: not a sensor of spec {spec.name!r} "
                          f"(its sensors: {', '.join(delays) or 'none'}; --spec)")
-    strokes = read_stream(p)
-    n, ids = len(strokes), [s.part_id for s in strokes]
+    n = len(ids)
     out: list[tuple[int, Reading]] = []
     for name, vals in values.items():
         for i, v in enumerate(vals[:n]):
